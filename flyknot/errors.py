@@ -1,0 +1,68 @@
+"""One error family for everything flyknot raises on purpose.
+
+Messages name the bad field and, where there is a finite set, list the valid choices.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+
+class FlyknotError(Exception):
+    """Base class of every error flyknot raises on purpose."""
+
+
+class ConfigError(FlyknotError, ValueError):
+    """A parameter, scenario field or command-line value is invalid."""
+
+    def __init__(self, field: str, problem: str, choices: Iterable[object] | None = None):
+        self.field = field
+        self.problem = problem
+        self.choices = None if choices is None else list(choices)
+        msg = f"{field}: {problem}"
+        if self.choices is not None:
+            msg += f" (valid choices: {', '.join(str(c) for c in self.choices)})"
+        super().__init__(msg)
+
+
+class CommandError(FlyknotError, ValueError):
+    """A joint command is malformed (shape, NaN, rate, file format)."""
+
+
+class RecordError(FlyknotError):
+    """A trial record or demonstration file is malformed or incomplete."""
+
+
+class SolverError(FlyknotError):
+    """A numerical solver failed; ``status`` carries the solver's own status text."""
+
+    def __init__(self, solver: str, status: str, detail: str = ""):
+        self.solver = solver
+        self.status = status
+        msg = f"{solver} failed with status {status!r}"
+        if detail:
+            msg += f": {detail}"
+        super().__init__(msg)
+
+
+class HardwareError(FlyknotError):
+    """The real robot or motion capture refused or failed a request."""
+
+
+def check_choice(field: str, value: object, choices: Iterable[object]) -> None:
+    """Raise :class:`ConfigError` if ``value`` is not one of ``choices``."""
+    choices = list(choices)
+    if value not in choices:
+        raise ConfigError(field, f"unknown value {value!r}", choices)
+
+
+def check_positive(field: str, value: float) -> None:
+    """Raise :class:`ConfigError` unless ``value`` is a finite number > 0."""
+    if not (isinstance(value, (int, float)) and value == value and 0 < value < float("inf")):
+        raise ConfigError(field, f"must be a finite number > 0, got {value!r}")
+
+
+def check_nonnegative(field: str, value: float) -> None:
+    """Raise :class:`ConfigError` unless ``value`` is a finite number >= 0."""
+    if not (isinstance(value, (int, float)) and value == value and 0 <= value < float("inf")):
+        raise ConfigError(field, f"must be a finite number >= 0, got {value!r}")
