@@ -1,0 +1,3 @@
+from flyknot.cli import main
+
+raise SystemExit(main())

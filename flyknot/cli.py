@@ -1,0 +1,93 @@
+"""The ``flyknot`` command line: a few subcommands, each reading files plus a few overrides."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from flyknot.errors import FlyknotError
+
+
+def _cmd_knot(args: argparse.Namespace) -> int:
+    from flyknot_sim.knot import classify_centreline, load_centreline
+
+    print(classify_centreline(load_centreline(args.file)))
+    return 0
+
+
+def _cmd_trial(args: argparse.Namespace) -> int:
+    from flyknot.record import JointCommand
+    from flyknot_sim.lab import LabParams, SimLab
+
+    command = JointCommand.load(args.command)
+    lab = SimLab(LabParams(rope=args.rope, seed=args.seed, settle_s=args.settle))
+    record = lab.run(command)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = record.save(out / "trial")
+    summary = {
+        "rope": args.rope,
+        "fault": record.fault,
+        "knot": record.knot,
+        "first_contact_time": record.first_contact_time,
+        "record": str(path),
+    }
+    print(json.dumps(summary) if args.json else "\n".join(f"{k}: {v}" for k, v in summary.items()))
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from flyknot import bench
+
+    return bench.main(args.what, as_json=args.json, ropes=args.ropes, repeats=args.repeats)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``flyknot`` (exposed for tests and docs)."""
+    p = argparse.ArgumentParser(
+        prog="flyknot",
+        description="Learn the overhand flying knot with Task-Level ILC, in a simulated or real lab.",
+    )
+    sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+
+    k = sub.add_parser("knot", help="classify a rope centreline (.npy or .csv, (n, 3))")
+    k.add_argument("file", help="centreline file; first point at the held end")
+    k.set_defaults(func=_cmd_knot)
+
+    t = sub.add_parser("trial", help="run one command on the simulated lab and save its record")
+    t.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
+    t.add_argument("--command", required=True, help="command file (.csv or .npy, see README)")
+    t.add_argument("--out", required=True, help="directory for the trial record")
+    t.add_argument("--seed", type=int, default=0, help="trial-to-trial variation seed")
+    t.add_argument("--settle", type=float, default=1.5, help="settling time after the command [s]")
+    t.add_argument("--json", action="store_true", help="print a JSON summary")
+    t.set_defaults(func=_cmd_trial)
+
+    b = sub.add_parser("bench", help="benchmarks: sim (lab speed per rope), learner")
+    b.add_argument("what", choices=["sim", "learner"])
+    b.add_argument("--json", action="store_true", help="print one JSON object")
+    b.add_argument("--ropes", type=int, nargs="*", default=None, help="rope ids (default all)")
+    b.add_argument("--repeats", type=int, default=1, help="repeats per measurement")
+    b.set_defaults(func=_cmd_bench)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``flyknot`` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except FlyknotError as e:
+        print(f"flyknot: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("flyknot: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
