@@ -39,6 +39,27 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_showcase(args: argparse.Namespace) -> int:
+    from flyknot_sim.commands import swing_command
+    from flyknot_sim.lab import LabParams, SimLab
+
+    lab = SimLab(LabParams(rope=args.rope, seed=args.seed))
+    record = lab.run(swing_command(), progress=True)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = record.save(out / "trial")
+    swing_command().save(out / "command.csv")
+    from flyknot_sim.plots import plot_trial
+
+    fig_path = plot_trial(record, out / "trial.png")
+    print(f"fault: {record.fault}")
+    print(f"knot: {record.knot}")
+    print(f"first self-contact: {record.first_contact_time}")
+    print(f"record: {path}")
+    print(f"figure: {fig_path}")
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from flyknot import bench
 
@@ -65,6 +86,12 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--settle", type=float, default=1.5, help="settling time after the command [s]")
     t.add_argument("--json", action="store_true", help="print a JSON summary")
     t.set_defaults(func=_cmd_trial)
+
+    s = sub.add_parser("showcase", help="one fast showcase trial on the simulated lab")
+    s.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
+    s.add_argument("--seed", type=int, default=0, help="trial-to-trial variation seed")
+    s.add_argument("--out", default="runs/showcase", help="output directory")
+    s.set_defaults(func=_cmd_showcase)
 
     b = sub.add_parser("bench", help="benchmarks: sim (lab speed per rope), learner")
     b.add_argument("what", choices=["sim", "learner"])

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
+from tqdm import tqdm
 
 from flyknot import __version__
 from flyknot.constants import N_JOINTS, SETTLE_S
@@ -35,6 +36,9 @@ from flyknot_sim import mocap, robot
 from flyknot_sim.knot import classify_centreline
 from flyknot_sim.rope import RopeParams, add_rope, configure_options, get_rope
 from flyknot_sim.scene import ROBOT_PREFIX, SceneParams, robot_base_pose, scene_spec
+
+
+_BAR = "{desc}: {percentage:3.0f}%|{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}]"
 
 
 @dataclass(frozen=True)
@@ -147,8 +151,13 @@ class SimLab:
         mujoco.mj_forward(m, d)
         return float(rng.uniform(0.0, var.start_delay_max_s)) if var.start_delay_max_s else 0.0
 
-    def run(self, command: JointCommand) -> TrialRecord:
-        """Play ``command`` once from rest and return what the lab measured."""
+    def run(self, command: JointCommand, *, progress: bool = False) -> TrialRecord:
+        """Play ``command`` once from rest and return what the lab measured.
+
+        Args:
+            command: Joint targets at their rate (250 Hz on the xArm).
+            progress: Show a progress bar over simulated time.
+        """
         rng = self._rng(self._trial_index)
         trial_index = self._trial_index
         self._trial_index += 1
@@ -189,7 +198,12 @@ class SimLab:
         first_contact: float | None = None
         hold = None
         k = 0
+        bar = tqdm(total=round(n_ticks * tick, 2), unit="sim s", disable=not progress,
+                   desc=f"trial (rope {self.params.rope})", bar_format=_BAR)
         for i in range(n_ticks):
+            if i % 25 == 0:
+                bar.n = round(i * tick, 2)
+                bar.refresh()
             q_meas[i] = d.qpos[self._qadr]
             tip_pos[i] = d.site_xpos[self._tip_site]
             mujoco.mju_mat2Quat(tip_quat[i], d.site_xmat[self._tip_site])
@@ -207,6 +221,8 @@ class SimLab:
                 vert_hist[k] = self.rope.vertex_positions(m, d)
                 if first_contact is None and self.rope.self_contact(m, d):
                     first_contact = float(t_hist[k])
+        bar.n = bar.total
+        bar.close()
         # Joints are stamped on the robot's clock (0 at the first command sample); markers
         # and contact times on the motion-capture clock (0 at the nominal start). The two
         # differ by the unknown start delay, as unsynchronised lab clocks do.

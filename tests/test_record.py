@@ -1,0 +1,105 @@
+"""JointCommand and TrialRecord: validation, files, round trips."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from flyknot.errors import CommandError, RecordError
+from flyknot.record import JointCommand, TrialRecord
+
+
+def _record(n=25, m=20, truth=True, **kw):
+    rng = np.random.default_rng(0)
+    markers = rng.normal(size=(m, 11, 3))
+    markers[12:] = np.nan
+    fields = dict(
+        t_joint=np.arange(n) / 250.0,
+        q_cmd=rng.normal(size=(n, 7)),
+        q_meas=rng.normal(size=(n, 7)),
+        t_marker=np.arange(m) / 200.0,
+        markers=markers,
+        fingertip_pos=rng.normal(size=(n, 3)),
+        fingertip_quat=np.tile([1.0, 0, 0, 0], (n, 1)),
+        base_pose=np.array([0, 0, 1.0, 1, 0, 0, 0]),
+        fault=None,
+        first_contact_time=0.05,
+        knot="trefoil",
+        metadata={"cell": "sim", "rope": 1, "seed": 3},
+        truth={"centreline": rng.normal(size=(4, 30, 3))} if truth else {},
+    )
+    fields.update(kw)
+    return TrialRecord(**fields)
+
+
+def test_record_round_trip(tmp_path):
+    rec = _record()
+    rec.save(tmp_path / "trial_0000")
+    back = TrialRecord.load(tmp_path / "trial_0000.json", with_truth=True)
+    for name in TrialRecord._ARRAYS:
+        np.testing.assert_array_equal(getattr(back, name), getattr(rec, name))
+    assert back.knot == "trefoil" and back.fault is None and back.first_contact_time == 0.05
+    assert back.metadata == {"cell": "sim", "rope": 1, "seed": 3}
+    np.testing.assert_array_equal(back.truth["centreline"], rec.truth["centreline"])
+    # Without asking for truth, none is loaded.
+    assert TrialRecord.load(tmp_path / "trial_0000").truth == {}
+    assert back.succeeded
+
+
+def test_record_arrays_are_read_only():
+    rec = _record()
+    with pytest.raises(ValueError):
+        rec.q_cmd[0, 0] = 1.0
+
+
+def test_record_shape_error_names_field():
+    with pytest.raises(RecordError, match=r"TrialRecord.q_meas must have shape \(25, 7\), got \(25, 6\)"):
+        _record(q_meas=np.zeros((25, 6)))
+
+
+def test_record_load_missing(tmp_path):
+    with pytest.raises(RecordError, match="does not exist"):
+        TrialRecord.load(tmp_path / "nope")
+
+
+def test_faulted_record_is_not_a_success():
+    assert not _record(fault="joint 2 velocity 4 rad/s exceeds limit").succeeded
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".npy"])
+def test_command_round_trip(tmp_path, suffix):
+    q = np.random.default_rng(1).normal(size=(50, 7))
+    JointCommand(q).save(tmp_path / f"c{suffix}")
+    back = JointCommand.load(tmp_path / f"c{suffix}")
+    np.testing.assert_allclose(back.q, q, rtol=1e-9, atol=1e-9)
+    assert back.rate_hz == pytest.approx(250.0)
+
+
+def test_command_shape_error():
+    with pytest.raises(CommandError, match=r"command q must have shape \(n, 7\), got \(10, 6\)"):
+        JointCommand(np.zeros((10, 6)))
+
+
+def test_command_nan_error():
+    q = np.zeros((10, 7))
+    q[4, 2] = np.nan
+    with pytest.raises(CommandError, match="1 non-finite value\\(s\\); first at sample 4, joint 3"):
+        JointCommand(q)
+
+
+def test_command_csv_errors(tmp_path):
+    p = tmp_path / "bad.csv"
+    p.write_text("t,a,b\n0,1,2\n")
+    with pytest.raises(CommandError, match="header must be 't,q1,q2,q3,q4,q5,q6,q7'"):
+        JointCommand.load(p)
+    p.write_text("t,q1,q2,q3,q4,q5,q6,q7\n0,0,0,0,0,0,0,0\n0.004,0,0,0,x,0,0,0\n")
+    with pytest.raises(CommandError, match="line 3"):
+        JointCommand.load(p)
+    p.write_text("t,q1,q2,q3,q4,q5,q6,q7\n0,0,0,0,0,0,0,0\n0.004,0,0,0,0,0,0,0\n0.010,0,0,0,0,0,0,0\n")
+    with pytest.raises(CommandError, match="uniformly spaced"):
+        JointCommand.load(p)
+    (tmp_path / "x.txt").write_text("")
+    with pytest.raises(CommandError, match=r"unknown extension '.txt' \(valid choices: .csv, .npy\)"):
+        JointCommand.load(tmp_path / "x.txt")
+    with pytest.raises(CommandError, match="does not exist"):
+        JointCommand.load(tmp_path / "missing.csv")
