@@ -105,12 +105,13 @@ class SimLab:
         self.params = params
         self.rope_params: RopeParams = get_rope(params.rope)
         spec = scene_spec(params.scene)
+        tip_body, tip_pos, tip_axis = robot.fingertip_anchor()
         self.rope = add_rope(
             spec,
             self.rope_params,
-            anchor_body=ROBOT_PREFIX + robot.FINGERTIP_BODY,
-            anchor_pos=robot.FINGERTIP_POS,
-            axis=robot.FINGERTIP_AXIS,
+            anchor_body=ROBOT_PREFIX + tip_body,
+            anchor_pos=tip_pos,
+            axis=tip_axis,
             prefix="rope",
         )
         configure_options(spec, [self.rope_params])
@@ -124,10 +125,10 @@ class SimLab:
         self._dadr = np.array(
             [m.jnt_dofadr[m.joint(ROBOT_PREFIX + n).id] for n in robot.JOINT_NAMES]
         )
-        self._act = np.array([m.actuator(ROBOT_PREFIX + n).id for n in robot.ACTUATOR_NAMES])
+        self._act = robot.actuator_ids(m, ROBOT_PREFIX)
         self._tip_site = m.site(ROBOT_PREFIX + robot.FINGERTIP_SITE).id
-        self._servo_default = robot.ServoParams.from_model(m, self._act)
-        self._robot_only = mujoco.MjModel.from_xml_path(str(robot.XML_PATH))
+        self._servo_default = robot.ServoParams.default()
+        self._robot_only = robot.load_robot_model()
         self._trial_index = 0
         self.base_pose = robot_base_pose(params.scene)
 

@@ -1,0 +1,300 @@
+"""The xArm controller's fault checks on a joint command, as pure functions.
+
+A command ``q`` (n, 7) [rad] is played at a fixed rate (250 Hz); the robot is at rest at
+``q[0]`` before the first sample and holds ``q[-1]`` after the last. The controller faults
+mid-motion at the first sample whose position, velocity, acceleration or torque leaves the
+limits; :func:`first_fault` finds that sample the same way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from flyknot.constants import N_JOINTS, Q_MAX, Q_MIN, QD_MAX, QDD_MAX, TAU_MAX
+from flyknot.errors import CommandError, ConfigError, check_choice, check_positive
+
+__all__ = [
+    "QUANTITIES",
+    "UNITS",
+    "Fault",
+    "JointLimits",
+    "command_derivatives",
+    "command_torques",
+    "first_fault",
+]
+
+QUANTITIES = ("position", "velocity", "acceleration", "torque")  # also the tie-break order
+UNITS = {"position": "rad", "velocity": "rad/s", "acceleration": "rad/s^2", "torque": "N m"}
+
+
+def _readonly(field_name: str, a: object) -> np.ndarray:
+    arr = np.array(a, dtype=float, copy=True)
+    if arr.shape != (N_JOINTS,):
+        raise ConfigError(field_name, f"must have shape ({N_JOINTS},), got {arr.shape}")
+    bad = np.flatnonzero(~np.isfinite(arr))
+    if bad.size:
+        raise ConfigError(
+            field_name, f"must be finite; joint {bad[0] + 1} is {float(arr[bad[0]])!r}"
+        )
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class JointLimits:
+    """Limits a command must respect on every joint (default: the paper's).
+
+    Attributes:
+        q_min: Lower position limits, shape (7,) [rad].
+        q_max: Upper position limits, shape (7,) [rad]; q_min < q_max.
+        qd_max: Speed limits |qd| <= qd_max, shape (7,) [rad/s]; > 0.
+        qdd_max: Acceleration limits |qdd| <= qdd_max, shape (7,) [rad/s^2]; > 0.
+        tau_max: Torque limits |tau| <= tau_max, shape (7,) [N m]; > 0.
+    """
+
+    q_min: np.ndarray = field(default_factory=lambda: Q_MIN.copy())
+    q_max: np.ndarray = field(default_factory=lambda: Q_MAX.copy())
+    qd_max: np.ndarray = field(default_factory=lambda: QD_MAX.copy())
+    qdd_max: np.ndarray = field(default_factory=lambda: QDD_MAX.copy())
+    tau_max: np.ndarray = field(default_factory=lambda: TAU_MAX.copy())
+
+    def __post_init__(self) -> None:
+        for name in ("q_min", "q_max", "qd_max", "qdd_max", "tau_max"):
+            object.__setattr__(self, name, _readonly(f"limits.{name}", getattr(self, name)))
+        for name in ("qd_max", "qdd_max", "tau_max"):
+            a = getattr(self, name)
+            bad = np.flatnonzero(a <= 0)
+            if bad.size:
+                j = bad[0]
+                raise ConfigError(
+                    f"limits.{name}", f"must be > 0; joint {j + 1} is {float(a[j])!r}"
+                )
+        bad = np.flatnonzero(self.q_min >= self.q_max)
+        if bad.size:
+            j = bad[0]
+            lo, hi = float(self.q_min[j]), float(self.q_max[j])
+            raise ConfigError(
+                "limits.q_min", f"must be < limits.q_max; joint {j + 1} has {lo!r} >= {hi!r}"
+            )
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, JointLimits):
+            return NotImplemented
+        return all(
+            np.array_equal(getattr(self, n), getattr(other, n))
+            for n in ("q_min", "q_max", "qd_max", "qdd_max", "tau_max")
+        )
+
+    __hash__ = None  # type: ignore[assignment]
+
+    @classmethod
+    def stricter(cls, a: JointLimits, b: JointLimits) -> JointLimits:
+        """Elementwise stricter of two limit sets (hardware mode: paper vs connected robot).
+
+            q_min = max(a.q_min, b.q_min),  q_max = min(a.q_max, b.q_max),
+            qd_max, qdd_max, tau_max = elementwise min.
+
+        Raises:
+            ConfigError: If the two position ranges do not overlap on some joint.
+        """
+        return cls(
+            q_min=np.maximum(a.q_min, b.q_min),
+            q_max=np.minimum(a.q_max, b.q_max),
+            qd_max=np.minimum(a.qd_max, b.qd_max),
+            qdd_max=np.minimum(a.qdd_max, b.qdd_max),
+            tau_max=np.minimum(a.tau_max, b.tau_max),
+        )
+
+
+def _fmt(x: float) -> str:
+    s = f"{x:.4f}".rstrip("0").rstrip(".")
+    return "0" if s in ("-0", "") else s
+
+
+@dataclass(frozen=True)
+class Fault:
+    """The first limit violation of a command.
+
+    Attributes:
+        tick: Index of the command sample [-].
+        time: Time of that sample, tick / rate [s].
+        joint: Joint number, 1..7 (as on the robot's pendant, not a 0-based index).
+        quantity: One of ``QUANTITIES``.
+        value: The offending value [rad, rad/s, rad/s^2 or N m].
+        limit: The bound it crossed, signed (e.g. -3.14 for a too fast negative speed).
+    """
+
+    tick: int
+    time: float
+    joint: int
+    quantity: str
+    value: float
+    limit: float
+
+    def __post_init__(self) -> None:
+        check_choice("fault.quantity", self.quantity, QUANTITIES)
+        check_choice("fault.joint", self.joint, range(1, N_JOINTS + 1))
+
+    @property
+    def reason(self) -> str:
+        """One line for the trial record.
+
+        Example: ``joint 4 velocity 3.52 rad/s exceeds limit 3.14 rad/s at t=0.412 s``.
+        """
+        u = UNITS[self.quantity]
+        return (
+            f"joint {self.joint} {self.quantity} {_fmt(self.value)} {u} exceeds limit "
+            f"{_fmt(self.limit)} {u} at t={self.time:.3f} s"
+        )
+
+
+def _check_q(q: object, name: str = "q") -> np.ndarray:
+    arr = np.asarray(q, dtype=float)
+    if arr.ndim != 2 or arr.shape[1] != N_JOINTS or arr.shape[0] < 1:
+        raise CommandError(f"{name} must have shape (n, {N_JOINTS}) with n >= 1, got {arr.shape}")
+    if not np.isfinite(arr).all():
+        i, j = np.argwhere(~np.isfinite(arr))[0]
+        raise CommandError(f"{name} is not finite at sample {i}, joint {j + 1}")
+    return arr
+
+
+def command_derivatives(q: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Joint velocity and acceleration of a command, by central differences at rest ends.
+
+        qd_i  = (q_{i+1} - q_{i-1}) / (2 dt)
+        qdd_i = (q_{i+1} - 2 q_i + q_{i-1}) / dt^2,     i = 0 .. n-1,
+
+    with the rest padding q_{-1} = q_0 (at rest before) and q_n = q_{n-1} (holds after), so a
+    command that starts or stops moving shows its jump in qd_0, qdd_0 and qdd_{n-1}.
+
+    Args:
+        q: Command, shape (n, 7) [rad].
+        dt: Sample period [s].
+
+    Returns:
+        ``(qd, qdd)``, shapes (n, 7) [rad/s] and (n, 7) [rad/s^2].
+
+    Raises:
+        CommandError: If ``q`` is not a finite (n, 7) array.
+        ConfigError: If ``dt`` is not a finite number > 0.
+    """
+    q = _check_q(q)
+    check_positive("dt", dt)
+    p = np.concatenate([q[:1], q, q[-1:]], axis=0)  # (n + 2, 7)
+    qd = (p[2:] - p[:-2]) / (2.0 * dt)
+    qdd = (p[2:] - 2.0 * p[1:-1] + p[:-2]) / dt**2
+    return qd, qdd
+
+
+def command_torques(
+    model: mujoco.MjModel, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
+) -> np.ndarray:
+    """Rigid-body inverse dynamics along a command (MuJoCo's recursive Newton-Euler).
+
+        tau_i = M(q_i) qdd_i + C(q_i, qd_i) qd_i + g(q_i)        [N m]
+
+    Links only: no rotor inertia (armature), joint damping or friction, no rope; this is the
+    torque the paper's limits apply to.
+
+    Args:
+        model: Robot-only model, nq = nv = 7, gravity on (``robot.load_robot_model()``).
+        q: Positions, shape (n, 7) [rad].
+        qd: Velocities, shape (n, 7) [rad/s].
+        qdd: Accelerations, shape (n, 7) [rad/s^2].
+
+    Returns:
+        Joint torques, shape (n, 7) [N m].
+
+    Raises:
+        ConfigError: If ``model`` is not a 7-DoF robot-only model.
+        CommandError: If the arrays are not finite (n, 7) arrays of the same shape.
+    """
+    if model.nq != N_JOINTS or model.nv != N_JOINTS:
+        raise ConfigError(
+            "model",
+            f"must be the robot alone (nq = nv = {N_JOINTS}), got nq={model.nq}, nv={model.nv}",
+        )
+    q, qd, qdd = _check_q(q), _check_q(qd, "qd"), _check_q(qdd, "qdd")
+    if not (q.shape == qd.shape == qdd.shape):
+        raise CommandError(f"q, qd, qdd shapes differ: {q.shape}, {qd.shape}, {qdd.shape}")
+    data = mujoco.MjData(model)
+    tau = np.empty_like(q)
+    row = np.empty(N_JOINTS)
+    for i in range(q.shape[0]):
+        data.qpos[:] = q[i]
+        data.qvel[:] = qd[i]
+        data.qacc[:] = qdd[i]
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_comPos(model, data)
+        mujoco.mj_comVel(model, data)
+        mujoco.mj_rne(model, data, 1, row)
+        tau[i] = row
+    return tau
+
+
+def _first(value: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[int, int, float] | None:
+    """Earliest (tick, joint index, crossed bound) with value outside [lo, hi], or None."""
+    bad = (value < lo) | (value > hi)  # (n, 7)
+    rows = np.flatnonzero(bad.any(axis=1))
+    if rows.size == 0:
+        return None
+    i = int(rows[0])
+    j = int(np.flatnonzero(bad[i])[0])
+    bound = lo[j] if value[i, j] < lo[j] else hi[j]
+    return i, j, float(bound)
+
+
+def first_fault(
+    q: np.ndarray,
+    dt: float,
+    *,
+    limits: JointLimits | None = None,
+    torques: np.ndarray | None = None,
+) -> Fault | None:
+    """The earliest limit violation of a command, as the xArm controller would fault on it.
+
+    A sample i faults if, on any joint j (strict inequalities, no tolerance),
+
+        q_ij < q_min_j or q_ij > q_max_j,  |qd_ij| > qd_max_j,
+        |qdd_ij| > qdd_max_j,  or |tau_ij| > tau_max_j,
+
+    with qd, qdd from :func:`command_derivatives`. The earliest sample wins; on the same sample
+    the order is position, velocity, acceleration, torque, then the lowest joint.
+
+    Args:
+        q: Command, shape (n, 7) [rad].
+        dt: Sample period [s] (0.004 at 250 Hz).
+        limits: Limits to check; the paper's if None.
+        torques: Joint torques along the command, shape (n, 7) [N m] (see
+            :func:`command_torques`); torque is not checked if None.
+
+    Returns:
+        The first :class:`Fault`, or None if the command stays inside every limit.
+
+    Raises:
+        CommandError: If ``q`` or ``torques`` is malformed.
+        ConfigError: If ``dt`` is not a finite number > 0.
+    """
+    limits = JointLimits() if limits is None else limits
+    qd, qdd = command_derivatives(q, dt)
+    q = np.asarray(q, dtype=float)
+    checks: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]] = [
+        ("position", q, limits.q_min, limits.q_max),
+        ("velocity", qd, -limits.qd_max, limits.qd_max),
+        ("acceleration", qdd, -limits.qdd_max, limits.qdd_max),
+    ]
+    if torques is not None:
+        tau = _check_q(torques, "torques")
+        if tau.shape != q.shape:
+            raise CommandError(f"torques must have the shape of q {q.shape}, got {tau.shape}")
+        checks.append(("torque", tau, -limits.tau_max, limits.tau_max))
+    best: Fault | None = None
+    for quantity, value, lo, hi in checks:
+        hit = _first(value, lo, hi)
+        if hit is not None and (best is None or hit[0] < best.tick):
+            i, j, bound = hit
+            best = Fault(i, i * dt, j + 1, quantity, float(value[i, j]), bound)
+    return best

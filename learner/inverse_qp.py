@@ -1,0 +1,687 @@
+"""The inverse-model QP (paper eq. inverse_model_qp): build it, then solve it apart.
+
+Decision variable and update convention:
+    The QP's variable is the flattened knot update ``x = dkappa.ravel()`` (80,), the (10, 8)
+    knots flattened row-major (row r = joint1..joint7, base_x, base_y, base_z; knot j at index
+    ``8 r + j``). The learner *subtracts* it, ``kappa_{k+1} = kappa_k - dkappa`` (paper,
+    Algorithm 1). The predicted state change ``dx = M dkappa`` (eq. sysysy) is substituted into
+    the cost, so ``dx`` is not a variable.
+
+    Every Jacobian handed to the builder is the plain derivative with respect to the knots,
+    ``J = d(.)/d kappa`` at ``kappa_k`` (the paper's definitions of M, J_ft, J_x). Because the
+    update is subtracted, a quantity after the update is ``y(kappa_k - dkappa) ~= y_k - J dkappa``.
+    Hence the critical-point term ``||M dkappa - err||_Q`` (with ``err = x_k - x_demo``) and the
+    follow-through term ``||e_ft - J_ft dkappa||_W``; the paper writes the latter with ``+``,
+    which matches its ``-`` update only if J_ft is taken with respect to ``-dkappa``.
+
+Objective (all terms summed; constant kept so that ``QPData.objective`` is the true cost)::
+
+    f(x) = ||M x - err||_Q^2                                      critical point, eq. cpobj
+         + sum_t ||e_ft(t) - J_ft(t) x||_W(t)^2                   follow-through, eq. followthrough
+         + w_control ||x_arm||^2                                  control, eq. reg (56 arm entries)
+         = 1/2 x^T P x + q^T x + const
+
+    Q    = diag(w_crit_pos I_3N, w_crit_vel I_3N)          rows of M: 3N positions, 3N velocities
+    W(t) = diag(w_p I_3, w_R I_3, w_v I_3)                 rows of e_ft: position, rotation,
+                                                           velocity
+    (w_p, w_R, w_v) = (w_pc, w_rc, w_vc)                   at t = t_c
+                    = (w_pft, w_rft, w_ft_velocity w_vft)  for t > t_c
+
+``w_ft_velocity`` (paper table, no equation) is read here as an overall scale on the
+follow-through velocity terms after t_c, so the effective velocity weight there is
+``0.5 * 0.1 = 0.05``; at t_c the critical weights apply as listed.
+
+The equally weighted baseline (paper, "Weighted Error Objectives") replaces the critical term by
+the mean over pre-collision samples s, ``(1/S) sum_s ||M_s x - err_s||_Q^2``: every sample gets
+the same weight and the total weight equals the critical objective's, so the control term keeps
+the same relative strength.
+
+Constraints ``l <= A x <= u``, row blocks in order:
+    * ``base``: the 3 base rows' update is the same at all 8 knots (``base_update="constant"``:
+      the base stays fixed within a trial but may shift between trials), or zero
+      (``"zero"``, the paper's eq. base read literally);
+    * limit blocks (``pos``, ``vel``, ``acc``, ``tau``): ``lo <= b - J x <= hi`` with ``b`` the
+      current value and ``J`` its knot Jacobian, i.e. the limit holds for the *updated* command
+      (exactly for pos/vel/acc, which are linear in the knots, to first order for torque).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, fields
+from types import MappingProxyType
+from typing import TYPE_CHECKING
+
+import numpy as np
+import scipy.sparse as sp
+
+from flyknot.constants import (
+    JOINT_NAMES,
+    N_JOINTS,
+    N_KNOTS,
+    N_ROWS,
+    Q_MAX,
+    Q_MIN,
+    QD_MAX,
+    QDD_MAX,
+    TAU_MAX,
+)
+from flyknot.errors import ConfigError, SolverError, check_choice, check_nonnegative
+from learner.bezier import sample_command, sample_jacobian
+
+if TYPE_CHECKING:
+    from learner.kinematics import RobotModel
+
+N_VARS = N_ROWS * N_KNOTS  # 80
+FT_DIM = 9  # follow-through error: position (3), rotation log (3), velocity (3)
+BACKENDS = ("osqp", "clarabel")
+BASE_UPDATES = ("constant", "zero")
+LIMIT_KINDS = ("pos", "vel", "acc", "tau")
+ROW_NAMES = (*JOINT_NAMES, "base_x", "base_y", "base_z")
+COLUMNS = tuple(f"{r}[{j}]" for r in ROW_NAMES for j in range(N_KNOTS))
+ARM_COLUMNS = np.arange(N_JOINTS * N_KNOTS)  # the 56 arm-joint knot entries
+
+_OSQP_DEFAULTS = {
+    "verbose": False,
+    "polishing": True,
+    "eps_abs": 1e-8,
+    "eps_rel": 1e-8,
+    "max_iter": 40000,
+}
+
+
+def _ro(a: object, dtype: type = float) -> np.ndarray:
+    a = np.array(a, dtype=dtype, copy=True)
+    a.setflags(write=False)
+    return a
+
+
+def _finite(name: str, a: np.ndarray) -> None:
+    if not np.all(np.isfinite(a)):
+        raise ConfigError(name, "must be finite")
+
+
+# --------------------------------------------------------------------------------------------
+# inputs
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class InverseModelWeights:
+    """Weights of the inverse-model QP (paper, appendix table "Inverse Model Parameters").
+
+    ``w_rc`` and ``w_rft`` are the paper's ``w_Rc`` and ``w_Rft``.
+
+    Attributes:
+        w_control: Control cost on the arm-joint knot updates [1/rad^2].
+        w_crit_pos: Critical-point marker position weight [1/m^2].
+        w_crit_vel: Critical-point marker velocity weight [s^2/m^2].
+        w_pc: Fingertip position weight at t_c [1/m^2].
+        w_vc: Fingertip velocity weight at t_c [s^2/m^2].
+        w_rc: Fingertip rotation weight at t_c [1/rad^2].
+        w_pft: Fingertip position weight after t_c [1/m^2].
+        w_vft: Fingertip velocity weight after t_c [s^2/m^2].
+        w_rft: Fingertip rotation weight after t_c [1/rad^2].
+        w_ft_velocity: Scale on the velocity weight after t_c (see the module docstring).
+    """
+
+    w_control: float = 0.5
+    w_crit_pos: float = 25.0
+    w_crit_vel: float = 0.00375
+    w_pc: float = 100.0
+    w_vc: float = 0.1
+    w_rc: float = 5.0
+    w_pft: float = 1.0
+    w_vft: float = 0.1
+    w_rft: float = 0.1
+    w_ft_velocity: float = 0.5
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            check_nonnegative(f.name, getattr(self, f.name))
+
+    def follow_weights(self, is_tc: bool) -> np.ndarray:
+        """Diagonal of W(t), (9,): ``(w_p I3, w_R I3, w_v I3)`` at t_c or after it."""
+        if is_tc:
+            w = (self.w_pc, self.w_rc, self.w_vc)
+        else:
+            w = (self.w_pft, self.w_rft, self.w_ft_velocity * self.w_vft)
+        return np.repeat(np.asarray(w, dtype=float), 3)
+
+
+@dataclass(frozen=True)
+class JointLimits:
+    """Joint limits imposed on the updated command (defaults: the paper's, ``constants``).
+
+    Attributes:
+        q_min: Lower position limits (7,) [rad].
+        q_max: Upper position limits (7,) [rad].
+        qd_max: Symmetric velocity limits (7,) [rad/s].
+        qdd_max: Symmetric acceleration limits (7,) [rad/s^2].
+        tau_max: Symmetric torque limits (7,) [N m].
+    """
+
+    q_min: np.ndarray = field(default_factory=lambda: Q_MIN.copy())
+    q_max: np.ndarray = field(default_factory=lambda: Q_MAX.copy())
+    qd_max: np.ndarray = field(default_factory=lambda: QD_MAX.copy())
+    qdd_max: np.ndarray = field(default_factory=lambda: QDD_MAX.copy())
+    tau_max: np.ndarray = field(default_factory=lambda: TAU_MAX.copy())
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            a = np.asarray(getattr(self, f.name), dtype=float)
+            if a.shape != (N_JOINTS,):
+                raise ConfigError(f.name, f"must have shape ({N_JOINTS},), got {a.shape}")
+            _finite(f.name, a)
+            object.__setattr__(self, f.name, _ro(a))
+        if np.any(self.q_min >= self.q_max):
+            raise ConfigError("q_min", "must be below q_max for every joint")
+        for name in ("qd_max", "qdd_max", "tau_max"):
+            if np.any(getattr(self, name) <= 0):
+                raise ConfigError(name, "must be > 0 for every joint")
+
+
+@dataclass(frozen=True)
+class FollowThrough:
+    """Linearised fingertip follow-through errors at samples t >= t_c.
+
+    Attributes:
+        e: Errors at the current knots (k, 9): ``[p_tip - p_h [m], Log(R_h^T R_tip) [rad],
+            v_tip - v_h [m/s]]``.
+        J: Their knot Jacobians ``d e / d kappa`` (k, 9, 80).
+        is_tc: Which samples are the critical time (k,) bool (critical weights there).
+    """
+
+    e: np.ndarray
+    J: np.ndarray
+    is_tc: np.ndarray
+
+    def __post_init__(self) -> None:
+        e = np.asarray(self.e, dtype=float)
+        if e.ndim != 2 or e.shape[1] != FT_DIM or e.shape[0] < 1:
+            raise ConfigError("e", f"must have shape (k, {FT_DIM}) with k >= 1, got {e.shape}")
+        k = e.shape[0]
+        J = np.asarray(self.J, dtype=float)
+        if J.shape != (k, FT_DIM, N_VARS):
+            raise ConfigError("J", f"must have shape ({k}, {FT_DIM}, {N_VARS}), got {J.shape}")
+        is_tc = np.asarray(self.is_tc)
+        if is_tc.shape != (k,) or is_tc.dtype != bool:
+            raise ConfigError("is_tc", f"must be a bool array of shape ({k},)")
+        _finite("e", e)
+        _finite("J", J)
+        object.__setattr__(self, "e", _ro(e))
+        object.__setattr__(self, "J", _ro(J))
+        object.__setattr__(self, "is_tc", _ro(is_tc, bool))
+
+
+@dataclass(frozen=True)
+class LimitRows:
+    """Linearised limits ``lo <= b - J dkappa <= hi`` on the updated command.
+
+    Attributes:
+        J: Knot Jacobians of the limited quantities (r, 80).
+        b: Their values at the current knots (r,).
+        lo: Lower bounds (r,) (may be -inf).
+        hi: Upper bounds (r,) (may be +inf).
+        blocks: Named row ranges ``name -> (start, stop)``.
+    """
+
+    J: np.ndarray
+    b: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    blocks: Mapping[str, tuple[int, int]] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        J = np.asarray(self.J, dtype=float)
+        if J.ndim != 2 or J.shape[1] != N_VARS:
+            raise ConfigError("J", f"must have shape (r, {N_VARS}), got {J.shape}")
+        r = J.shape[0]
+        for name in ("b", "lo", "hi"):
+            a = np.asarray(getattr(self, name), dtype=float)
+            if a.shape != (r,):
+                raise ConfigError(name, f"must have shape ({r},), got {a.shape}")
+            if np.any(np.isnan(a)):
+                raise ConfigError(name, "must not contain NaN")
+            object.__setattr__(self, name, _ro(a))
+        _finite("J", J)
+        _finite("b", self.b)
+        if np.any(self.lo > self.hi):
+            raise ConfigError("lo", "must be <= hi in every row")
+        blocks = dict(self.blocks) if self.blocks else {"limits": (0, r)}
+        for name, (a, z) in blocks.items():
+            if not 0 <= a <= z <= r:
+                raise ConfigError("blocks", f"range {name!r} = ({a}, {z}) outside 0..{r}")
+        object.__setattr__(self, "J", _ro(J))
+        object.__setattr__(self, "blocks", MappingProxyType(blocks))
+
+    @property
+    def n_rows(self) -> int:
+        """Number of limit rows."""
+        return int(self.J.shape[0])
+
+
+def limit_rows(
+    knots: np.ndarray,
+    T: float,
+    t_samples: np.ndarray,
+    robot_model: RobotModel | None,
+    limits: JointLimits | None = None,
+    kinds: Sequence[str] = LIMIT_KINDS,
+) -> LimitRows:
+    """Joint position, velocity, acceleration and torque limits at sample times.
+
+    For sample a and joint j (row ``a * 7 + j`` of each block) with Bezier basis
+    ``B_r(t)`` (8,) of time-derivative order r::
+
+        q^(r)_j(t_a) = B_r(t_a) . kappa[j],   d q^(r)_j(t_a) / d kappa[j, :] = B_r(t_a)
+        tau(t_a) = ID(q, qd, qdd)(t_a)
+        d tau / d kappa = dID/dq S_0 + dID/dqd S_1 + dID/dqdd S_2,   S_r = d q^(r) / d kappa
+
+    Bounds: ``q_min <= q <= q_max``, ``|qd| <= qd_max``, ``|qdd| <= qdd_max``,
+    ``|tau| <= tau_max``.
+
+    Args:
+        knots: Current knots (10, 8) (rows 0-6 [rad], rows 7-9 [m]).
+        T: Command duration [s].
+        t_samples: Sample times (m,) [s] in [0, T].
+        robot_model: Inverse dynamics for the torque rows; None leaves torque out.
+        limits: Bounds (default: the paper's).
+        kinds: Which blocks to build, a subset of ("pos", "vel", "acc", "tau").
+
+    Returns:
+        The stacked rows: J (r, 80), b (r,), lo, hi, with blocks named by ``kinds``.
+    """
+    limits = JointLimits() if limits is None else limits
+    kinds = list(kinds)
+    for k in kinds:
+        check_choice("kinds", k, LIMIT_KINDS)
+    if "tau" in kinds and robot_model is None:
+        raise ConfigError("robot_model", "is needed for torque limits (kind 'tau')")
+    t = np.asarray(t_samples, dtype=float)
+    derivs = {r: sample_command(knots, T, t, r)[:, :N_JOINTS] for r in (0, 1, 2)}  # (m, 7)
+    jacs = {r: sample_jacobian(t, T, r) for r in (0, 1, 2)}  # (m * 7, 80)
+    m = derivs[0].shape[0]
+    bounds = {
+        "pos": (limits.q_min, limits.q_max),
+        "vel": (-limits.qd_max, limits.qd_max),
+        "acc": (-limits.qdd_max, limits.qdd_max),
+        "tau": (-limits.tau_max, limits.tau_max),
+    }
+    Js, bs, los, his, blocks = [], [], [], [], {}
+    start = 0
+    for kind in kinds:
+        if kind == "tau":
+            q, qd, qdd = derivs[0], derivs[1], derivs[2]
+            b = robot_model.torques(q, qd, qdd)  # type: ignore[union-attr]
+            dq, dqd, dqdd = robot_model.torque_jacobians(q, qd, qdd)  # type: ignore[union-attr]
+            S = [jacs[r].reshape(m, N_JOINTS, N_VARS) for r in (0, 1, 2)]
+            J = (
+                np.einsum("aij,ajc->aic", dq, S[0])
+                + np.einsum("aij,ajc->aic", dqd, S[1])
+                + np.einsum("aij,ajc->aic", dqdd, S[2])
+            ).reshape(m * N_JOINTS, N_VARS)
+        else:
+            r = LIMIT_KINDS.index(kind)
+            b, J = derivs[r], jacs[r]
+        lo, hi = bounds[kind]
+        Js.append(J)
+        bs.append(np.asarray(b).ravel())
+        los.append(np.tile(lo, m))
+        his.append(np.tile(hi, m))
+        blocks[kind] = (start, start + m * N_JOINTS)
+        start += m * N_JOINTS
+    if not Js:
+        raise ConfigError("kinds", "must name at least one limit", LIMIT_KINDS)
+    return LimitRows(
+        J=np.vstack(Js),
+        b=np.concatenate(bs),
+        lo=np.concatenate(los),
+        hi=np.concatenate(his),
+        blocks=blocks,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# the QP
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class QPData:
+    """A solver-agnostic QP ``min 1/2 x^T P x + q^T x + const  s.t.  l <= A x <= u``.
+
+    Attributes:
+        P: Hessian (80, 80), full symmetric, CSC (treat as read-only).
+        q: Linear term (80,).
+        A: Constraint matrix (m, 80), CSC (treat as read-only).
+        l: Lower bounds (m,) (may be -inf).
+        u: Upper bounds (m,) (may be +inf; ``l == u`` marks an equality).
+        const: Constant term, so that :meth:`objective` is the full cost.
+        blocks: Named row ranges of A, ``name -> (start, stop)``.
+        columns: Meaning of each of the 80 columns, e.g. ``"joint3[5]"``, ``"base_x[0]"``.
+    """
+
+    P: sp.csc_matrix
+    q: np.ndarray
+    A: sp.csc_matrix
+    l: np.ndarray  # noqa: E741 (OSQP's name)
+    u: np.ndarray
+    const: float
+    blocks: Mapping[str, tuple[int, int]]
+    columns: tuple[str, ...] = COLUMNS
+
+    def __post_init__(self) -> None:
+        n = len(self.columns)
+        if self.P.shape != (n, n) or self.A.shape[1] != n or np.shape(self.q) != (n,):
+            raise ConfigError("P", f"P, q and A must have {n} columns")
+        m = self.A.shape[0]
+        if np.shape(self.l) != (m,) or np.shape(self.u) != (m,):
+            raise ConfigError("l", f"l and u must have shape ({m},)")
+        object.__setattr__(self, "q", _ro(self.q))
+        object.__setattr__(self, "l", _ro(self.l))
+        object.__setattr__(self, "u", _ro(self.u))
+        object.__setattr__(self, "blocks", MappingProxyType(dict(self.blocks)))
+
+    @property
+    def n(self) -> int:
+        """Number of variables."""
+        return int(self.P.shape[0])
+
+    @property
+    def m(self) -> int:
+        """Number of constraint rows."""
+        return int(self.A.shape[0])
+
+    def objective(self, x: np.ndarray) -> float:
+        """Cost ``1/2 x^T P x + q^T x + const`` at ``x`` (80,) or (10, 8)."""
+        x = np.asarray(x, dtype=float).ravel()
+        return float(0.5 * x @ (self.P @ x) + self.q @ x + self.const)
+
+    def violation(self, x: np.ndarray) -> float:
+        """Largest constraint violation ``max(l - A x, A x - u, 0)`` at ``x``."""
+        x = np.asarray(x, dtype=float).ravel()
+        ax = self.A @ x
+        if ax.size == 0:
+            return 0.0
+        return float(max(0.0, np.max(self.l - ax), np.max(ax - self.u)))
+
+
+def _check_rows(name: str, M: np.ndarray, err: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    M = np.asarray(M, dtype=float)
+    err = np.asarray(err, dtype=float)
+    if M.ndim != 2 or M.shape[1] != N_VARS or M.shape[0] == 0 or M.shape[0] % 6:
+        raise ConfigError(name, f"must have shape (6N, {N_VARS}), got {M.shape}")
+    if err.shape != (M.shape[0],):
+        raise ConfigError(name, f"error must have shape ({M.shape[0]},), got {err.shape}")
+    _finite(name, M)
+    _finite(name, err)
+    return M, err
+
+
+def base_equality_rows(base_update: str = "constant") -> np.ndarray:
+    """Equality rows ``E x = 0`` on the 3 base rows of the knot update.
+
+    ``"constant"``: ``dkappa[r, j] - dkappa[r, 0] = 0`` for base rows r and knots j = 1..7
+    (21 rows); ``"zero"``: ``dkappa[r, j] = 0`` for all 8 knots (24 rows).
+
+    Returns:
+        E, shape (21, 80) or (24, 80).
+    """
+    check_choice("base_update", base_update, BASE_UPDATES)
+    rows = []
+    for r in range(N_JOINTS, N_ROWS):
+        for j in range(N_KNOTS):
+            if base_update == "constant" and j == 0:
+                continue
+            e = np.zeros(N_VARS)
+            e[r * N_KNOTS + j] = 1.0
+            if base_update == "constant":
+                e[r * N_KNOTS] = -1.0
+            rows.append(e)
+    return np.array(rows)
+
+
+def build_inverse_qp(
+    *,
+    M_crit: np.ndarray | None = None,
+    err_crit: np.ndarray | None = None,
+    weights: InverseModelWeights | None = None,
+    follow: FollowThrough | None = None,
+    limits: LimitRows | None = None,
+    equal: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
+    base_update: str = "constant",
+) -> QPData:
+    """Assemble the inverse-model QP (see the module docstring for every term).
+
+    ``P = 2 (sum M^T Q M + sum_t J_t^T W_t J_t + w_control S^T S)``,
+    ``q = -2 (sum M^T Q err + sum_t J_t^T W_t e_t)``,
+    ``const = sum err^T Q err + sum_t e_t^T W_t e_t``, with S selecting the 56 arm entries.
+
+    Args:
+        M_crit: Linearised model at t_c, ``d x(t_c) / d kappa`` (6N, 80): N marker positions
+            (x, y, z each) [m/unit], then N velocities.
+        err_crit: Critical-point error ``x_k(t_c) - x_demo(t_c)`` (6N,) [m, m/s].
+        weights: QP weights (default: the paper's).
+        follow: Fingertip follow-through terms, or None.
+        limits: Limit rows, or None.
+        equal: Equally weighted baseline: ``[(M_s (6N, 80), err_s (6N,)), ...]`` over
+            pre-collision samples, used *instead of* ``M_crit``/``err_crit``.
+        base_update: ``"constant"`` (one base update for all knots) or ``"zero"``.
+
+    Returns:
+        The QP.
+
+    Raises:
+        ConfigError: Missing or contradictory inputs, bad shapes or non-finite values.
+    """
+    weights = InverseModelWeights() if weights is None else weights
+    check_choice("base_update", base_update, BASE_UPDATES)
+    if equal is None:
+        if M_crit is None or err_crit is None:
+            raise ConfigError("M_crit", "M_crit and err_crit are required unless equal is given")
+        terms = [(*_check_rows("M_crit", M_crit, err_crit), 1.0)]
+    else:
+        if M_crit is not None or err_crit is not None:
+            raise ConfigError("equal", "give either M_crit/err_crit or equal, not both")
+        if len(equal) == 0:
+            raise ConfigError("equal", "must hold at least one (M, err) sample")
+        terms = [(*_check_rows("equal", M, e), 1.0 / len(equal)) for M, e in equal]
+    H = np.zeros((N_VARS, N_VARS))
+    g = np.zeros(N_VARS)
+    const = 0.0
+    for M, err, scale in terms:
+        half = M.shape[0] // 2
+        Qd = scale * np.concatenate(
+            [np.full(half, weights.w_crit_pos), np.full(half, weights.w_crit_vel)]
+        )
+        H += M.T @ (Qd[:, None] * M)
+        g -= M.T @ (Qd * err)
+        const += float(err @ (Qd * err))
+    if follow is not None:
+        W = np.array([weights.follow_weights(bool(tc)) for tc in follow.is_tc])  # (k, 9)
+        H += np.einsum("tic,ti,tid->cd", follow.J, W, follow.J)
+        g -= np.einsum("tic,ti,ti->c", follow.J, W, follow.e)
+        const += float(np.sum(W * follow.e**2))
+    H[ARM_COLUMNS, ARM_COLUMNS] += weights.w_control
+    P = 2.0 * H
+    P = 0.5 * (P + P.T)  # exact symmetry against rounding in the sums
+    E = base_equality_rows(base_update)
+    A_blocks = [E]
+    l_blocks = [np.zeros(E.shape[0])]
+    u_blocks = [np.zeros(E.shape[0])]
+    blocks = {"base": (0, E.shape[0])}
+    if limits is not None:
+        off = E.shape[0]
+        A_blocks.append(-limits.J)
+        l_blocks.append(limits.lo - limits.b)
+        u_blocks.append(limits.hi - limits.b)
+        for name, (a, z) in limits.blocks.items():
+            blocks[name] = (off + a, off + z)
+    return QPData(
+        P=sp.csc_matrix(P),
+        q=2.0 * g,
+        A=sp.csc_matrix(np.vstack(A_blocks)),
+        l=np.concatenate(l_blocks),
+        u=np.concatenate(u_blocks),
+        const=const,
+        blocks=blocks,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# solving
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class QPResult:
+    """Outcome of :func:`solve_qp`.
+
+    Attributes:
+        dkappa: Knot update (10, 8), to be *subtracted* from the knots; all NaN unless solved.
+        status: The solver's own status text (OSQP: ``"solved"``, ``"primal infeasible"``, ...;
+            Clarabel: ``"Solved"``, ``"PrimalInfeasible"``, ...).
+        solved: True only for a converged, feasible solution.
+        objective: Full QP cost at ``dkappa`` (NaN unless solved).
+        solve_time: Wall time of setup and solve [s].
+        backend: ``"osqp"`` or ``"clarabel"``.
+        iterations: Solver iterations.
+    """
+
+    dkappa: np.ndarray
+    status: str
+    solved: bool
+    objective: float
+    solve_time: float
+    backend: str
+    iterations: int
+
+
+def _solve_osqp(qp: QPData, settings: dict) -> tuple[np.ndarray | None, str, bool, int]:
+    import osqp
+
+    opts = {**_OSQP_DEFAULTS, **settings}
+    solver = osqp.OSQP()
+    try:
+        solver.setup(sp.triu(qp.P, format="csc"), qp.q, qp.A, qp.l, qp.u, **opts)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError("settings", f"OSQP rejected the settings: {exc}") from exc
+    res = solver.solve(raise_error=False)
+    status = str(res.info.status)
+    return res.x, status, status == "solved", int(res.info.iter)
+
+
+def _clarabel_form(qp: QPData) -> tuple[sp.csc_matrix, np.ndarray, int, int]:
+    """Two-sided rows as Clarabel cones, ``A_c x + s = b_c``.
+
+    Rows with ``l == u`` go to the zero cone (``A x = u``); finite upper bounds give
+    ``A x + s = u, s >= 0``; finite lower bounds give ``-A x + s = -l, s >= 0``.
+
+    Returns:
+        ``A_c``, ``b_c``, number of zero-cone rows, number of nonnegative-cone rows.
+    """
+    lb, ub = qp.l, qp.u
+    eq = np.flatnonzero(lb == ub)
+    up = np.flatnonzero((lb != ub) & np.isfinite(ub))
+    lo = np.flatnonzero((lb != ub) & np.isfinite(lb))
+    A = qp.A.tocsr()
+    A_c = sp.vstack([A[eq], A[up], -A[lo]], format="csc")
+    b_c = np.concatenate([ub[eq], ub[up], -lb[lo]])
+    return A_c, b_c, eq.size, up.size + lo.size
+
+
+def _solve_clarabel(qp: QPData, settings: dict) -> tuple[np.ndarray | None, str, bool, int]:
+    import clarabel
+
+    opts = clarabel.DefaultSettings()
+    opts.verbose = False
+    for key, value in settings.items():
+        if not hasattr(opts, key):
+            raise ConfigError("settings", f"unknown Clarabel setting {key!r}")
+        setattr(opts, key, value)
+    A_c, b_c, n_eq, n_ineq = _clarabel_form(qp)
+    cones = []
+    if n_eq:
+        cones.append(clarabel.ZeroConeT(n_eq))
+    if n_ineq:
+        cones.append(clarabel.NonnegativeConeT(n_ineq))
+    solver = clarabel.DefaultSolver(sp.triu(qp.P, format="csc"), qp.q, A_c, b_c, cones, opts)
+    sol = solver.solve()
+    status = str(sol.status)
+    return np.asarray(sol.x), status, status == "Solved", int(sol.iterations)
+
+
+def solve_qp(qp: QPData, backend: str = "osqp", **settings: object) -> QPResult:
+    """Solve a :class:`QPData` with OSQP or Clarabel.
+
+    OSQP runs with polishing and ``eps_abs = eps_rel = 1e-8`` unless overridden; Clarabel with
+    its default (interior-point, 1e-8) tolerances. Extra keyword arguments go to the solver's
+    settings.
+
+    Args:
+        qp: The problem.
+        backend: ``"osqp"`` or ``"clarabel"``.
+        **settings: Solver settings.
+
+    Returns:
+        The result; ``solved`` is False (and ``dkappa`` NaN) for any status other than
+        converged-and-feasible, with the solver's status kept.
+
+    Raises:
+        ConfigError: Unknown backend or setting.
+    """
+    check_choice("backend", backend, BACKENDS)
+    t0 = time.perf_counter()
+    if backend == "osqp":
+        x, status, solved, iters = _solve_osqp(qp, settings)
+    else:
+        x, status, solved, iters = _solve_clarabel(qp, settings)
+    elapsed = time.perf_counter() - t0
+    if solved and x is not None and np.all(np.isfinite(x)):
+        x = np.asarray(x, dtype=float)
+        objective = qp.objective(x)
+    else:
+        solved = False
+        x = np.full(qp.n, np.nan)
+        objective = float("nan")
+    return QPResult(
+        dkappa=_ro(x.reshape(N_ROWS, N_KNOTS)),
+        status=status,
+        solved=solved,
+        objective=objective,
+        solve_time=elapsed,
+        backend=backend,
+        iterations=iters,
+    )
+
+
+def require_solved(result: QPResult) -> QPResult:
+    """Return ``result`` if it is solved.
+
+    Raises:
+        SolverError: With the solver's status when it is not.
+    """
+    if not result.solved:
+        raise SolverError(result.backend, result.status)
+    return result
+
+
+__all__ = [
+    "BACKENDS",
+    "BASE_UPDATES",
+    "COLUMNS",
+    "LIMIT_KINDS",
+    "FollowThrough",
+    "InverseModelWeights",
+    "JointLimits",
+    "LimitRows",
+    "QPData",
+    "QPResult",
+    "base_equality_rows",
+    "build_inverse_qp",
+    "limit_rows",
+    "require_solved",
+    "solve_qp",
+]

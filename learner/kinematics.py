@@ -1,0 +1,639 @@
+"""The learner's robot model: fingertip kinematics and rigid-body inverse dynamics in CasADi.
+
+The chain is read once from the robot's MJCF file (``constants.XARM7_XML``): body poses, hinge
+axes and anchors, inertials, armature, damping and springs. Nothing from a running simulation
+is used, so the same model serves the simulated and the real lab (paper, "Robot Model").
+
+Frames and conventions:
+    * Every quantity is expressed in the *robot base frame*, the frame of the body that carries
+      the first chain joint's body (``link_base`` for the xArm 7).
+    * Rotation matrices map tip-frame coordinates to base-frame coordinates; the rope leaves the
+      fingertip tube along the fingertip site's z axis, ``d_tip = R_tip[:, 2]``.
+    * Joint angles follow MuJoCo: the body rotates by ``q - ref`` about the joint axis through
+      the joint anchor, so ``q`` here is exactly MuJoCo's ``qpos`` of the chain joints.
+
+Inverse dynamics (recursive Newton-Euler) gives the torque a joint motor must supply::
+
+    tau = M(q) qdd + c(q, qd) + g(q) + armature * qdd + damping * qd + stiffness * (q - q_spring)
+
+with ``M, c, g`` the rigid-body terms of the chain (bodies rigidly attached to a chain body,
+including subtrees whose own joints are held at their reference pose ``qpos0``, are lumped into
+it). Armature is MuJoCo's reflected rotor inertia; damping and stiffness are the MJCF's passive
+joint terms, which the motor has to overcome. Dry friction (``frictionloss``) is left out: it is
+not differentiable and at most ~1 N m on the xArm 7. This equals MuJoCo's ``mj_inverse`` with
+constraints disabled (``qfrc_inverse``) when all three flags are on, and ``mj_rne`` (flag 1)
+when they are off. Gravity is the model's ``opt.gravity`` (default ``(0, 0, -9.81)`` m/s^2)
+rotated into the base frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+import casadi as ca
+import mujoco
+import numpy as np
+
+from flyknot.constants import JOINT_NAMES, XARM7_XML
+from flyknot.errors import ConfigError
+
+FINGERTIP_SITE = "fingertip"
+
+
+# --------------------------------------------------------------------------------------------
+# numpy helpers for reading the model
+# --------------------------------------------------------------------------------------------
+
+
+def quat_to_mat(quat: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a unit quaternion.
+
+    ``R = I + 2 w [v]x + 2 [v]x^2`` for ``quat = (w, v)``.
+
+    Args:
+        quat: Quaternion (4,) in MuJoCo order (w, x, y, z); normalised here.
+
+    Returns:
+        Rotation matrix (3, 3).
+    """
+    w, x, y, z = np.asarray(quat, dtype=float) / np.linalg.norm(quat)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+@dataclass(frozen=True)
+class _Link:
+    """One moving segment of the chain, all vectors in numpy, constant.
+
+    The segment's body frame after the joint is ``R = R_prev S Rot(axis, q - ref)``,
+    ``p = o - R c`` with the anchor ``o = p_prev + R_prev s + R_prev S c``.
+    """
+
+    s: np.ndarray  # (3,) position of the joint body before rotation, previous frame [m]
+    S: np.ndarray  # (3, 3) orientation of the joint body before rotation, previous frame
+    axis: np.ndarray  # (3,) unit hinge axis, joint body frame
+    anchor: np.ndarray  # (3,) hinge anchor c, joint body frame [m]
+    ref: float  # qpos0 of the joint [rad]
+    mass: float  # lumped mass [kg]
+    com: np.ndarray  # (3,) lumped centre of mass, joint body frame [m]
+    inertia: np.ndarray  # (3, 3) lumped inertia about the com, joint body frame [kg m^2]
+
+
+def _ancestors(model: mujoco.MjModel, body: int) -> list[int]:
+    """Bodies from ``body`` up to (excluding) the world, nearest first."""
+    out = []
+    while body != 0:
+        out.append(body)
+        body = int(model.body_parentid[body])
+    return out
+
+
+def _static_pose(model: mujoco.MjModel, top: int, body: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pose of ``body`` in the frame of its ancestor ``top`` with joints at ``qpos0``.
+
+    At ``qpos0`` every MuJoCo joint is the identity, so the pose composes ``body_pos`` and
+    ``body_quat`` alone: ``p = p_parent + R_parent pos``, ``R = R_parent R(quat)``.
+
+    Returns:
+        Position (3,) [m] and rotation (3, 3).
+    """
+    chain = []
+    b = body
+    while b != top:
+        if b == 0:
+            raise ConfigError("mjcf", f"body {body} is not below body {top}")
+        chain.append(b)
+        b = int(model.body_parentid[b])
+    p, R = np.zeros(3), np.eye(3)
+    for b in reversed(chain):
+        p = p + R @ model.body_pos[b]
+        R = R @ quat_to_mat(model.body_quat[b])
+    return p, R
+
+
+def _has_free_joint(model: mujoco.MjModel, body: int) -> bool:
+    start, count = int(model.body_jntadr[body]), int(model.body_jntnum[body])
+    return any(model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE for j in range(start, start + count))
+
+
+def _body_name(model: mujoco.MjModel, body: int) -> str:
+    return mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, body) or f"body#{body}"
+
+
+def _read_chain(
+    model: mujoco.MjModel, joint_names: tuple[str, ...], site_name: str, base_body: str | None
+) -> dict:
+    """Extract the serial chain from base to site; see :class:`RobotModel` for the checks."""
+    n = len(joint_names)
+    jids = []
+    for name in joint_names:
+        j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+        if j < 0:
+            all_joints = [
+                mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, i) for i in range(model.njnt)
+            ]
+            raise ConfigError("joint_names", f"joint {name!r} not in the MJCF", all_joints)
+        if model.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE:
+            raise ConfigError("joint_names", f"joint {name!r} is not a hinge")
+        jids.append(j)
+    sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, site_name)
+    if sid < 0:
+        sites = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_SITE, i) for i in range(model.nsite)]
+        raise ConfigError("site", f"site {site_name!r} not in the MJCF", sites)
+    jbody = [int(model.jnt_bodyid[j]) for j in jids]
+    if base_body is None:
+        base = int(model.body_parentid[jbody[0]])
+    else:
+        base = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, base_body)
+        if base < 0:
+            bodies = [_body_name(model, i) for i in range(model.nbody)]
+            raise ConfigError("base_body", f"body {base_body!r} not in the MJCF", bodies)
+    # The base must be welded to the world so that gravity has a fixed direction in it.
+    for b in [*_ancestors(model, base)]:
+        if model.body_jntnum[b] > 0:
+            raise ConfigError("base_body", f"{_body_name(model, base)!r} is not fixed to the world")
+    site_body = int(model.site_bodyid[sid])
+    path = list(reversed(_ancestors(model, site_body)))  # world child ... site body
+    if base != 0:
+        if base not in path:
+            raise ConfigError(
+                "site", f"site {site_name!r} is not below {_body_name(model, base)!r}"
+            )
+        path = path[path.index(base) + 1 :]
+    # Joints along the path must be exactly the chain joints, in order, one per body.
+    seen = []
+    for b in path:
+        nj = int(model.body_jntnum[b])
+        ids = list(range(model.body_jntadr[b], model.body_jntadr[b] + nj))
+        for j in ids:
+            if j not in jids:
+                name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j)
+                raise ConfigError(
+                    "joint_names", f"joint {name!r} lies on the chain but is not listed"
+                )
+        if nj > 1:
+            raise ConfigError("mjcf", f"body {_body_name(model, b)!r} has {nj} joints (need <= 1)")
+        seen.extend(ids)
+    if seen != jids:
+        raise ConfigError(
+            "joint_names",
+            "must list the hinges from base to site in chain order; the chain has "
+            + ", ".join(repr(mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j)) for j in seen),
+        )
+    # Segment of every body: index of the last chain joint at or above it (-1: fixed to base).
+    seg_of_path = {}
+    k = -1
+    for b in path:
+        if model.body_jntnum[b] == 1:
+            k += 1
+        seg_of_path[b] = k
+    # Lump every body below the base into the segment of its nearest path ancestor.
+    masses = [[] for _ in range(n)]
+    for b in range(1, model.nbody):
+        anc = _ancestors(model, b)
+        on_path = next((a for a in anc if a in seg_of_path), None)
+        if on_path is None or seg_of_path[on_path] < 0:
+            continue
+        between = anc[: anc.index(on_path)]  # b and its ancestors below the path body
+        if any(_has_free_joint(model, a) for a in between):
+            continue  # a free body is not carried by the arm
+        k = seg_of_path[on_path]
+        p, R = _static_pose(model, jbody[k], b) if b != jbody[k] else (np.zeros(3), np.eye(3))
+        Ri = R @ quat_to_mat(model.body_iquat[b])
+        masses[k].append(
+            (
+                float(model.body_mass[b]),
+                p + R @ model.body_ipos[b],
+                Ri @ np.diag(model.body_inertia[b]) @ Ri.T,
+            )
+        )
+    links = []
+    prev = base
+    for k in range(n):
+        b = jbody[k]
+        parent = int(model.body_parentid[b])
+        p_par, R_par = (
+            (np.zeros(3), np.eye(3)) if parent == prev else _static_pose(model, prev, parent)
+        )
+        s = p_par + R_par @ model.body_pos[b]
+        S = R_par @ quat_to_mat(model.body_quat[b])
+        m_tot = sum(m for m, _, _ in masses[k])
+        if m_tot > 0:
+            com = sum(m * c for m, c, _ in masses[k]) / m_tot
+            inertia = sum(
+                inertia_b + m * (np.dot(c - com, c - com) * np.eye(3) - np.outer(c - com, c - com))
+                for m, c, inertia_b in masses[k]
+            )
+        else:
+            com, inertia = np.zeros(3), np.zeros((3, 3))
+        j = jids[k]
+        axis = np.asarray(model.jnt_axis[j], dtype=float)
+        links.append(
+            _Link(
+                s=s,
+                S=S,
+                axis=axis / np.linalg.norm(axis),
+                anchor=np.array(model.jnt_pos[j], dtype=float),
+                ref=float(model.qpos0[model.jnt_qposadr[j]]),
+                mass=float(m_tot),
+                com=com,
+                inertia=np.asarray(inertia, dtype=float),
+            )
+        )
+        prev = b
+    p_site_body, R_site_body = (
+        (np.zeros(3), np.eye(3))
+        if site_body == jbody[-1]
+        else _static_pose(model, jbody[-1], site_body)
+    )
+    site_pos = p_site_body + R_site_body @ model.site_pos[sid]
+    site_rot = R_site_body @ quat_to_mat(model.site_quat[sid])
+    _, R_wb = _static_pose(model, 0, base) if base != 0 else (None, np.eye(3))
+    dofs = [int(model.jnt_dofadr[j]) for j in jids]
+    return {
+        "links": links,
+        "site_pos": site_pos,
+        "site_rot": site_rot,
+        "gravity": R_wb.T @ np.asarray(model.opt.gravity, dtype=float),
+        "armature": np.array([model.dof_armature[d] for d in dofs]),
+        "damping": np.array([model.dof_damping[d] for d in dofs]),
+        "stiffness": np.array([model.jnt_stiffness[j] for j in jids]),
+        "springref": np.array([model.qpos_spring[model.jnt_qposadr[j]] for j in jids]),
+        "base_name": _body_name(model, base) if base != 0 else "world",
+        "q_range": np.array([model.jnt_range[j] for j in jids]),
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# symbolic model
+# --------------------------------------------------------------------------------------------
+
+
+def _rot_axis(axis: np.ndarray, angle: ca.SX) -> ca.SX:
+    """Rodrigues: ``Rot(a, th) = I + sin(th) [a]x + (1 - cos(th)) [a]x^2``, (3, 3)."""
+    K = ca.DM(_skew(axis))
+    return ca.DM.eye(3) + ca.sin(angle) * K + (1 - ca.cos(angle)) * (K @ K)
+
+
+def _build_symbolic(chain: dict, q: ca.SX, qd: ca.SX, qdd: ca.SX, flags: tuple[bool, ...]):
+    """Forward kinematics and recursive Newton-Euler in the base frame.
+
+    Forward pass (anchor ``o_i``, axis ``z_i``, segment com ``c_i``, base values
+    ``w_0 = dw_0 = 0``, ``a_0 = -g``)::
+
+        w_i  = w_{i-1} + z_i qd_i
+        dw_i = dw_{i-1} + z_i qdd_i + w_{i-1} x z_i qd_i
+        a_i  = a_{i-1} + dw_{i-1} x r_i + w_{i-1} x (w_{i-1} x r_i),  r_i = o_i - o_{i-1}
+        ac_i = a_i + dw_i x (c_i - o_i) + w_i x (w_i x (c_i - o_i))
+        F_i  = m_i ac_i,   N_i = I_i dw_i + w_i x I_i w_i
+
+    Backward pass (moments about the anchor)::
+
+        f_i = F_i + f_{i+1}
+        n_i = N_i + (c_i - o_i) x F_i + n_{i+1} + (o_{i+1} - o_i) x f_{i+1}
+        tau_i = z_i . n_i (+ armature_i qdd_i + damping_i qd_i + stiffness_i (q_i - q_spring_i))
+
+    Returns:
+        ``p_tip`` (3, 1) [m], ``R_tip`` (3, 3), ``tau`` (n, 1) [N m].
+    """
+    links = chain["links"]
+    n = len(links)
+    R = ca.DM.eye(3)
+    p = ca.DM.zeros(3, 1)
+    o_prev = ca.DM.zeros(3, 1)
+    w = ca.DM.zeros(3, 1)
+    dw = ca.DM.zeros(3, 1)
+    a = ca.DM(-chain["gravity"].reshape(3, 1))
+    frames = []
+    for i, lk in enumerate(links):
+        R_pre = R @ ca.DM(lk.S)
+        o = p + R @ ca.DM(lk.s) + R_pre @ ca.DM(lk.anchor)
+        R = R_pre @ _rot_axis(lk.axis, q[i] - lk.ref)
+        p = o - R @ ca.DM(lk.anchor)
+        z = R_pre @ ca.DM(lk.axis)
+        r = o - o_prev
+        a = a + ca.cross(dw, r) + ca.cross(w, ca.cross(w, r))
+        dw = dw + z * qdd[i] + ca.cross(w, z * qd[i])
+        w = w + z * qd[i]
+        rc = R @ ca.DM(lk.com)  # c_i - o_i = p + R com - o = R (com - anchor)
+        rc = rc - R @ ca.DM(lk.anchor)
+        ac = a + ca.cross(dw, rc) + ca.cross(w, ca.cross(w, rc))
+        I_w = R @ ca.DM(lk.inertia) @ R.T
+        F = lk.mass * ac
+        N = I_w @ dw + ca.cross(w, I_w @ w)
+        frames.append((o, z, rc, F, N))
+        o_prev = o
+    p_tip = p + R @ ca.DM(chain["site_pos"].reshape(3, 1))
+    R_tip = R @ ca.DM(chain["site_rot"])
+    use_arm, use_damp, use_spring = flags
+    f_next = ca.DM.zeros(3, 1)
+    n_next = ca.DM.zeros(3, 1)
+    o_next = None
+    tau = [None] * n
+    for i in reversed(range(n)):
+        o, z, rc, F, N = frames[i]
+        n_i = N + ca.cross(rc, F) + n_next
+        if o_next is not None:
+            n_i = n_i + ca.cross(o_next - o, f_next)
+        f_i = F + f_next
+        t = ca.dot(z, n_i)
+        if use_arm:
+            t = t + chain["armature"][i] * qdd[i]
+        if use_damp:
+            t = t + chain["damping"][i] * qd[i]
+        if use_spring:
+            t = t + chain["stiffness"][i] * (q[i] - chain["springref"][i])
+        tau[i] = t
+        f_next, n_next, o_next = f_i, n_i, o
+    return p_tip, R_tip, ca.vertcat(*tau)
+
+
+class TipStates(NamedTuple):
+    """Fingertip states for a batch of configurations."""
+
+    p: np.ndarray  # (m, 3) [m]
+    R: np.ndarray  # (m, 3, 3)
+    v: np.ndarray  # (m, 3) [m/s]
+
+
+class TipJacobians(NamedTuple):
+    """Jacobians of the fingertip states for a batch of configurations."""
+
+    dp_dq: np.ndarray  # (m, 3, n) [m/rad]
+    dd_dq: np.ndarray  # (m, 3, n) [1/rad], d_tip = R_tip[:, 2]
+    dv_dq: np.ndarray  # (m, 3, n) [m/(s rad)]
+    dv_dqd: np.ndarray  # (m, 3, n) [m/rad] (equals dp_dq)
+
+
+class TorqueJacobians(NamedTuple):
+    """Jacobians of the inverse dynamics for a batch of states."""
+
+    dtau_dq: np.ndarray  # (m, n, n) [N m/rad]
+    dtau_dqd: np.ndarray  # (m, n, n) [N m s/rad]
+    dtau_dqdd: np.ndarray  # (m, n, n) [N m s^2/rad] (mass matrix + armature)
+
+
+@dataclass(frozen=True)
+class RobotModel:
+    """Fingertip kinematics and inverse dynamics of a serial hinge chain, as CasADi Functions.
+
+    Build it with :meth:`from_mjcf`. The CasADi Functions take column vectors (n = 7 joints)
+    and accept SX/MX symbols as well as numbers, so optimisers can embed them:
+
+    * ``fk(q) -> (p_tip (3,1) [m], R_tip (3,3))``
+    * ``d_tip(q) -> (3,1)``, the rope axis ``R_tip[:, 2]``
+    * ``p_dot(q, qd) -> (3,1) [m/s]``, ``v = (d p_tip / d q) qd``
+    * ``tip_jac(q, qd) -> (dp/dq, dd_tip/dq, dv/dq, dv/dqd)``, each (3, n)
+    * ``inverse_dynamics(q, qd, qdd) -> tau (n,1) [N m]``
+    * ``torque_jac(q, qd, qdd) -> (dtau/dq, dtau/dqd, dtau/dqdd)``, each (n, n)
+
+    The numpy methods :meth:`tip_states`, :meth:`tip_jacobians`, :meth:`torques` and
+    :meth:`torque_jacobians` evaluate batches (m, n) through ``Function.map``.
+
+    Attributes:
+        joint_names: Chain joints, base to tip.
+        site_name: Fingertip site.
+        base_name: Body whose frame is the base frame.
+        gravity: Gravity in the base frame (3,) [m/s^2].
+        armature: Reflected rotor inertia per joint (n,) [kg m^2] (0 when not included).
+        damping: Viscous joint damping (n,) [N m s/rad] (0 when not included).
+        stiffness: Joint spring stiffness (n,) [N m/rad] (0 when not included).
+        q_range: Joint ranges from the MJCF (n, 2) [rad] (the learner's limits are the
+            paper's, see ``flyknot.constants``).
+    """
+
+    joint_names: tuple[str, ...]
+    site_name: str
+    base_name: str
+    gravity: np.ndarray
+    armature: np.ndarray
+    damping: np.ndarray
+    stiffness: np.ndarray
+    q_range: np.ndarray
+    fk: ca.Function
+    d_tip: ca.Function
+    p_dot: ca.Function
+    tip_jac: ca.Function
+    inverse_dynamics: ca.Function
+    torque_jac: ca.Function
+    _flat: dict[str, ca.Function] = field(repr=False, compare=False)
+    _maps: dict[tuple[str, int], ca.Function] = field(
+        default_factory=dict, repr=False, compare=False
+    )
+
+    @property
+    def n_joints(self) -> int:
+        """Number of chain joints."""
+        return len(self.joint_names)
+
+    @classmethod
+    def from_mjcf(
+        cls,
+        path: str | Path = XARM7_XML,
+        *,
+        joint_names: tuple[str, ...] = JOINT_NAMES,
+        site: str = FINGERTIP_SITE,
+        base_body: str | None = None,
+        include_armature: bool = True,
+        include_damping: bool = True,
+        include_stiffness: bool = True,
+    ) -> RobotModel:
+        """Read the chain from an MJCF file and build the CasADi Functions.
+
+        The joints must be hinges, one per body, forming a serial path from the base body to the
+        site's body in the listed order. Bodies below a chain body are lumped into it rigidly at
+        their reference pose; a free joint below the chain cuts its subtree off.
+
+        Args:
+            path: MJCF file.
+            joint_names: Chain joints, base to tip.
+            site: Fingertip site name.
+            base_body: Body whose frame is the base frame; default the parent of the first
+                joint's body. It must be fixed to the world.
+            include_armature: Add ``armature * qdd`` to the torque.
+            include_damping: Add ``damping * qd`` to the torque.
+            include_stiffness: Add ``stiffness * (q - q_spring)`` to the torque.
+
+        Returns:
+            The model.
+
+        Raises:
+            ConfigError: The file is missing, or names or chain structure do not fit.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError("path", f"MJCF file {str(path)!r} does not exist")
+        model = mujoco.MjModel.from_xml_path(str(path))
+        joint_names = tuple(joint_names)
+        chain = _read_chain(model, joint_names, site, base_body)
+        flags = (include_armature, include_damping, include_stiffness)
+        n = len(joint_names)
+        q = ca.SX.sym("q", n)
+        qd = ca.SX.sym("qd", n)
+        qdd = ca.SX.sym("qdd", n)
+        p_tip, R_tip, tau = _build_symbolic(chain, q, qd, qdd, flags)
+        d = R_tip[:, 2]
+        Jp = ca.jacobian(p_tip, q)
+        v = Jp @ qd
+        Jd = ca.jacobian(d, q)
+        Jv = ca.jacobian(v, q)
+        Jt_q = ca.jacobian(tau, q)
+        Jt_qd = ca.jacobian(tau, qd)
+        Jt_qdd = ca.jacobian(tau, qdd)
+        fk = ca.Function("fk", [q], [p_tip, R_tip], ["q"], ["p_tip", "R_tip"])
+        d_fun = ca.Function("d_tip", [q], [d], ["q"], ["d_tip"])
+        p_dot = ca.Function("p_dot", [q, qd], [v], ["q", "qd"], ["v_tip"])
+        tip_jac = ca.Function(
+            "tip_jac", [q, qd], [Jp, Jd, Jv, Jp], ["q", "qd"], ["dp_dq", "dd_dq", "dv_dq", "dv_dqd"]
+        )
+        inv = ca.Function("inverse_dynamics", [q, qd, qdd], [tau], ["q", "qd", "qdd"], ["tau"])
+        tjac = ca.Function(
+            "torque_jac",
+            [q, qd, qdd],
+            [Jt_q, Jt_qd, Jt_qdd],
+            ["q", "qd", "qdd"],
+            ["dtau_dq", "dtau_dqd", "dtau_dqdd"],
+        )
+
+        def rows(x: ca.SX) -> ca.SX:  # row-major flattening, so numpy reshapes need no transpose
+            return ca.reshape(x.T, x.numel(), 1)
+
+        flat = {
+            "tip": ca.Function("tip_flat", [q, qd], [p_tip, rows(R_tip), v]),
+            "tip_jac": ca.Function("tip_jac_flat", [q, qd], [rows(Jp), rows(Jd), rows(Jv)]),
+            "tau": ca.Function("tau_flat", [q, qd, qdd], [tau]),
+            "tau_jac": ca.Function(
+                "tau_jac_flat", [q, qd, qdd], [rows(Jt_q), rows(Jt_qd), rows(Jt_qdd)]
+            ),
+        }
+        zeros = np.zeros(n)
+
+        def ro(x: np.ndarray) -> np.ndarray:
+            x = np.array(x, dtype=float)
+            x.setflags(write=False)
+            return x
+
+        return cls(
+            joint_names=joint_names,
+            site_name=site,
+            base_name=chain["base_name"],
+            gravity=ro(chain["gravity"]),
+            armature=ro(chain["armature"] if include_armature else zeros),
+            damping=ro(chain["damping"] if include_damping else zeros),
+            stiffness=ro(chain["stiffness"] if include_stiffness else zeros),
+            q_range=ro(chain["q_range"]),
+            fk=fk,
+            d_tip=d_fun,
+            p_dot=p_dot,
+            tip_jac=tip_jac,
+            inverse_dynamics=inv,
+            torque_jac=tjac,
+            _flat=flat,
+        )
+
+    # ---------------------------------------------------------------------------- batches
+
+    def _mapped(self, key: str, m: int) -> ca.Function:
+        fun = self._maps.get((key, m))
+        if fun is None:
+            fun = self._flat[key].map(m, "serial")
+            self._maps[(key, m)] = fun
+        return fun
+
+    def _batch(self, name: str, x: np.ndarray, m: int | None = None) -> np.ndarray:
+        x = np.asarray(x, dtype=float)
+        n = self.n_joints
+        if x.ndim != 2 or x.shape[1] != n or (m is not None and x.shape[0] != m):
+            want = f"({'m' if m is None else m}, {n})"
+            raise ConfigError(name, f"expected shape {want}, got {x.shape}")
+        if not np.all(np.isfinite(x)):
+            raise ConfigError(name, "contains non-finite values")
+        return x
+
+    def tip_states(self, q: np.ndarray, qd: np.ndarray) -> TipStates:
+        """Fingertip position, orientation and velocity for a batch.
+
+        ``p = K_p(q)``, ``R = K_R(q)``, ``v = (d K_p / d q) qd``.
+
+        Args:
+            q: Joint angles (m, n) [rad].
+            qd: Joint velocities (m, n) [rad/s].
+
+        Returns:
+            ``TipStates(p (m, 3) [m], R (m, 3, 3), v (m, 3) [m/s])`` in the base frame.
+        """
+        q = self._batch("q", q)
+        qd = self._batch("qd", qd, q.shape[0])
+        m = q.shape[0]
+        p, R, v = self._mapped("tip", m)(q.T, qd.T)
+        return TipStates(np.asarray(p).T, np.asarray(R).T.reshape(m, 3, 3), np.asarray(v).T)
+
+    def tip_jacobians(self, q: np.ndarray, qd: np.ndarray) -> TipJacobians:
+        """Jacobians of the fingertip states for a batch.
+
+        ``dp/dq = d K_p / d q``, ``dd/dq = d (K_R e_z) / d q``, ``dv/dq = d (J_p(q) qd) / d q``,
+        ``dv/dqd = J_p(q)``.
+
+        Args:
+            q: Joint angles (m, n) [rad].
+            qd: Joint velocities (m, n) [rad/s].
+
+        Returns:
+            ``TipJacobians`` with four (m, 3, n) arrays.
+        """
+        q = self._batch("q", q)
+        qd = self._batch("qd", qd, q.shape[0])
+        m, n = q.shape
+        Jp, Jd, Jv = self._mapped("tip_jac", m)(q.T, qd.T)
+        Jp = np.asarray(Jp).T.reshape(m, 3, n)
+        return TipJacobians(
+            Jp, np.asarray(Jd).T.reshape(m, 3, n), np.asarray(Jv).T.reshape(m, 3, n), Jp.copy()
+        )
+
+    def torques(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray:
+        """Inverse dynamics for a batch, ``tau = ID(q, qd, qdd)`` (see the module docstring).
+
+        Args:
+            q: Joint angles (m, n) [rad].
+            qd: Joint velocities (m, n) [rad/s].
+            qdd: Joint accelerations (m, n) [rad/s^2].
+
+        Returns:
+            Joint torques (m, n) [N m].
+        """
+        q = self._batch("q", q)
+        m = q.shape[0]
+        qd = self._batch("qd", qd, m)
+        qdd = self._batch("qdd", qdd, m)
+        return np.asarray(self._mapped("tau", m)(q.T, qd.T, qdd.T)).T
+
+    def torque_jacobians(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> TorqueJacobians:
+        """Jacobians of the inverse dynamics for a batch.
+
+        ``dtau/dq``, ``dtau/dqd`` and ``dtau/dqdd = M(q) + diag(armature)``.
+
+        Args:
+            q: Joint angles (m, n) [rad].
+            qd: Joint velocities (m, n) [rad/s].
+            qdd: Joint accelerations (m, n) [rad/s^2].
+
+        Returns:
+            ``TorqueJacobians`` with three (m, n, n) arrays.
+        """
+        q = self._batch("q", q)
+        m, n = q.shape
+        qd = self._batch("qd", qd, m)
+        qdd = self._batch("qdd", qdd, m)
+        a, b, c = self._mapped("tau_jac", m)(q.T, qd.T, qdd.T)
+        return TorqueJacobians(*(np.asarray(x).T.reshape(m, n, n) for x in (a, b, c)))

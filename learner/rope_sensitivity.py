@@ -1,0 +1,192 @@
+"""Linearisation of the rope model by the implicit function theorem (paper eq. rope_ift).
+
+Step k -> k+1 of :func:`learner.rope_model.rollout` solves R(z', x_k, u_k, u') = 0 for
+z' = (p', mu') (v' = (p' - p_k) / dt is eliminated, mu = 2 l dt^2 lam is the scaled multiplier),
+where x_k = (p_k, v_k) and u = (p_tip, d_tip). The step depends on u_k too, through the
+backward-difference input velocities in the damping. The implicit function theorem gives, per step,
+
+    dz' = -(dR/dz')^-1 (dR/dx_k dx_k + dR/du_k du_k + dR/du' du'),   dv' = (dp' - dp_k) / dt,
+
+which, chained from dx_0, is the block-forward-substitution form of the paper's
+dz~/du~ = -(df~/dz~)^-1 df~/du~ over the whole horizon. dR/dz' is the KKT matrix Newton used
+(solved, never inverted). With R1s, R2s the scaled residuals of :mod:`learner.rope_model`:
+
+    dR1s/dp_k = -(diag(m) + beta DtD),  dR1s/dv_k = -dt diag(m),
+    dR1s/dA'  = (kappa + beta) Df^T Din,  dR1s/dA_k = -beta Df^T Din,
+    dR1s/dp_tip' += (mu'_0 / l) I on point 1,  dR2s_0/dp_tip' = -(p'_1 - p_tip')^T / l,
+
+with A = (p_tip - l d_tip, p_tip), kappa = k dt^2 / l^2, beta = b dt / l^2 (all kron I3).
+"""
+
+from __future__ import annotations
+
+import numbers
+from collections.abc import Iterable
+
+import numpy as np
+
+from flyknot.errors import ConfigError
+from learner.rope_model import (
+    NEWTON_MAX_ITER,
+    RopeModelParams,
+    RopeTrajectory,
+    _ops,
+    _StepSolver,
+    hanging_state,
+    link_vectors,
+    rollout,
+)
+
+N_INPUTS = 6  # d p_tip (3) [m], d d_tip (3) [unit]
+
+
+def _steps(steps: Iterable[int] | None, n_steps: int) -> list[int]:
+    """Validate requested step indices (0..K); None means all."""
+    if steps is None:
+        return list(range(n_steps + 1))
+    out = []
+    for s in steps:
+        if isinstance(s, bool) or not isinstance(s, numbers.Integral) or not 0 <= s <= n_steps:
+            raise ConfigError("steps", f"must be integers in [0, {n_steps}], got {s!r}")
+        out.append(int(s))
+    if not out:
+        raise ConfigError("steps", "must not be empty")
+    return out
+
+
+def _dU(dU: object, n_steps: int) -> np.ndarray:
+    dU = np.asarray(dU, dtype=float)
+    if dU.ndim != 3 or dU.shape[:2] != (n_steps + 1, N_INPUTS):
+        raise ConfigError(
+            "dU", f"must have shape ({n_steps + 1}, {N_INPUTS}, n_theta), got {dU.shape}"
+        )
+    if not np.all(np.isfinite(dU)):
+        raise ConfigError("dU", "must be finite")
+    return dU
+
+
+def state_sensitivity(
+    traj: RopeTrajectory,
+    dU: np.ndarray,
+    *,
+    dx0: np.ndarray | None = None,
+    steps: Iterable[int] | None = None,
+) -> np.ndarray:
+    """Derivatives of the states x_k = [p_k.ravel(), v_k.ravel()] w.r.t. parameters theta.
+
+    Forward propagation of dx_k through each step's KKT system (see the module docstring).
+
+    Args:
+        traj: A converged rollout (its p, lam and inputs are the linearisation point).
+        dU: Input derivatives d u_k / d theta, shape (K+1, 6, n_theta); rows 0-2 d p_tip [m],
+            rows 3-5 d d_tip (the raw direction; no normalisation is applied).
+        dx0: d x_0 / d theta, shape (6N, n_theta); default zero (initial state held fixed).
+        steps: Step indices to return (0..K), default all.
+
+    Returns:
+        dX, shape (len(steps), 6N, n_theta) [m and m/s per unit theta].
+
+    Raises:
+        ConfigError: on malformed arguments.
+    """
+    if not isinstance(traj, RopeTrajectory):
+        raise ConfigError("traj", f"must be a RopeTrajectory, got {type(traj).__name__}")
+    params = traj.params
+    K = traj.n_steps
+    dU = _dU(dU, K)
+    steps = _steps(steps, K)
+    n, ell, dt = params.n_links, params.link_length, params.dt
+    nth = dU.shape[2]
+    if dx0 is None:
+        dx0 = np.zeros((6 * n, nth))
+    dx0 = np.asarray(dx0, dtype=float)
+    if dx0.shape != (6 * n, nth):
+        raise ConfigError("dx0", f"must have shape ({6 * n}, {nth}), got {dx0.shape}")
+    ops = _ops(params)
+    solver = _StepSolver(params, 1.0, NEWTON_MAX_ITER)
+    m = ops.m[:, None, None]
+    # dA_k / dtheta, shape (K+1, 2, 3, n_theta): (dp_tip - l dd_tip, dp_tip).
+    dA = np.stack([dU[:, :3] - ell * dU[:, 3:], dU[:, :3]], axis=1)
+    mu = traj.lam * (2.0 * ell * dt**2)
+    c_next = ops.kappa + ops.beta
+    want = {s: i for i, s in enumerate(steps)}
+    out = np.empty((len(steps), 6 * n, nth))
+    dp = dx0[: 3 * n].reshape(n, 3, nth)
+    dv = dx0[3 * n :].reshape(n, 3, nth)
+    if 0 in want:
+        out[want[0]] = dx0
+    for k in range(max(steps)):
+        p1, tip1 = traj.p[k + 1], traj.p_tip[k + 1]
+        r1 = (
+            -m * dp
+            - dt * m * dv
+            - ops.beta * (ops.DtD @ dp.reshape(n, -1)).reshape(n, 3, nth)
+            + (ops.DtDin @ (c_next * dA[k + 1] - ops.beta * dA[k]).reshape(2, -1)).reshape(
+                n, 3, nth
+            )
+        )
+        dtip1 = dU[k + 1, :3]  # (3, n_theta)
+        r1[0] += (mu[k + 1, 0] / ell) * dtip1
+        r2 = np.zeros((n, nth))
+        r2[0] = -(link_vectors(p1, tip1)[0] / ell) @ dtip1
+        kkt = solver.kkt(p1, mu[k + 1], tip1)
+        dz = -np.linalg.solve(kkt, np.concatenate([r1.reshape(3 * n, nth), r2]))
+        dp_new = dz[: 3 * n].reshape(n, 3, nth)
+        dv = (dp_new - dp) / dt
+        dp = dp_new
+        if k + 1 in want:
+            out[want[k + 1]] = np.concatenate([dp.reshape(3 * n, nth), dv.reshape(3 * n, nth)])
+    return out
+
+
+def fd_sensitivity(
+    p_tip: np.ndarray,
+    d_tip: np.ndarray,
+    dU: np.ndarray,
+    params: RopeModelParams | None = None,
+    p0: np.ndarray | None = None,
+    v0: np.ndarray | None = None,
+    *,
+    eps: float = 1e-6,
+    steps: Iterable[int] | None = None,
+    tol: float = 1e-12,
+) -> np.ndarray:
+    """The same derivatives by central finite differences of :func:`rollout`.
+
+    dX[:, :, j] = (x(u + eps dU_j) - x(u - eps dU_j)) / (2 eps), with the initial state held
+    fixed (p0 default: the hanging equilibrium of the unperturbed u_0; v0 default zero).
+
+    Args:
+        p_tip: Fingertip positions, shape (K+1, 3) [m].
+        d_tip: Tube directions, shape (K+1, 3) (unit).
+        dU: Input directions, shape (K+1, 6, n_theta).
+        params: Model parameters (default :class:`RopeModelParams()`).
+        p0: Initial positions, shape (N, 3) [m].
+        v0: Initial velocities, shape (N, 3) [m / s].
+        eps: Step along each direction (> 0).
+        steps: Step indices to return (0..K), default all.
+        tol: Newton tolerance of the perturbed rollouts [m] (tight, so rounding does not
+            dominate the difference quotient).
+
+    Returns:
+        dX, shape (len(steps), 6N, n_theta).
+    """
+    params = RopeModelParams() if params is None else params
+    p_tip = np.asarray(p_tip, dtype=float)
+    d_tip = np.asarray(d_tip, dtype=float)
+    K = p_tip.shape[0] - 1
+    dU = _dU(dU, K)
+    steps = _steps(steps, K)
+    if not (isinstance(eps, numbers.Real) and 0 < eps < np.inf):
+        raise ConfigError("eps", f"must be a finite number > 0, got {eps!r}")
+    if p0 is None:
+        p0, _ = hanging_state(p_tip[0], d_tip[0], params)
+    out = np.empty((len(steps), 6 * params.n_links, dU.shape[2]))
+    for j in range(dU.shape[2]):
+        xs = []
+        for sign in (1.0, -1.0):
+            du = sign * eps * dU[:, :, j]
+            tr = rollout(p_tip + du[:, :3], d_tip + du[:, 3:], params, p0, v0, tol=tol)
+            xs.append(tr.x[steps])
+        out[:, :, j] = (xs[0] - xs[1]) / (2.0 * eps)
+    return out
