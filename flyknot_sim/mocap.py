@@ -18,7 +18,7 @@ functions (arrays in, arrays out; randomness only through a passed ``np.random.G
      (a marker reported at another marker's position) are not emulated.
    * ``"none"``: no loss (an ideal capture, for checks).
 
-:func:`emulate` chains the four.
+:func:`emulate` chains the last three on a clock the caller chooses.
 """
 
 from __future__ import annotations
@@ -234,37 +234,31 @@ def apply_tracking_loss(
 def emulate(
     t_sim: np.ndarray,
     markers_sim: np.ndarray,
+    t_out: np.ndarray,
     first_contact_time: float | None,
     params: MocapParams,
     rng: np.random.Generator,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> np.ndarray:
     """What the capture reports for a simulated motion: resample, add noise, lose markers.
 
-    Frames fall at k / rate_hz on the simulator clock, inside [t_sim[0], t_sim[-1]].
+    y_i = x(t_i) + e_i, then NaN where :func:`apply_tracking_loss` loses the marker.
 
     Args:
         t_sim: Simulator times, shape (k,) [s], strictly increasing.
         markers_sim: True marker positions, shape (k, n, 3) [m].
-        first_contact_time: The rope's first self-contact [s] or None.
+        t_out: Capture frame times, shape (m,) [s], inside [t_sim[0], t_sim[-1]]; usually
+            ``sample_times(t_sim[-1], params.rate_hz)`` (the caller owns the clock, so it can
+            add a start offset).
+        first_contact_time: The rope's first self-contact [s] or None (same clock).
         params: Capture settings.
         rng: Source of randomness (noise first, then random loss).
 
     Returns:
-        ``(t, markers)``: frame times, shape (m,) [s], and reported positions, shape
-        (m, n, 3) [m], NaN where tracking is lost.
+        Reported positions, shape (m, n, 3) [m], NaN where tracking is lost.
     """
     if not isinstance(params, MocapParams):
         raise ConfigError("params", f"must be a MocapParams, got {type(params).__name__}")
-    t_sim = np.asarray(t_sim, dtype=float)
-    _check_times("t_sim", t_sim)
-    rate = params.rate_hz
-    k0 = int(np.ceil((t_sim[0] - TIME_TOL) * rate))
-    k1 = int(np.floor((t_sim[-1] + TIME_TOL) * rate))
-    t = np.arange(k0, k1 + 1) / rate
-    if t.size == 0:
-        raise RecordError(
-            f"t_sim spans [{t_sim[0]}, {t_sim[-1]}] s, which holds no frame at {rate} Hz"
-        )
-    true = resample_markers(t_sim, markers_sim, t)
+    t_out = np.asarray(t_out, dtype=float)
+    true = resample_markers(t_sim, markers_sim, t_out)
     noisy = add_noise(true, params.noise_std, rng)
-    return t, apply_tracking_loss(t, noisy, first_contact_time, params, rng)
+    return apply_tracking_loss(t_out, noisy, first_contact_time, params, rng)

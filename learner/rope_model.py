@@ -53,6 +53,7 @@ NEWTON_TOL = 1e-10  # [m], scaled residuals (see module docstring)
 NEWTON_MAX_ITER = 25
 UNIT_TOL = 1e-3  # allowed | |d_tip| - 1 |
 _SOLVER = "rope Newton"
+_MIN_ALPHA = 1.0 / 64.0  # smallest Newton step fraction of the backtracking line search
 _HANG_H_MAX = 10.0  # [s] largest pseudo-time step of hanging_state
 
 
@@ -347,8 +348,9 @@ class _StepSolver:
         p = p_k + dt * v_k if p_guess is None else p_guess
         mu = mu0.copy()
         res = np.inf
+        r1, r2 = self.residual(p, mu, c, p_tip)
+        phi = _merit(r1 / m, r2)
         for it in range(self.max_iter + 1):
-            r1, r2 = self.residual(p, mu, c, p_tip)
             res = max(np.max(np.abs(r1 / m)), np.max(np.abs(r2)))
             if not np.isfinite(res):
                 raise SolverError(_SOLVER, "non-finite", f"step {k}, iteration {it}")
@@ -361,13 +363,29 @@ class _StepSolver:
                 delta = np.linalg.solve(K, -np.concatenate([r1.ravel(), r2]))
             except np.linalg.LinAlgError as e:
                 raise SolverError(_SOLVER, "singular", f"step {k}, iteration {it}: {e}") from e
-            p = p + delta[: 3 * n].reshape(n, 3)
-            mu = mu + delta[3 * n :]
+            dp, dmu = delta[: 3 * n].reshape(n, 3), delta[3 * n :]
+            # Backtracking on phi = |r|^2 (the Newton direction descends it): accept the first
+            # alpha in 1, 1/2, ... with phi(alpha) <= (1 - 2e-4 alpha) phi(0), or alpha = 1/64.
+            alpha = 1.0
+            while True:
+                p_t, mu_t = p + alpha * dp, mu + alpha * dmu
+                r1_t, r2_t = self.residual(p_t, mu_t, c, p_tip)
+                phi_t = _merit(r1_t / m, r2_t)
+                if phi_t <= (1.0 - 2e-4 * alpha) * phi or alpha <= _MIN_ALPHA:
+                    break
+                alpha *= 0.5
+            p, mu, r1, r2, phi = p_t, mu_t, r1_t, r2_t, phi_t
         raise SolverError(
             _SOLVER,
             "max_iter",
             f"step {k}: residual {res:.3g} m > tol {self.tol:g} m after {self.max_iter} iterations",
         )
+
+
+def _merit(a: np.ndarray, b: np.ndarray) -> float:
+    """phi = |a|^2 + |b|^2 (NaN-safe: non-finite counts as +inf)."""
+    phi = float(np.sum(a * a) + np.sum(b * b))
+    return phi if np.isfinite(phi) else np.inf
 
 
 def _solver_options(tol: float, max_iter: int) -> None:

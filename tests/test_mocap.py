@@ -251,9 +251,8 @@ def test_loss_errors() -> None:
 
 def test_emulate_chain() -> None:
     t_sim, m_sim = _sim_motion(k=501, dt=0.002)  # 0 .. 1.0 s
-    p = MocapParams(noise_std=0.0)
-    t, m = emulate(t_sim, m_sim, 0.4, p, np.random.default_rng(0))
-    np.testing.assert_array_equal(t, np.arange(201) / 200.0)
+    t = sample_times(t_sim[-1], 200.0)
+    m = emulate(t_sim, m_sim, t, 0.4, MocapParams(noise_std=0.0), np.random.default_rng(0))
     assert m.shape == (201, 11, 3)
     ok = t < 0.42 - 1e-9
     np.testing.assert_allclose(m[ok], resample_markers(t_sim, m_sim, t[ok]), rtol=0, atol=1e-15)
@@ -262,24 +261,23 @@ def test_emulate_chain() -> None:
 
 def test_emulate_noise_and_seed_reproducible() -> None:
     t_sim, m_sim = _sim_motion(k=501, dt=0.002)
+    t = sample_times(t_sim[-1], 200.0)
     p = MocapParams(noise_std=0.001, loss_mode="random")
-    a = emulate(t_sim, m_sim, 0.4, p, np.random.default_rng(7))
-    b = emulate(t_sim, m_sim, 0.4, p, np.random.default_rng(7))
-    np.testing.assert_array_equal(a[1], b[1])
-    err = a[1][a[0] < 0.4] - resample_markers(t_sim, m_sim, a[0][a[0] < 0.4])
+    a = emulate(t_sim, m_sim, t, 0.4, p, np.random.default_rng(7))
+    b = emulate(t_sim, m_sim, t, 0.4, p, np.random.default_rng(7))
+    np.testing.assert_array_equal(a, b)
+    err = a[t < 0.4] - resample_markers(t_sim, m_sim, t[t < 0.4])
     assert 0.0008 < err.std() < 0.0012
+    assert np.isnan(a[t >= 0.42]).any() and np.isfinite(a[t >= 0.42]).any()
 
 
-def test_emulate_clock_starts_on_frame_grid() -> None:
-    t_sim, m_sim = _sim_motion(k=101, dt=0.002)
-    t, m = emulate(t_sim + 0.0123, m_sim, None, MocapParams(), np.random.default_rng(0))
-    np.testing.assert_array_equal(t, np.arange(3, 43) / 200.0)  # 0.0123 .. 0.2123 s
+def test_emulate_offset_clock_and_errors() -> None:
+    t_sim, m_sim = _sim_motion(k=101, dt=0.002)  # 0 .. 0.2 s
+    t = sample_times(0.2, 200.0, t_start=0.0123)
+    m = emulate(t_sim, m_sim, t, None, MocapParams(noise_std=0.0), np.random.default_rng(0))
+    np.testing.assert_allclose(m, resample_markers(t_sim, m_sim, t), rtol=0, atol=0)
     assert np.isfinite(m).all()
-    with pytest.raises(RecordError, match=r"holds no frame at 200.0 Hz$"):
-        emulate(
-            np.array([0.001, 0.002]),
-            np.zeros((2, 11, 3)),
-            None,
-            MocapParams(),
-            np.random.default_rng(0),
-        )
+    with pytest.raises(RecordError, match=r"^t_out spans \[0.0, 0.205\] s, outside the simulated"):
+        emulate(t_sim, m_sim, np.array([0.0, 0.205]), None, MocapParams(), np.random.default_rng())
+    with pytest.raises(ConfigError, match=r"^params: must be a MocapParams, got dict$"):
+        emulate(t_sim, m_sim, t, None, {}, np.random.default_rng())  # type: ignore[arg-type]

@@ -90,9 +90,7 @@ def test_bending_energy_zero_when_straight_and_angle_form():
 
 @settings(max_examples=30, deadline=None)
 @given(
-    axis=st.tuples(*[st.floats(-1, 1) for _ in range(3)]).filter(
-        lambda a: np.linalg.norm(a) > 0.1
-    ),
+    axis=st.tuples(*[st.floats(-1, 1) for _ in range(3)]).filter(lambda a: np.linalg.norm(a) > 0.1),
     angle=st.floats(-np.pi, np.pi),
     shift=st.tuples(*[st.floats(-2, 2) for _ in range(3)]),
     seed=st.integers(0, 1000),
