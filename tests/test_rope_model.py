@@ -38,11 +38,11 @@ def _straight(tip: np.ndarray, d: np.ndarray, params: RopeModelParams) -> np.nda
 
 
 def _motion(K: int, dt: float, seed: int = 0, scale: float = 1.0):
-    """A smooth fingertip motion: random low-order Fourier path, tube swinging about x and y."""
+    """A smooth fingertip motion from rest: random cubic path, tube swinging about x and y."""
     rng = np.random.default_rng(seed)
     t = np.arange(K + 1) * dt
     Tm = max(t[-1], dt)
-    s = np.sin(np.pi * t / Tm)
+    s = 0.5 * (1.0 - np.cos(np.pi * t / Tm))  # starts and ends at rest
     a = rng.normal(size=(3, 3)) * 0.15 * scale
     p_tip = TIP + np.stack([a[i, 0] * s + a[i, 1] * s**2 + a[i, 2] * s**3 for i in range(3)], 1)
     ax, ay = rng.normal(size=2) * 0.8 * scale
@@ -138,7 +138,9 @@ def test_constraints_hold_after_every_step_and_newton_is_fast():
     tr = rollout(p_tip, d_tip, params)
     assert isinstance(tr, RopeTrajectory)
     assert tr.p.shape == (161, 11, 3) and tr.v.shape == (161, 11, 3) and tr.lam.shape == (161, 11)
-    lengths = np.linalg.norm(np.stack([link_vectors(p, t) for p, t in zip(tr.p, p_tip)]), axis=2)
+    lengths = np.linalg.norm(
+        np.stack([link_vectors(p, t) for p, t in zip(tr.p, p_tip, strict=True)]), axis=2
+    )
     assert np.max(np.abs(lengths - params.link_length)) < 1e-9
     assert np.max(tr.iterations) <= 4
     assert np.mean(tr.iterations) <= 3.0
@@ -152,11 +154,11 @@ def test_step_satisfies_the_papers_equations():
     params = RopeModelParams(stiffness=20.0, damping=2.0)
     p_tip, d_tip = _motion(20, params.dt, seed=4)
     tr = rollout(p_tip, d_tip, params)
-    k, l, dt, n = params.stiffness, params.link_length, params.dt, params.n_links
+    k, ell, dt, n = params.stiffness, params.link_length, params.dt, params.n_links
     m = params.masses[:, None]
     for i in range(20):
-        P1 = np.vstack([p_tip[i + 1] - l * d_tip[i + 1], p_tip[i + 1], tr.p[i + 1]])
-        P0 = np.vstack([p_tip[i] - l * d_tip[i], p_tip[i], tr.p[i]])
+        P1 = np.vstack([p_tip[i + 1] - ell * d_tip[i + 1], p_tip[i + 1], tr.p[i + 1]])
+        P0 = np.vstack([p_tip[i] - ell * d_tip[i], p_tip[i], tr.p[i]])
         V = (P1 - P0) / dt
         V[2:] = tr.v[i + 1]
         e = P1[2:] - 2 * P1[1:-1] + P1[:-2]
@@ -165,7 +167,7 @@ def test_step_satisfies_the_papers_equations():
         f = np.zeros((n + 2, 3))
         for j in range(n):
             for off, w in ((0, 1.0), (1, -2.0), (2, 1.0)):
-                f[j + off] -= w * (k * e[j] + params.damping * ed[j]) / l**2
+                f[j + off] -= w * (k * e[j] + params.damping * ed[j]) / ell**2
         f = f[2:] + m * np.array([0, 0, -params.gravity])
         dvec = link_vectors(tr.p[i + 1], p_tip[i + 1])
         GTlam = 2 * dvec * tr.lam[i + 1][:, None]
@@ -210,7 +212,9 @@ def test_energy_decays_and_damping_dissipates_more():
         params = RopeModelParams(stiffness=10.0, damping=b)
         p0 = _straight(TIP, _rot([1, 0, 0], np.deg2rad(40)) @ DOWN, params)
         tr = rollout(tips, tip_d, params, p0=p0)
-        E = np.array([rope_energy(p, v, TIP, DOWN, params) for p, v in zip(tr.p, tr.v)])
+        E = np.array(
+            [rope_energy(p, v, TIP, DOWN, params) for p, v in zip(tr.p, tr.v, strict=True)]
+        )
         assert np.all(np.diff(E) <= 1e-9)
         ends.append(E[-1])
     assert ends[1] < ends[0] - 1.0

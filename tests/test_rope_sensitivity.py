@@ -17,7 +17,7 @@ def _motion(dt: float, seed: int):
     """A short random smooth fingertip motion with the tube swinging (K steps)."""
     rng = np.random.default_rng(seed)
     t = np.arange(K + 1) * dt
-    s = np.sin(0.5 * np.pi * t / t[-1])
+    s = 0.5 * (1.0 - np.cos(np.pi * t / t[-1]))  # starts and ends at rest
     a = rng.normal(size=(3, 2)) * 0.3
     p_tip = TIP + a[:, 0] * s[:, None] + a[:, 1] * s[:, None] ** 2
     ax, ay = rng.normal(size=2)
