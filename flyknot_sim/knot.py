@@ -47,7 +47,7 @@ OTHER = "other"
 DEFAULT_DIRECTIONS = 31
 """Closure directions voted over by default (odd, so two types cannot tie)."""
 
-MAX_CROSSINGS = 80
+MAX_CROSSINGS = 150
 """Crossings in one projected diagram above which that closure votes ``"other"``."""
 
 CENTRELINE_SUFFIXES = (".csv", ".npy")
@@ -64,6 +64,9 @@ _TILTS = (
     3e-2 * np.array([0.8, 0.5, -0.4]),
 )
 """Small deterministic changes of a closure direction, tried in turn when it is degenerate."""
+
+_N_ROOTS = 32
+"""Most roots of unity at which an Alexander determinant is evaluated."""
 
 _GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))  # [rad]
 
@@ -301,32 +304,96 @@ def _edge_pairs(m: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def project_diagram(
-    points: np.ndarray, direction: np.ndarray, *, chord_over: bool = True, strict: bool = True
+    points: np.ndarray, direction: np.ndarray, *, closure: str = "over", strict: bool = True
 ) -> Diagram | None:
-    """Knot diagram of a polygon seen from far along ``+direction``.
+    """Knot diagram of a closed-up polygon seen from far along ``+direction``.
 
     Vertices ``p_k`` project to ``u_k = (e1 . p_k, e2 . p_k)`` at height ``h_k = d . p_k``
     (frame of :func:`projection_frame`). Edges k and l cross where
     ``u_k + t (u_{k+1} - u_k) = u_l + s (u_{l+1} - u_l)`` with t, s in (0, 1); the strand with
-    the larger interpolated height ``h_k + t (h_{k+1} - h_k)`` is over. The sign of a crossing
-    is ``sign(o x w)`` for the 2-D directions ``o`` of the over edge and ``w`` of the under
-    edge. With ``chord_over`` the closing edge (last vertex back to the first) is above every
-    strand: this is the closure of an open curve by parallel rays along ``+direction``.
+    the larger interpolated height is over, and the crossing's sign is ``sign(o x w)`` for
+    the 2-D directions ``o`` of the over edge and ``w`` of the under edge.
+
+    ``closure="over"`` closes an open curve by parallel rays along ``+d`` joined at infinity.
+    Seen from ``+d`` the rays are the end points and the closing arc is a path from the last
+    point back to the first that passes over every strand; any such path gives the same knot,
+    so the one with fewest crossings is drawn: the straight chord, or a ray out of each end
+    (best of 12 angles) joined around a circle outside the curve. Its height is ``10 + k``
+    on its k-th edge, above the normalised curve (``|h| <= 1``) and rising along the path, so
+    where it crosses itself it stays unknotted. ``closure="edge"`` joins the last vertex to
+    the first by an ordinary edge (a closed polygon).
 
     Args:
-        points: Polygon vertices, shape (n, 3) [-]; the last vertex joins the first.
-        direction: Viewing and closure direction ``d``, shape (3,) [-].
-        chord_over: Lift the closing edge above everything (else interpolate its heights).
+        points: Vertices, shape (n, 3) [-], inside the unit ball (see :func:`normalise`).
+        direction: Viewing (and closure) direction ``d``, shape (3,) [-].
+        closure: ``"over"`` (open curve, ray closure) or ``"edge"`` (closed polygon).
         strict: Return None on a degenerate projection (a crossing within 1e-9 of a vertex,
             overlapping collinear edges, or crossing strands within 1e-9 in height); if
             False, such pairs are skipped.
 
     Returns:
         The diagram, or None if it is degenerate and ``strict`` is set.
+
+    Raises:
+        ConfigError: ``closure`` is not "over" or "edge".
     """
+    if closure not in ("over", "edge"):
+        raise ConfigError("closure", f"unknown value {closure!r}", ["over", "edge"])
     frame = projection_frame(direction)
     q = np.asarray(points, dtype=float) @ frame.T
     u, h = q[:, :2], q[:, 2]
+    h0, h1 = h, np.roll(h, -1)  # heights at the start and end of each edge
+    if closure == "over":
+        path = _over_path(u)
+        k = len(path) + 1  # edges of the closing path
+        rise = 10.0 + np.arange(k + 1, dtype=float)
+        u = np.vstack([u, path])
+        h0 = np.concatenate([h[:-1], rise[:-1]])
+        h1 = np.concatenate([h[1:], rise[1:]])
+    return _crossings(u, h0, h1, strict)
+
+
+def _over_path(u: np.ndarray) -> np.ndarray:
+    """Inner vertices of the closing path from u[-1] to u[0] with fewest crossings, (k, 2)."""
+    n = len(u)
+    direct = _count_hits(u[-1:], u[:1], u, skip=(0, n - 2))[0]
+    if direct == 0:
+        return np.zeros((0, 2))
+    ang = np.arange(12) * (np.pi / 6.0) + 0.1
+    rays = 3.0 * np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    hit_first = _count_hits(np.repeat(u[:1], 12, 0), u[0] + rays, u, skip=(0,))
+    hit_last = _count_hits(np.repeat(u[-1:], 12, 0), u[-1] + rays, u, skip=(n - 2,))
+    a, b = int(np.argmin(hit_first)), int(np.argmin(hit_last))
+    if hit_first[a] + hit_last[b] >= direct:
+        return np.zeros((0, 2))
+    start, end = u[-1] + rays[b], u[0] + rays[a]  # |start|, |end| in [2, 4]
+    t0 = math.atan2(start[1], start[0])
+    t1 = math.atan2(end[1], end[0])
+    turn = (t1 - t0 + math.pi) % (2.0 * math.pi) - math.pi
+    steps = max(1, math.ceil(abs(turn) / (math.pi / 4.0)))
+    th = t0 + turn * np.arange(steps + 1) / steps
+    arc = 4.0 * np.stack([np.cos(th), np.sin(th)], axis=1)  # chords stay >= 3.7 from 0
+    return np.vstack([start, arc, end])
+
+
+def _count_hits(a: np.ndarray, b: np.ndarray, u: np.ndarray, skip: tuple[int, ...]) -> np.ndarray:
+    """Crossings of each 2-D segment a[k] -> b[k] with the open polyline u, skipping edges."""
+    e0, e1 = u[:-1], u[1:]
+    keep = np.ones(len(e0), dtype=bool)
+    keep[list(skip)] = False
+    e0, e1 = e0[keep], e1[keep]
+    r = (b - a)[:, None, :]
+    s = (e1 - e0)[None]
+    w = e0[None] - a[:, None, :]
+    den = r[..., 0] * s[..., 1] - r[..., 1] * s[..., 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (w[..., 0] * s[..., 1] - w[..., 1] * s[..., 0]) / den
+        v = (w[..., 0] * r[..., 1] - w[..., 1] * r[..., 0]) / den
+    return np.sum((den != 0) & (t > 0) & (t < 1) & (v > 0) & (v < 1), axis=1)
+
+
+def _crossings(u: np.ndarray, h0: np.ndarray, h1: np.ndarray, strict: bool) -> Diagram | None:
+    """Crossings of the closed 2-D polygon u (m, 2) whose edge k rises from h0[k] to h1[k]."""
     m = len(u)
     i, j = _edge_pairs(m)
     a, r = u[i], u[(i + 1) % m] - u[i]
@@ -345,28 +412,22 @@ def project_diagram(
     general = np.abs(den) > 1e-12 * lr * ls
     proper = general & (t > et) & (t < 1 - et) & (v > es) & (v < 1 - es)
     degenerate = general & ~proper & (t >= -et) & (t <= 1 + et) & (v >= -es) & (v <= 1 + es)
-    # Parallel (or zero-length) edges: degenerate if they lie on one line and overlap.
     par = ~general
-    if par.any():
+    if par.any():  # parallel or zero-length edges: degenerate if collinear and overlapping
         degenerate |= par & _collinear_overlap(a, r, c, s, lr, ls)
     if strict and degenerate.any():
         return None
     i, j, t, v = i[proper], j[proper], t[proper], v[proper]
-    hi = h[i] + t * (h[(i + 1) % m] - h[i])
-    hj = h[j] + v * (h[(j + 1) % m] - h[j])
-    if chord_over:
-        hi = np.where(i == m - 1, np.inf, hi)
-        hj = np.where(j == m - 1, np.inf, hj)
+    r, s = r[proper], s[proper]
+    hi = h0[i] + t * (h1[i] - h0[i])
+    hj = h0[j] + v * (h1[j] - h0[j])
     if strict and np.any(np.abs(hi - hj) <= _EPS):
         return None
     i_over = hi > hj
-    pos_i, pos_j = i + t, j + v
-    over = np.where(i_over, pos_i, pos_j)
-    under = np.where(i_over, pos_j, pos_i)
-    ro, rw = (
-        np.where(i_over[:, None], r[proper], s[proper]),
-        np.where(i_over[:, None], s[proper], r[proper]),
-    )
+    over = np.where(i_over, i + t, j + v)
+    under = np.where(i_over, j + v, i + t)
+    ro = np.where(i_over[:, None], r, s)
+    rw = np.where(i_over[:, None], s, r)
     sign = np.sign(ro[:, 0] * rw[:, 1] - ro[:, 1] * rw[:, 0]).astype(int)
     return Diagram(n_edges=m, over=over, under=under, sign=sign)
 
@@ -429,10 +490,14 @@ def alexander_polynomial(diagram: Diagram) -> tuple[int, ...] | None:
     """Alexander polynomial of a knot diagram, normalised.
 
     ``D(t) = det(M0' + t M1')`` for the minor without the last row and column (see
-    :func:`alexander_matrix`) has degree < c, so its coefficients follow exactly from its
-    values at the c-th roots of unity ``w^m = exp(2 pi i m / c)``:
-    ``a_k = (1 / c) sum_m D(w^m) w^(-m k)`` (an FFT). The result is divided by its lowest
-    power of t and its sign is chosen so that ``Delta(1) = +1``.
+    :func:`alexander_matrix`) equals ``+- t^k Delta(t)``. Its coefficients follow from its
+    values at the N-th roots of unity ``w^m = exp(2 pi i m / N)`` by an FFT,
+    ``b_j = (1 / N) sum_m D(w^m) w^(-m j)``, which gives ``sum_k a_k [k = j mod N]``. With
+    ``N = c`` (c <= 32 crossings) this is exact, as ``deg D < c``. For larger diagrams
+    ``N = 32`` and the coefficients come out cyclically shifted, which is undone by cutting
+    the cycle at its longest run of zeros; this is exact when ``Delta`` spans at most 31
+    powers of t (knots of up to 31 crossings; the flying knot has 3). The result is divided by
+    its lowest power of t and its sign chosen so that ``Delta(1) = +1``.
 
     Args:
         diagram: Knot diagram, c crossings.
@@ -448,15 +513,22 @@ def alexander_polynomial(diagram: Diagram) -> tuple[int, ...] | None:
     m0, m1 = alexander_matrix(diagram)
     a0 = m0[:-1, :-1].astype(complex)
     a1 = m1[:-1, :-1].astype(complex)
-    w = np.exp(2j * np.pi * np.arange(c) / c)
+    n = min(c, _N_ROOTS)
+    w = np.exp(2j * np.pi * np.arange(n) / n)
     values = np.linalg.det(a0[None] + w[:, None, None] * a1[None])
-    coef = np.fft.fft(values) / c
+    coef = np.fft.fft(values) / n
     rounded = np.round(coef.real)
-    if np.max(np.abs(coef - rounded)) > 1e-6:
+    if not np.all(np.abs(coef - rounded) <= 1e-6):
         return None
     nz = np.flatnonzero(rounded)
     if len(nz) == 0:
         return None
+    if n < c:  # aliased: cut the cycle after its longest run of zeros
+        if len(nz) == n:
+            return None
+        gaps = np.diff(np.concatenate([nz, [nz[0] + n]]))
+        rounded = np.roll(rounded, -nz[(int(np.argmax(gaps)) + 1) % len(nz)])
+        nz = np.flatnonzero(rounded)
     poly = rounded[nz[0] : nz[-1] + 1].astype(int)
     total = int(poly.sum())
     if abs(total) != 1 or not np.array_equal(poly, poly[::-1]):
@@ -520,19 +592,19 @@ def classify_closure(points: np.ndarray, direction: np.ndarray) -> str:
         ``"unknot"``, ``"trefoil"``, a Rolfsen name, or ``"other"`` (also for more than
         ``MAX_CROSSINGS`` crossings).
     """
-    diagram = _robust_diagram(points, np.asarray(direction, dtype=float), chord_over=True)
+    diagram = _robust_diagram(points, np.asarray(direction, dtype=float), closure="over")
     if diagram.n_crossings > MAX_CROSSINGS:
         return OTHER
     return knot_name(alexander_polynomial(diagram))
 
 
-def _robust_diagram(points: np.ndarray, direction: np.ndarray, *, chord_over: bool) -> Diagram:
+def _robust_diagram(points: np.ndarray, direction: np.ndarray, *, closure: str) -> Diagram:
     """:func:`project_diagram`, tilting a degenerate direction; lenient if all are degenerate."""
     for d in (direction, *(direction + tilt for tilt in _TILTS)):
-        diagram = project_diagram(points, d, chord_over=chord_over)
+        diagram = project_diagram(points, d, closure=closure)
         if diagram is not None:
             return diagram
-    return project_diagram(points, d, chord_over=chord_over, strict=False)
+    return project_diagram(points, d, closure=closure, strict=False)
 
 
 def classify_polygon(points: np.ndarray) -> str:
@@ -551,7 +623,7 @@ def classify_polygon(points: np.ndarray) -> str:
         RecordError: Bad shape, fewer than 4 points, NaN/inf, or all points coincide.
     """
     p = normalise(check_points(points))
-    diagram = _robust_diagram(p, np.array([0.3, 0.5, 0.8]), chord_over=False)
+    diagram = _robust_diagram(p, np.array([0.3, 0.5, 0.8]), closure="edge")
     if diagram.n_crossings > MAX_CROSSINGS:
         return OTHER
     return knot_name(alexander_polynomial(diagram))

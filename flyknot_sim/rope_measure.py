@@ -579,6 +579,9 @@ def resample_equal_chords(curve: np.ndarray, chord: float, n: int) -> np.ndarray
     Raises:
         ConfigError: The polyline is too short for n chords.
     """
+    curve = np.asarray(curve, dtype=float)
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(curve, axis=0), axis=1) > 1e-12])
+    curve = curve[keep]
     out = [curve[0]]
     p, k, t0 = curve[0], 0, 0.0
     while len(out) <= n:
@@ -604,7 +607,7 @@ def resample_equal_chords(curve: np.ndarray, chord: float, n: int) -> np.ndarray
     return np.array(out)
 
 
-def overhand_knot_vertices(params: RopeParams, knot_length: float = 0.5) -> np.ndarray:
+def overhand_knot_vertices(params: RopeParams, knot_length: float = 0.7) -> np.ndarray:
     """Vertices of a loose overhand knot with straight tails, held end up, equal edges.
 
     The knot is the trefoil T(t) = lam (sin t + 2 sin 2t, cos t - 2 cos 2t, -sin 3t) opened at

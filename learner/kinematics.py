@@ -326,8 +326,7 @@ def _build_symbolic(chain: dict, q: ca.SX, qd: ca.SX, qdd: ca.SX, flags: tuple[b
         a = a + ca.cross(dw, r) + ca.cross(w, ca.cross(w, r))
         dw = dw + z * qdd[i] + ca.cross(w, z * qd[i])
         w = w + z * qd[i]
-        rc = R @ ca.DM(lk.com)  # c_i - o_i = p + R com - o = R (com - anchor)
-        rc = rc - R @ ca.DM(lk.anchor)
+        rc = R @ ca.DM(lk.com - lk.anchor)  # c_i - o_i = (p + R com) - (p + R anchor)
         ac = a + ca.cross(dw, rc) + ca.cross(w, ca.cross(w, rc))
         I_w = R @ ca.DM(lk.inertia) @ R.T
         F = lk.mass * ac

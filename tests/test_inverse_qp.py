@@ -269,13 +269,13 @@ def test_binding_position_and_velocity_limits_hold_on_the_sampled_trajectory(
     target[1] = -0.5  # subtracting it would put joint 2 at 2.2 rad
     target[0] = 1.2 * np.array([0, 1, -1, 1, -1, 1, -1, 0])  # fast swings of joint 1
     rng = np.random.default_rng(7)
-    M = rng.normal(size=(6 * N_MARK, 80))
+    M = rng.normal(size=(6 * N_MARK, 80)) * 0.3
     err = M @ target.ravel()
     limits = limit_rows(knots, T, T_SAMPLES, robot)
     free = require_solved(solve_qp(build_inverse_qp(M_crit=M, err_crit=err), backend))
     new_free = knots - free.dkappa
     assert sample_command(new_free, T, T_SAMPLES)[:, 1].max() > 1.9 + 0.1
-    assert np.abs(sample_command(new_free, T, T_SAMPLES, 1)[:, 0]).max() > QD_MAX[0] + 0.5
+    assert np.abs(sample_command(new_free, T, T_SAMPLES, 1)[:, :7]).max() > QD_MAX[0] + 0.5
     res = require_solved(solve_qp(build_inverse_qp(M_crit=M, err_crit=err, limits=limits), backend))
     new = knots - res.dkappa
     q = sample_command(new, T, T_SAMPLES)[:, :7]
@@ -284,7 +284,7 @@ def test_binding_position_and_velocity_limits_hold_on_the_sampled_trajectory(
     assert np.all(q <= lim.q_max + 1e-6) and np.all(q >= lim.q_min - 1e-6)
     assert np.all(np.abs(qd) <= lim.qd_max + 1e-6)
     assert q[:, 1].max() == pytest.approx(1.9, abs=1e-5)  # binding, not merely satisfied
-    assert np.abs(qd[:, 0]).max() == pytest.approx(QD_MAX[0], abs=1e-5)
+    assert np.abs(qd).max() == pytest.approx(QD_MAX[0], abs=1e-5)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
