@@ -607,14 +607,16 @@ def resample_equal_chords(curve: np.ndarray, chord: float, n: int) -> np.ndarray
     return np.array(out)
 
 
-def overhand_knot_vertices(params: RopeParams, knot_length: float = 0.7) -> np.ndarray:
+def overhand_knot_vertices(
+    params: RopeParams, knot_length: float = 0.7, centre: Sequence[float] = (0.0, 0.0, 1.0)
+) -> np.ndarray:
     """Vertices of a loose overhand knot with straight tails, held end up, equal edges.
 
     The knot is the trefoil T(t) = lam (sin t + 2 sin 2t, cos t - 2 cos 2t, -sin 3t) opened at
     its outermost point t = pi/3 (where |T_xy| is largest and z = 0): the curve runs over
     [pi/3 + delta, 7 pi/3 - delta]; the upper end continues straight up, the lower end
     straight down, both pushed 2 cm outward first. lam is chosen so that the knot part is
-    ``knot_length`` long.
+    ``knot_length`` long. The trefoil's centre is put at ``centre`` [m].
 
     Returns:
         Vertices, shape (n + 1, 3) [m], vertex 0 at the top of the upper tail.
@@ -642,7 +644,8 @@ def overhand_knot_vertices(params: RopeParams, knot_length: float = 0.7) -> np.n
     i_knot = len(upper) - 1
     excess = arc[i_knot] - (params.length - knot_length) / 2
     start = int(np.searchsorted(arc, excess))
-    return resample_equal_chords(curve[start:], params.segment_length, params.segments)
+    x = resample_equal_chords(curve[start:], params.segment_length, params.segments)
+    return x + np.asarray(centre, dtype=float)
 
 
 def place_vertices(h: Harness, x: np.ndarray) -> None:

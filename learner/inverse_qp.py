@@ -61,13 +61,9 @@ from flyknot.constants import (
     N_JOINTS,
     N_KNOTS,
     N_ROWS,
-    Q_MAX,
-    Q_MIN,
-    QD_MAX,
-    QDD_MAX,
-    TAU_MAX,
 )
 from flyknot.errors import ConfigError, SolverError, check_choice, check_nonnegative
+from flyknot.limits import JointLimits
 from learner.bezier import sample_command, sample_jacobian
 
 if TYPE_CHECKING:
@@ -153,38 +149,6 @@ class InverseModelWeights:
         else:
             w = (self.w_pft, self.w_rft, self.w_ft_velocity * self.w_vft)
         return np.repeat(np.asarray(w, dtype=float), 3)
-
-
-@dataclass(frozen=True)
-class JointLimits:
-    """Joint limits imposed on the updated command (defaults: the paper's, ``constants``).
-
-    Attributes:
-        q_min: Lower position limits (7,) [rad].
-        q_max: Upper position limits (7,) [rad].
-        qd_max: Symmetric velocity limits (7,) [rad/s].
-        qdd_max: Symmetric acceleration limits (7,) [rad/s^2].
-        tau_max: Symmetric torque limits (7,) [N m].
-    """
-
-    q_min: np.ndarray = field(default_factory=lambda: Q_MIN.copy())
-    q_max: np.ndarray = field(default_factory=lambda: Q_MAX.copy())
-    qd_max: np.ndarray = field(default_factory=lambda: QD_MAX.copy())
-    qdd_max: np.ndarray = field(default_factory=lambda: QDD_MAX.copy())
-    tau_max: np.ndarray = field(default_factory=lambda: TAU_MAX.copy())
-
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            a = np.asarray(getattr(self, f.name), dtype=float)
-            if a.shape != (N_JOINTS,):
-                raise ConfigError(f.name, f"must have shape ({N_JOINTS},), got {a.shape}")
-            _finite(f.name, a)
-            object.__setattr__(self, f.name, _ro(a))
-        if np.any(self.q_min >= self.q_max):
-            raise ConfigError("q_min", "must be below q_max for every joint")
-        for name in ("qd_max", "qdd_max", "tau_max"):
-            if np.any(getattr(self, name) <= 0):
-                raise ConfigError(name, "must be > 0 for every joint")
 
 
 @dataclass(frozen=True)

@@ -119,7 +119,7 @@ def test_bad_inputs_raise_exact_messages():
     assert str(exc.value) == "kinds: unknown value 'jerk' (valid choices: pos, vel, acc, tau)"
     with pytest.raises(ConfigError) as exc:
         JointLimits(qd_max=np.zeros(7))
-    assert str(exc.value) == "qd_max: must be > 0 for every joint"
+    assert str(exc.value) == "limits.qd_max: must be > 0; joint 1 is 0.0"
 
 
 def test_bad_backend_raises_exact_message():
