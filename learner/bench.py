@@ -1,0 +1,200 @@
+"""``flyknot bench learner``: wall times of one ILC update on a realistic problem.
+
+The problem: a smooth 0.8 s command from the xArm 7 home pose
+q = (0, -0.247, 0, 0.909, 0, 1.15644, 0) rad with the base offset (0, 0, 1.0) m (joint speeds up
+to 2 rad/s, accelerations up to 16 rad/s^2), the paper's rope model, t_c = 0.45 s. The "real
+system" is the model itself (:func:`learner.system_model.model_record`) and the target comes
+from the model under a perturbed command, so the numbers measure the learner's computation
+only. The QP has the paper's weights, the follow-through terms and the paper's limits.
+
+Reported (each the best of ``repeats`` runs, in seconds):
+    rollout_s       model rollout driven by the measured joints, up to t_c
+    linearise_s     M = dx(t_c)/dkappa by the implicit function theorem (80 columns)
+    qp_build_s      follow-through terms + all limit rows + the QP of the first round
+    qp_osqp_s       solving that QP with OSQP
+    qp_clarabel_s   solving that QP with Clarabel
+    update_s        the whole :func:`learner.update.ilc_update` call (error, rollout,
+                    linearise, follow-through, limit rows, build, Clarabel solve, checks)
+    fd_jacobian_s   the same M by central differences of 160 model rollouts up to t_c
+    ift_over_fd     fd_jacobian_s / linearise_s (how many times faster the IFT is)
+    fd_rel_err      ||M_ift - M_fd|| / ||M_fd||
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from flyknot.errors import ConfigError
+from learner.bezier import BezierCommand
+from learner.follow_through import follow_through_terms
+from learner.inverse_qp import InverseModelWeights, build_inverse_qp, limit_rows, solve_qp
+from learner.kinematics import RobotModel
+from learner.rope_model import RopeModelParams
+from learner.system_model import (
+    critical_step,
+    linearise,
+    model_demonstration,
+    model_record,
+    rollout_from_joints,
+    simulate_command,
+)
+from learner.update import DemoTarget, ilc_update, initial_active_rows, subset_rows
+
+HOME = np.array([0.0, -0.247, 0.0, 0.909, 0.0, 1.15644, 0.0])  # [rad]
+BASE = np.array([0.0, 0.0, 1.0])  # [m]
+T_BENCH = 0.8  # [s]
+T_C = 0.45  # [s]
+_PROFILE = np.array([0.0, 0.0, 0.2, 1.0, 1.0, 0.2, 0.0, 0.0])  # rest at both ends
+_AMPLITUDE = np.array([0.8, 0.4, 0.5, -0.6, 0.7, -0.5, 0.3])  # [rad]
+FD_EPS = 1e-6  # [rad or m] central-difference step
+
+KEYS = (
+    "rollout_s",
+    "linearise_s",
+    "qp_build_s",
+    "qp_osqp_s",
+    "qp_clarabel_s",
+    "update_s",
+    "fd_jacobian_s",
+    "ift_over_fd",
+    "fd_rel_err",
+)
+
+
+def bench_command() -> BezierCommand:
+    """The benchmark command: q = HOME + amplitude * profile over the 8 knots, base (0, 0, 1)."""
+    knots = np.zeros((10, 8))
+    knots[:7] = HOME[:, None] + _AMPLITUDE[:, None] * _PROFILE[None, :]
+    knots[7:] = BASE[:, None]
+    return BezierCommand(knots, T_BENCH)
+
+
+def _best(fn: Callable[[], object], repeats: int) -> tuple[float, object]:
+    best, out = float("inf"), None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return best, out
+
+
+def bench_learner(repeats: int = 1, progress: bool = True) -> dict:
+    """Time the pieces of one ILC update (module docstring); best of ``repeats`` each.
+
+    Args:
+        repeats: Runs per measurement (>= 1).
+        progress: Show a progress bar.
+
+    Returns:
+        A dict with the keys in :data:`KEYS` plus ``problem`` (sizes and settings).
+    """
+    from tqdm import tqdm
+
+    if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
+        raise ConfigError("repeats", f"must be an integer >= 1, got {repeats!r}")
+    bar = tqdm(total=8, desc="bench learner", disable=not progress, unit="stage")
+    robot = RobotModel.from_mjcf()
+    params = RopeModelParams()
+    weights = InverseModelWeights()
+    command = bench_command()
+    T = command.T
+    rng = np.random.default_rng(0)
+    star = command.knots.copy()
+    star[:7, 1:] += 0.03 * rng.standard_normal((7, 7))
+    target = DemoTarget.from_demonstration(
+        model_demonstration(BezierCommand(star, T), T_C, robot, params)
+    )
+    record = model_record(command, robot, params)
+    k_c = critical_step(T_C, params.dt, T)
+    bar.update()
+
+    res: dict = {}
+    res["rollout_s"], ro = _best(
+        lambda: rollout_from_joints(
+            record.t_joint, record.q_meas, command.base_offset, robot, params, T, n_steps=k_c
+        ),
+        repeats,
+    )
+    bar.update()
+    res["linearise_s"], M = _best(lambda: linearise(ro, T, [k_c])[0], repeats)
+    bar.update()
+    err = np.zeros(66)  # values do not change the timing; the update below uses the real one
+
+    def build():
+        t_ft = np.concatenate([[T_C], target.t[target.t > T_C + 1e-9]])
+        follow = follow_through_terms(command.knots, T, t_ft, T_C, *target.hand_at(t_ft), robot)
+        rows = limit_rows(command.knots, T, command.sample_times(), robot)
+        sub = subset_rows(rows, initial_active_rows(rows, 0.5))
+        return build_inverse_qp(M_crit=M, err_crit=err, weights=weights, follow=follow, limits=sub)
+
+    res["qp_build_s"], qp = _best(build, repeats)
+    bar.update()
+    res["qp_osqp_s"], _ = _best(lambda: solve_qp(qp, "osqp"), repeats)
+    bar.update()
+    res["qp_clarabel_s"], _ = _best(lambda: solve_qp(qp, "clarabel"), repeats)
+    bar.update()
+    res["update_s"], upd = _best(
+        lambda: ilc_update(record, command, target, robot, params, weights), repeats
+    )
+    bar.update()
+
+    def fd():
+        out = np.empty((66, 80))
+        for c in range(80):
+            e = np.zeros(80)
+            e[c] = FD_EPS
+            e = e.reshape(10, 8)
+            xp = simulate_command(command.knots + e, T, robot, params, n_steps=k_c).x[k_c]
+            xm = simulate_command(command.knots - e, T, robot, params, n_steps=k_c).x[k_c]
+            out[:, c] = (xp - xm) / (2.0 * FD_EPS)
+        return out
+
+    res["fd_jacobian_s"], M_fd = _best(fd, 1)
+    bar.update()
+    bar.close()
+    res["ift_over_fd"] = res["fd_jacobian_s"] / res["linearise_s"]
+    res["fd_rel_err"] = float(np.linalg.norm(M - M_fd) / np.linalg.norm(M_fd))
+    res["problem"] = {
+        "T_s": T,
+        "t_c_s": T_C,
+        "model_steps_to_t_c": k_c,
+        "qp_rows_first_round": int(qp.m),
+        "limit_rows_total": upd.n_limit_rows_total,
+        "update_status": upd.qp_status,
+        "update_rounds": upd.limit_rounds,
+        "update_timings_s": dict(upd.timings),
+        "repeats": repeats,
+    }
+    return res
+
+
+def format_learner(res: dict) -> str:
+    """A small text table of :func:`bench_learner`'s result."""
+    labels = {
+        "rollout_s": "rollout to t_c",
+        "linearise_s": "linearise (IFT)",
+        "qp_build_s": "QP build",
+        "qp_osqp_s": "QP solve, OSQP",
+        "qp_clarabel_s": "QP solve, Clarabel",
+        "update_s": "full update",
+        "fd_jacobian_s": "M by finite differences",
+    }
+    lines = [f"{'step':<26} {'ms':>10}"]
+    for key, label in labels.items():
+        lines.append(f"{label:<26} {1e3 * res[key]:>10.1f}")
+    lines.append(f"{'IFT speed-up over FD':<26} {res['ift_over_fd']:>9.0f}x")
+    lines.append(f"{'IFT vs FD rel. error':<26} {res['fd_rel_err']:>10.1e}")
+    prob = res.get("problem", {})
+    if prob:
+        lines.append(
+            f"(T = {prob['T_s']:g} s, t_c = {prob['t_c_s']:g} s, {prob['model_steps_to_t_c']} "
+            f"model steps, {prob['qp_rows_first_round']} QP rows of "
+            f"{prob['limit_rows_total']} limit rows, status {prob['update_status']})"
+        )
+    return "\n".join(lines)
+
+
+__all__ = ["KEYS", "bench_command", "bench_learner", "format_learner"]

@@ -1,0 +1,437 @@
+"""Follow-through fingertip tracking after the critical time (paper, appendix "QP Hand Tracking
+Objective" and "Demonstration Tracking").
+
+For model samples t in [t_c, T] the error of the command's fingertip against the matched
+demonstration hand is
+
+    e_ft(t) = [p_tip(t) - p_ref(t)            (3) [m]
+               Log(R_ref(t)^T R_tip(t))       (3) [rad]
+               v_tip(t) - v_ref(t)]           (3) [m/s]
+
+with the fingertip from the command through the Bezier curves and the forward kinematics, in
+the demonstration frame: p_tip = K_p(q) + b, R_tip = K_R(q), v_tip = J_p(q) qd + b'.
+
+Matching rule ("the follow-through reference is continuously matched to the robot motion at
+t_c"): the demonstration hand (p_h, R_h, v_h) is moved rigidly so that it passes through the
+fingertip pose at t_c,
+
+    p_ref(t) = p_h(t) - p_h(t_c) + p_tip(t_c)              (a translation)
+    R_ref(t) = R_h(t) R_h(t_c)^T R_tip(t_c)                (a fixed change of hand frame)
+    v_ref(t) = v_h(t).
+
+The rotation offset multiplies on the right (a constant rotation between the hand's and the
+fingertip's body frames), so the world-frame rotational motion of the demonstration,
+R_ref(t) R_ref(t_c)^T = R_h(t) R_h(t_c)^T, is kept, just as the translation keeps the hand's
+path. At t_c the position and rotation errors are zero; the velocity error is not matched.
+
+The match is made once at the linearisation point kappa_k and then held fixed: J_ft is the
+plain derivative of e_ft with the reference constant. (Were the reference re-matched for every
+kappa, the position and rotation errors at t_c would vanish identically and the paper's weights
+w_pc, w_Rc at t_c would have no effect; held fixed, they penalise moving the fingertip pose at
+t_c away from the current one.) The base rows enter through p_tip = K_p(q) + b(t) and
+v_tip = J_p qd + b'(t).
+
+Rotation derivative: with the body-frame angular Jacobian J_w (R_tip(q + dq) =
+R_tip Exp(J_w dq)), d Log(R_ref^T R_tip) = J_r^-1(e_R) J_w dq (right Jacobian inverse of SO(3)).
+"""
+
+from __future__ import annotations
+
+import numbers
+
+import casadi as ca
+import numpy as np
+
+from flyknot.constants import N_BASE_ROWS, N_JOINTS, N_KNOTS, N_ROWS
+from flyknot.errors import ConfigError, check_positive
+from learner.bezier import bernstein_basis
+from learner.inverse_qp import FollowThrough
+from learner.kinematics import RobotModel
+
+N_VARS = N_ROWS * N_KNOTS  # 80
+_SMALL_ANGLE = 1e-4  # [rad] below this the series forms are used
+_SMALL_SIN = 1e-8  # |quaternion vector| below which Log uses its series
+_T_C_SLACK = 1e-9  # [s] the first sample must be t_c within this
+
+
+# --------------------------------------------------------------------------------------------
+# SO(3)
+# --------------------------------------------------------------------------------------------
+
+
+def _vec3(name: str, a: object) -> np.ndarray:
+    a = np.asarray(a, dtype=float)
+    if a.ndim < 1 or a.shape[-1] != 3:
+        raise ConfigError(name, f"must have shape (..., 3), got {a.shape}")
+    return a
+
+
+def _mat3(name: str, a: object) -> np.ndarray:
+    a = np.asarray(a, dtype=float)
+    if a.ndim < 2 or a.shape[-2:] != (3, 3):
+        raise ConfigError(name, f"must have shape (..., 3, 3), got {a.shape}")
+    return a
+
+
+def skew(w: np.ndarray) -> np.ndarray:
+    """[w]x, the matrix with [w]x v = w x v.
+
+    Args:
+        w: Vectors, shape (..., 3).
+
+    Returns:
+        Skew matrices, shape (..., 3, 3).
+    """
+    w = _vec3("w", w)
+    out = np.zeros((*w.shape[:-1], 3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -w[..., 2], w[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = w[..., 2], -w[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -w[..., 1], w[..., 0]
+    return out
+
+
+def so3_exp(phi: np.ndarray) -> np.ndarray:
+    """Exp(phi) = I + (sin th / th) [phi]x + ((1 - cos th) / th^2) [phi]x^2, th = |phi|.
+
+    Series (1 - th^2/6, 1/2 - th^2/24) below 1e-4 rad.
+
+    Args:
+        phi: Rotation vectors, shape (..., 3) [rad].
+
+    Returns:
+        Rotation matrices, shape (..., 3, 3).
+    """
+    phi = _vec3("phi", phi)
+    th = np.linalg.norm(phi, axis=-1)[..., None, None]
+    small = th < _SMALL_ANGLE
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 1.0 - th**2 / 6.0, np.sin(ths) / ths)
+    b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ths)) / ths**2)
+    K = skew(phi)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def _quat_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Unit quaternions (w, x, y, z) with w >= 0 of rotation matrices (..., 3, 3).
+
+    Shepperd's rule: take the largest of (tr, R00, R11, R22) under the square root, so the
+    divisor is never below 1/2 and the result is accurate for every rotation.
+    """
+    r00, r11, r22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+    tr = r00 + r11 + r22
+    which = np.argmax(np.stack([tr, r00, r11, r22], axis=-1), axis=-1)
+    q = np.empty((*R.shape[:-2], 4))
+    # Differences and sums of the off-diagonal pairs.
+    d0 = R[..., 2, 1] - R[..., 1, 2]  # 4 w x
+    d1 = R[..., 0, 2] - R[..., 2, 0]  # 4 w y
+    d2 = R[..., 1, 0] - R[..., 0, 1]  # 4 w z
+    s01 = R[..., 0, 1] + R[..., 1, 0]  # 4 x y
+    s02 = R[..., 0, 2] + R[..., 2, 0]  # 4 x z
+    s12 = R[..., 1, 2] + R[..., 2, 1]  # 4 y z
+    for case, (diag, rest) in enumerate(
+        [
+            (1.0 + tr, (d0, d1, d2)),  # w
+            (1.0 + r00 - r11 - r22, (d0, s01, s02)),  # x: (w, y, z)
+            (1.0 - r00 + r11 - r22, (d1, s01, s12)),  # y: (w, x, z)
+            (1.0 - r00 - r11 + r22, (d2, s02, s12)),  # z: (w, x, y)
+        ]
+    ):
+        sel = which == case
+        if not np.any(sel):
+            continue
+        big = 0.5 * np.sqrt(np.maximum(diag[sel], 0.0))
+        others = [r[sel] / (4.0 * big) for r in rest]
+        order = {0: (0, 1, 2, 3), 1: (1, 0, 2, 3), 2: (2, 0, 1, 3), 3: (3, 0, 1, 2)}[case]
+        vals = [big, *others]
+        for pos, v in zip(order, vals, strict=True):
+            q[sel, pos] = v
+    q *= np.where(q[..., :1] < 0.0, -1.0, 1.0)
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Log(R), the rotation vector phi with Exp(phi) = R and |phi| <= pi.
+
+    Through the quaternion (w, v) with w >= 0 (:func:`_quat_from_matrix`, Shepperd's rule):
+    th = 2 atan2(|v|, w), phi = (th / |v|) v, with th / |v| -> 2 / w for |v| < 1e-8 (w ~ 1 there).
+    Both the atan2 and Shepperd's rule are well conditioned near th = 0 and th = pi (where
+    arccos((tr R - 1) / 2) is not). At exactly th = pi either of the two opposite vectors is
+    returned.
+
+    Args:
+        R: Rotation matrices, shape (..., 3, 3).
+
+    Returns:
+        Rotation vectors, shape (..., 3) [rad].
+    """
+    R = _mat3("R", R)
+    q = _quat_from_matrix(R)
+    w, v = q[..., 0], q[..., 1:]
+    s = np.linalg.norm(v, axis=-1)
+    small = s < _SMALL_SIN
+    ratio = np.where(
+        small, 2.0 / np.maximum(w, 0.5), 2.0 * np.arctan2(s, w) / np.where(small, 1.0, s)
+    )
+    return v * ratio[..., None]
+
+
+def _inv_jac_coeff(th: np.ndarray) -> np.ndarray:
+    """c(th) = 1/th^2 - (1 + cos th) / (2 th sin th) = 1/th^2 - cot(th/2) / (2 th).
+
+    Series 1/12 + th^2/720 + th^4/30240 below 1e-4 rad; at th = pi, c = 1/pi^2.
+    """
+    small = th < _SMALL_ANGLE
+    ths = np.where(small, 1.0, th)
+    exact = 1.0 / ths**2 - np.cos(ths / 2.0) / (2.0 * ths * np.sin(ths / 2.0))
+    return np.where(small, 1.0 / 12.0 + th**2 / 720.0 + th**4 / 30240.0, exact)
+
+
+def right_jacobian_inv(phi: np.ndarray) -> np.ndarray:
+    """Inverse right Jacobian of SO(3): Log(Exp(phi) Exp(d)) = phi + J_r^-1(phi) d + O(d^2).
+
+    J_r^-1(phi) = I + (1/2) [phi]x + (1/th^2 - (1 + cos th) / (2 th sin th)) [phi]x^2,
+    th = |phi| in [0, pi].
+
+    Args:
+        phi: Rotation vectors, shape (..., 3) [rad].
+
+    Returns:
+        Matrices, shape (..., 3, 3).
+    """
+    phi = _vec3("phi", phi)
+    th = np.linalg.norm(phi, axis=-1)[..., None, None]
+    K = skew(phi)
+    return np.eye(3) + 0.5 * K + _inv_jac_coeff(th) * (K @ K)
+
+
+# --------------------------------------------------------------------------------------------
+# fingertip kinematics along the command
+# --------------------------------------------------------------------------------------------
+
+_OMEGA_CACHE: dict[int, tuple[ca.Function, ca.Function, dict[int, ca.Function]]] = {}
+
+
+def _omega_map(robot: RobotModel, m: int) -> ca.Function:
+    """CasADi map of the body-frame angular Jacobian, rows flattened row-major (3 n, m)."""
+    key = id(robot.fk)
+    hit = _OMEGA_CACHE.get(key)
+    if hit is None or hit[0] is not robot.fk:
+        n = robot.n_joints
+        q = ca.SX.sym("q", n)
+        _, R = robot.fk(q)
+        dR = ca.jacobian(ca.vec(R), q)  # (9, n), column-major vec
+        cols = []
+        for j in range(n):
+            W = R.T @ ca.reshape(dR[:, j], 3, 3)  # [w_j]x in the tip frame
+            cols.append(0.5 * ca.vertcat(W[2, 1] - W[1, 2], W[0, 2] - W[2, 0], W[1, 0] - W[0, 1]))
+        Jw = ca.horzcat(*cols)  # (3, n)
+        fun = ca.Function("tip_omega_body", [q], [ca.reshape(Jw.T, 3 * n, 1)])
+        hit = (robot.fk, fun, {})
+        _OMEGA_CACHE[key] = hit
+    maps = hit[2]
+    if m not in maps:
+        maps[m] = hit[1].map(m, "serial")
+    return maps[m]
+
+
+def tip_angular_jacobian(robot: RobotModel, q: np.ndarray) -> np.ndarray:
+    """Body-frame angular Jacobian of the fingertip: R_tip(q + dq) ~= R_tip(q) Exp(J_w(q) dq).
+
+    J_w[:, j] = vee(R_tip^T dR_tip/dq_j), built symbolically from ``robot.fk`` (CasADi).
+
+    Args:
+        robot: Robot model.
+        q: Joints, shape (m, 7) [rad].
+
+    Returns:
+        J_w, shape (m, 3, 7) [rad/rad].
+    """
+    q = np.asarray(q, dtype=float)
+    n = robot.n_joints
+    if q.ndim != 2 or q.shape[1] != n:
+        raise ConfigError("q", f"expected shape (m, {n}), got {q.shape}")
+    m = q.shape[0]
+    return np.asarray(_omega_map(robot, m)(q.T)).T.reshape(m, 3, n)
+
+
+def _knots(knots: object) -> np.ndarray:
+    k = np.asarray(knots, dtype=float)
+    if k.shape != (N_ROWS, N_KNOTS):
+        raise ConfigError("knots", f"must have shape ({N_ROWS}, {N_KNOTS}), got {k.shape}")
+    if not np.all(np.isfinite(k)):
+        raise ConfigError("knots", "must be finite")
+    return k
+
+
+def _fingertip(knots: np.ndarray, T: float, t: np.ndarray, robot: RobotModel):
+    """Fingertip along the command: p = K_p(q) + b, R = K_R(q), v = J_p(q) qd + b' at t."""
+    B0 = bernstein_basis(t, T, 0)
+    B1 = bernstein_basis(t, T, 1)
+    y0, y1 = B0 @ knots.T, B1 @ knots.T
+    q, qd = y0[:, :N_JOINTS], y1[:, :N_JOINTS]
+    st = robot.tip_states(q, qd)
+    return st.p + y0[:, N_JOINTS:], st.R, st.v + y1[:, N_JOINTS:], q, qd, B0, B1
+
+
+def matched_reference(
+    p_tip_c: np.ndarray,
+    R_tip_c: np.ndarray,
+    demo_hand_p: np.ndarray,
+    demo_hand_R: np.ndarray,
+    demo_hand_v: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The demonstration hand moved rigidly onto the fingertip pose at t_c (module docstring).
+
+    p_ref = p_h - p_h[0] + p_tip_c,  R_ref = R_h R_h[0]^T R_tip_c,  v_ref = v_h, where sample
+    0 is t_c.
+
+    Args:
+        p_tip_c: Fingertip position at t_c, shape (3,) [m].
+        R_tip_c: Fingertip orientation at t_c, shape (3, 3).
+        demo_hand_p: Hand positions, shape (k, 3) [m], sample 0 at t_c.
+        demo_hand_R: Hand orientations, shape (k, 3, 3).
+        demo_hand_v: Hand velocities, shape (k, 3) [m/s].
+
+    Returns:
+        (p_ref (k, 3) [m], R_ref (k, 3, 3), v_ref (k, 3) [m/s]).
+    """
+    p_h = _vec3("demo_hand_p", demo_hand_p)
+    R_h = _mat3("demo_hand_R", demo_hand_R)
+    v_h = _vec3("demo_hand_v", demo_hand_v)
+    k = p_h.shape[0]
+    if p_h.shape != (k, 3) or R_h.shape != (k, 3, 3) or v_h.shape != (k, 3) or k < 1:
+        raise ConfigError(
+            "demo_hand_p",
+            f"demo_hand_p, demo_hand_R, demo_hand_v must have shapes (k, 3), (k, 3, 3), (k, 3) "
+            f"with k >= 1, got {p_h.shape}, {R_h.shape}, {v_h.shape}",
+        )
+    p_ref = p_h - p_h[0] + np.asarray(p_tip_c, dtype=float)
+    R_ref = R_h @ (R_h[0].T @ np.asarray(R_tip_c, dtype=float))
+    return p_ref, R_ref, v_h.copy()
+
+
+def _times(t_samples: object, T: float, t_c: float) -> np.ndarray:
+    t = np.asarray(t_samples, dtype=float)
+    if t.ndim != 1 or t.size < 1 or not np.all(np.isfinite(t)):
+        raise ConfigError("t_samples", f"must be a finite 1-D array of times, got {t.shape}")
+    if np.any(np.diff(t) <= 0):
+        raise ConfigError("t_samples", "must be strictly increasing")
+    if abs(t[0] - t_c) > _T_C_SLACK or t[-1] > T * (1 + 1e-9):
+        raise ConfigError(
+            "t_samples",
+            f"must start at t_c = {t_c:g} s and end by T = {T:g} s, got [{t[0]:g}, {t[-1]:g}] s",
+        )
+    return t
+
+
+def fingertip_errors(
+    knots: np.ndarray,
+    T: float,
+    t: np.ndarray,
+    ref_p: np.ndarray,
+    ref_R: np.ndarray,
+    ref_v: np.ndarray,
+    robot: RobotModel,
+) -> np.ndarray:
+    """e(t) = [p_tip - p_ref, Log(R_ref^T R_tip), v_tip - v_ref] against a fixed reference.
+
+    Args:
+        knots: Knots, shape (10, 8).
+        T: Duration [s].
+        t: Times, shape (k,) [s] in [0, T].
+        ref_p: Reference positions, shape (k, 3) [m] (demo frame).
+        ref_R: Reference orientations, shape (k, 3, 3).
+        ref_v: Reference velocities, shape (k, 3) [m/s].
+        robot: Robot model.
+
+    Returns:
+        Errors, shape (k, 9) [m, rad, m/s].
+    """
+    knots = _knots(knots)
+    p, R, v, *_ = _fingertip(knots, T, np.asarray(t, dtype=float), robot)
+    e_R = so3_log(np.swapaxes(np.asarray(ref_R, dtype=float), -1, -2) @ R)
+    return np.concatenate([p - ref_p, e_R, v - ref_v], axis=1)
+
+
+def follow_through_terms(
+    knots: np.ndarray,
+    T: float,
+    t_samples: np.ndarray,
+    t_c: float,
+    demo_hand_p: np.ndarray,
+    demo_hand_R: np.ndarray,
+    demo_hand_v: np.ndarray,
+    robot: RobotModel,
+) -> FollowThrough:
+    """Follow-through errors e_ft (k, 9) and their knot Jacobians J_ft (k, 9, 80).
+
+    The reference is :func:`matched_reference` at the current knots, then held fixed:
+
+        de_p/dkappa = dK_p/dq S_0 (+ b_i(t) I on the base rows)
+        de_R/dkappa = J_r^-1(e_R) J_w S_0
+        de_v/dkappa = dv/dq S_0 + dv/dqd S_1 (+ b_i'(t) I on the base rows)
+
+    with S_r[:, 8 j + i] = b_i^(r)(t) on joint row j the Bezier basis (and its derivative).
+
+    Args:
+        knots: Current knots kappa_k, shape (10, 8).
+        T: Duration [s].
+        t_samples: Sample times, shape (k,) [s], strictly increasing, the first equal to t_c,
+            all in [t_c, T].
+        t_c: Critical time [s].
+        demo_hand_p: Demonstration hand positions at t_samples, shape (k, 3) [m] (demo frame).
+        demo_hand_R: Demonstration hand orientations at t_samples, shape (k, 3, 3).
+        demo_hand_v: Demonstration hand velocities at t_samples, shape (k, 3) [m/s].
+        robot: Robot model.
+
+    Returns:
+        :class:`learner.inverse_qp.FollowThrough` with ``is_tc`` true at sample 0 only.
+
+    Raises:
+        ConfigError: on malformed inputs.
+    """
+    knots = _knots(knots)
+    if isinstance(T, numbers.Real) and not isinstance(T, bool):
+        T = float(T)
+    check_positive("T", T)
+    t = _times(t_samples, T, float(t_c))
+    k = t.size
+    p, R, v, q, qd, B0, B1 = _fingertip(knots, T, t, robot)
+    p_ref, R_ref, v_ref = matched_reference(p[0], R[0], demo_hand_p, demo_hand_R, demo_hand_v)
+    if p_ref.shape[0] != k:
+        raise ConfigError(
+            "demo_hand_p", f"must have one row per sample ({k}), got {p_ref.shape[0]}"
+        )
+    e_R = so3_log(np.swapaxes(R_ref, -1, -2) @ R)
+    e = np.concatenate([p - p_ref, e_R, v - v_ref], axis=1)
+    jac = robot.tip_jacobians(q, qd)
+    Jw = tip_angular_jacobian(robot, q)
+    JrInv = right_jacobian_inv(e_R)
+    arm = N_JOINTS * N_KNOTS
+    J = np.zeros((k, 9, N_VARS))
+
+    def arm_cols(Jq: np.ndarray, basis: np.ndarray) -> np.ndarray:
+        return np.einsum("kaj,ki->kaji", Jq, basis).reshape(k, Jq.shape[1], arm)
+
+    J[:, 0:3, :arm] = arm_cols(jac.dp_dq, B0)
+    J[:, 3:6, :arm] = arm_cols(JrInv @ Jw, B0)
+    J[:, 6:9, :arm] = arm_cols(jac.dv_dq, B0) + arm_cols(jac.dv_dqd, B1)
+    for c in range(N_BASE_ROWS):
+        col = (N_JOINTS + c) * N_KNOTS
+        J[:, c, col : col + N_KNOTS] = B0
+        J[:, 6 + c, col : col + N_KNOTS] = B1
+    is_tc = np.zeros(k, dtype=bool)
+    is_tc[0] = True
+    return FollowThrough(e=e, J=J, is_tc=is_tc)
+
+
+__all__ = [
+    "fingertip_errors",
+    "follow_through_terms",
+    "matched_reference",
+    "right_jacobian_inv",
+    "skew",
+    "so3_exp",
+    "so3_log",
+    "tip_angular_jacobian",
+]
