@@ -1,0 +1,375 @@
+"""Task-Level ILC (paper, Algorithm 1) against any :class:`flyknot.record.Cell`.
+
+    kappa_0 from the demonstration (initial guess)
+    for k = 0 .. K-1:
+        record_k = cell.run(Bezier(kappa_k))              # a trial
+        err_k    = x_k(t_c) - x_demo(t_c)                # critical-point error
+        dkappa_k = inverse-model QP(err_k)               # learner.update.ilc_update
+        kappa_{k+1} = kappa_k - dkappa_k
+    stop at the first knot (default; continued updates can degrade a command)
+
+Handling of what a lab throws at the loop:
+
+* A trial whose markers are lost before t_c is repeated with the same command, at most
+  ``tracking_retries`` times (the paper repeats such trials); repeats are recorded but do
+  not count towards ``max_trials``.
+* A trial that faults gives no error to learn from: the next command goes halfway back to
+  the previous one (or, on the first trial, the run stops: the initial command is unusable).
+* A QP that fails leaves the command unchanged and the status is recorded.
+
+Everything is written to the run directory as it happens (see :class:`RunDirectory`), so a
+run interrupted at any point resumes without losing or repeating a trial.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from flyknot.errors import ConfigError, RecordError, check_choice
+from flyknot.limits import JointLimits
+from flyknot.record import Cell, TrialRecord
+from learner.bezier import BezierCommand
+from learner.inverse_qp import BACKENDS, InverseModelWeights
+from learner.kinematics import RobotModel
+from learner.rope_model import RopeModelParams
+from learner.update import DemoTarget, ilc_update
+
+OBJECTIVES = ("critical", "equal")
+
+
+@dataclass(frozen=True)
+class ILCParams:
+    """How the learning loop runs.
+
+    Attributes:
+        max_trials: Trials at most (tracking-failure repeats not counted).
+        stop_at_success: Stop at the first tied knot (the paper does).
+        objective: ``"critical"`` (the paper's) or ``"equal"`` (equally weighted baseline).
+        backend: QP solver, ``"clarabel"`` or ``"osqp"``.
+        tracking_retries: Repeats of a trial whose markers were lost before t_c.
+        follow_through: Include the follow-through fingertip tracking term.
+        weights: Inverse-model weights (default: the paper's).
+        rope_model: The learner's rope model (default: the paper's).
+    """
+
+    max_trials: int = 10
+    stop_at_success: bool = True
+    objective: str = "critical"
+    backend: str = "clarabel"
+    tracking_retries: int = 2
+    follow_through: bool = True
+    weights: InverseModelWeights = field(default_factory=InverseModelWeights)
+    rope_model: RopeModelParams = field(default_factory=RopeModelParams)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.max_trials, int) or self.max_trials < 1:
+            raise ConfigError("max_trials", f"must be an integer >= 1, got {self.max_trials!r}")
+        if not isinstance(self.tracking_retries, int) or self.tracking_retries < 0:
+            raise ConfigError(
+                "tracking_retries", f"must be an integer >= 0, got {self.tracking_retries!r}"
+            )
+        check_choice("objective", self.objective, OBJECTIVES)
+        check_choice("backend", self.backend, BACKENDS)
+
+
+@dataclass(frozen=True)
+class TrialSummary:
+    """One trial of a learning run, as written to ``ledger.jsonl``."""
+
+    trial: int
+    attempt: int
+    fault: str | None
+    knot: str | None
+    tracking_lost: bool
+    cost: float | None
+    update_solved: bool | None
+    update_status: str | None
+    predicted_cost_after: float | None
+    action: str
+    wall_s: float
+
+    @property
+    def success(self) -> bool:
+        return self.fault is None and self.knot == "trefoil"
+
+
+@dataclass(frozen=True)
+class LearnResult:
+    """What a learning run produced."""
+
+    trials: tuple[TrialSummary, ...]
+    first_success_trial: int | None
+    final_knots: np.ndarray
+    stopped_because: str
+
+    @property
+    def costs(self) -> list[float | None]:
+        """Critical-point cost of each counted trial (last attempt), None if unmeasured."""
+        return [s.cost for s in _counted(self.trials)]
+
+    @property
+    def knots(self) -> list[bool]:
+        """Whether each counted trial tied the knot."""
+        return [s.success for s in _counted(self.trials)]
+
+
+def _counted(trials: tuple[TrialSummary, ...]) -> list[TrialSummary]:
+    last: dict[int, TrialSummary] = {}
+    for s in trials:
+        last[s.trial] = s
+    return [last[k] for k in sorted(last)]
+
+
+class RunDirectory:
+    """Files of one learning run, written as they happen.
+
+    Layout::
+
+        manifest.json              what was run (free-form, written once)
+        knots_0000.npy             kappa_k before trial k (10, 8)
+        trial_0000_a0.{npz,json,truth.npz}   the record of trial k, attempt a
+        update_0000.json           the update computed after trial k
+        ledger.jsonl               one line per attempt (TrialSummary), the resume point
+    """
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.path.mkdir(parents=True, exist_ok=True)
+
+    def knots_path(self, k: int) -> Path:
+        return self.path / f"knots_{k:04d}.npy"
+
+    def record_stem(self, k: int, attempt: int) -> Path:
+        return self.path / f"trial_{k:04d}_a{attempt}"
+
+    def write_manifest(self, manifest: dict[str, Any]) -> None:
+        (self.path / "manifest.json").write_text(json.dumps(manifest, indent=2, sort_keys=True))
+
+    def save_knots(self, k: int, knots: np.ndarray) -> None:
+        tmp = self.path / f".knots_{k:04d}.tmp.npy"
+        np.save(tmp, np.asarray(knots))
+        tmp.replace(self.knots_path(k))
+
+    def load_knots(self, k: int) -> np.ndarray:
+        return np.load(self.knots_path(k))
+
+    def append_ledger(self, summary: TrialSummary) -> None:
+        with open(self.path / "ledger.jsonl", "a") as f:
+            f.write(json.dumps(asdict(summary)) + "\n")
+
+    def ledger(self) -> list[TrialSummary]:
+        p = self.path / "ledger.jsonl"
+        if not p.is_file():
+            return []
+        out = []
+        for line in p.read_text().splitlines():
+            if line.strip():
+                out.append(TrialSummary(**json.loads(line)))
+        return out
+
+    def save_update(self, k: int, info: dict[str, Any]) -> None:
+        (self.path / f"update_{k:04d}.json").write_text(json.dumps(info, indent=2))
+
+
+def critical_cost(err: np.ndarray, weights: InverseModelWeights) -> float:
+    """||err||_Q^2 with Q = diag(w_crit_pos I_33, w_crit_vel I_33); err (66,) [m, m/s]."""
+    err = np.asarray(err, dtype=float)
+    half = err.size // 2
+    return float(
+        weights.w_crit_pos * err[:half] @ err[:half] + weights.w_crit_vel * err[half:] @ err[half:]
+    )
+
+
+def learn(
+    cell: Cell,
+    target: DemoTarget,
+    knots0: np.ndarray,
+    robot: RobotModel,
+    params: ILCParams = ILCParams(),
+    *,
+    run_dir: str | Path | None = None,
+    resume: bool = False,
+    limits: JointLimits = JointLimits(),  # noqa: B008 - frozen value
+    on_trial: Callable[[TrialSummary], None] | None = None,
+) -> LearnResult:
+    """Run Task-Level ILC from ``knots0`` on ``cell`` until a knot or ``max_trials``.
+
+    Args:
+        cell: Where trials run (simulated or real lab).
+        target: The demonstration target (critical state, t_c, hand).
+        knots0: Initial command knots (10, 8).
+        robot: The learner's robot model.
+        params: Loop parameters.
+        run_dir: Where to write everything (None: keep nothing on disk).
+        resume: Continue the run found in ``run_dir`` instead of starting anew.
+        limits: Joint limits for the updated commands.
+        on_trial: Called after every attempt (progress display).
+
+    Returns:
+        Per-attempt summaries, the first successful trial (0-based) or None, the last
+        knots, and why the loop stopped.
+    """
+    rd = RunDirectory(run_dir) if run_dir is not None else None
+    trials: list[TrialSummary] = []
+    knots = np.asarray(knots0, dtype=float)
+    prev_knots: np.ndarray | None = None
+    k = 0
+    if rd is not None and resume:
+        trials = rd.ledger()
+        done = _counted(tuple(trials))
+        if done:
+            last = done[-1]
+            if last.success and params.stop_at_success:
+                return _finish(
+                    trials,
+                    knots if not rd.knots_path(last.trial).is_file() else rd.load_knots(last.trial),
+                    params,
+                    "success",
+                )
+            k = last.trial + 1
+            if not rd.knots_path(k).is_file():
+                raise ConfigError(
+                    "run_dir", f"{str(rd.path)!r}: the knots of trial {k} are missing"
+                )
+            knots = rd.load_knots(k)
+            prev_knots = rd.load_knots(k - 1)
+    elif rd is not None and rd.ledger():
+        raise ConfigError("run_dir", f"{str(rd.path)!r} already holds a run; use resume")
+
+    if rd is not None and k == 0:
+        rd.save_knots(0, knots)
+    while k < params.max_trials:
+        command = BezierCommand(knots, target.T)
+        joint_cmd = command.joint_command()
+        attempts_done = {s.attempt for s in trials if s.trial == k}
+        for attempt in range(params.tracking_retries + 1):
+            if attempt in attempts_done:
+                continue
+            t0 = time.perf_counter()
+            stem = rd.record_stem(k, attempt) if rd is not None else None
+            if stem is not None and resume and stem.with_name(stem.name + ".json").is_file():
+                # Interrupted after the trial ran but before it was assessed: keep it.
+                record = TrialRecord.load(stem)
+            else:
+                record = cell.run(joint_cmd)
+                if stem is not None:
+                    record.save(stem)
+            summary, update = _assess(record, command, target, robot, params, limits, k, attempt)
+            summary = TrialSummary(**{**asdict(summary), "wall_s": time.perf_counter() - t0})
+            trials.append(summary)
+            if rd is not None:
+                if update is not None:
+                    rd.save_update(k, update)
+                rd.append_ledger(summary)
+            if on_trial is not None:
+                on_trial(summary)
+            if not summary.tracking_lost or summary.success or summary.fault is not None:
+                break
+        if summary.success and params.stop_at_success:
+            return _finish(trials, knots, params, "success")
+        # next command
+        if summary.fault is not None or summary.tracking_lost:
+            if prev_knots is None:
+                why = "initial command faults" if summary.fault else "tracking lost before t_c"
+                return _finish(trials, knots, params, why)
+            new = prev_knots + 0.5 * (knots - prev_knots)
+        elif summary.update_solved:
+            new = np.asarray(update["new_knots"])
+        else:
+            new = knots  # failed QP: command unchanged (reported in the ledger)
+        prev_knots, knots = knots, new
+        k += 1
+        if rd is not None:
+            rd.save_knots(k, knots)  # the resume point for the next trial
+    first = next((s.trial for s in _counted(tuple(trials)) if s.success), None)
+    return _finish(
+        trials, knots, params, "max_trials" if first is None else "max_trials (knot tied)"
+    )
+
+
+def _finish(trials, knots, params, why) -> LearnResult:
+    t = tuple(trials)
+    first = next((s.trial for s in _counted(t) if s.success), None)
+    return LearnResult(t, first, np.asarray(knots), why)
+
+
+def _assess(
+    record: TrialRecord,
+    command: BezierCommand,
+    target: DemoTarget,
+    robot: RobotModel,
+    params: ILCParams,
+    limits: JointLimits,
+    k: int,
+    attempt: int,
+) -> tuple[TrialSummary, dict[str, Any] | None]:
+    base = dict(
+        trial=k,
+        attempt=attempt,
+        fault=record.fault,
+        knot=record.knot,
+        wall_s=0.0,
+    )
+    if record.fault is not None:
+        return TrialSummary(
+            **base,
+            tracking_lost=False,
+            cost=None,
+            update_solved=None,
+            update_status=None,
+            predicted_cost_after=None,
+            action="fault: step halfway back",
+        ), None
+    try:
+        res = ilc_update(
+            record,
+            command,
+            target,
+            robot,
+            params.rope_model,
+            params.weights,
+            objective=params.objective,
+            backend=params.backend,
+            limits=limits,
+            follow_through=params.follow_through,
+        )
+    except RecordError as e:
+        return TrialSummary(
+            **base,
+            tracking_lost=True,
+            cost=None,
+            update_solved=None,
+            update_status=f"no error: {e}",
+            predicted_cost_after=None,
+            action="repeat (tracking lost before t_c)",
+        ), None
+    update = {
+        "trial": k,
+        "solved": res.solved,
+        "status": res.qp_status,
+        "cost_before": res.cost_before,
+        "predicted_cost_after": res.predicted_cost_after,
+        "err": res.err.tolist(),
+        "dkappa": res.dkappa.tolist(),
+        "new_knots": res.new_knots.tolist(),
+        "timings": dict(res.timings),
+        "limit_rounds": res.limit_rounds,
+        "sampled_violation": res.sampled_violation,
+    }
+    cost = critical_cost(res.err, params.weights) if np.all(np.isfinite(res.err)) else None
+    return TrialSummary(
+        **base,
+        tracking_lost=False,
+        cost=cost,
+        update_solved=res.solved,
+        update_status=res.qp_status,
+        predicted_cost_after=res.predicted_cost_after if res.solved else None,
+        action="update" if res.solved else "QP failed: command unchanged",
+    ), update

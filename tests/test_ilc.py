@@ -1,0 +1,141 @@
+"""The ILC loop against a cell: learning, stopping, faults, failed QPs and resuming."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from flyknot.errors import ConfigError
+from flyknot.record import JointCommand, TrialRecord
+from learner.bezier import BezierCommand
+from learner.ilc import ILCParams, RunDirectory, critical_cost, learn
+from learner.inverse_qp import InverseModelWeights
+from learner.kinematics import RobotModel
+from learner.rope_model import RopeModelParams
+from learner.system_model import model_demonstration, model_record
+from learner.update import DemoTarget
+
+HOME = np.array([0.0, -0.247, 0.0, 0.909, 0.0, 1.15644, 0.0])
+T = 0.6
+T_C = 0.565  # t_f = t_c + 35 ms, as the demo timing selection gives
+ROPE = RopeModelParams(stiffness=1e3, damping=5.0)
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return RobotModel.from_mjcf()
+
+
+def _knots(delta):
+    k = np.zeros((10, 8))
+    s = np.sin(np.linspace(0, np.pi, 8))
+    k[:7] = HOME[:, None] + np.outer(delta, s)
+    k[7:] = np.array([0.0, 0.0, 1.0])[:, None]
+    return k
+
+
+class ModelCell:
+    """The learner's own model as the 'real system'; a knot = critical cost below a bound."""
+
+    def __init__(self, robot, target, knot_cost=5e-3, fault_on=()):
+        self.robot, self.target, self.knot_cost, self.fault_on = robot, target, knot_cost, fault_on
+        self.n = 0
+        self.played = []
+
+    def run(self, command: JointCommand) -> TrialRecord:
+        knots = self.current
+        self.played.append(knots.copy())
+        rec = model_record(BezierCommand(knots, T), self.robot, ROPE)
+        i = self.n
+        self.n += 1
+        if i in self.fault_on:
+            return dataclasses.replace(rec, fault="joint 2 velocity exceeds limit", knot=None)
+        from learner.critical_state import critical_state_from_record
+
+        err = critical_state_from_record(rec, self.target.t_c, knots[7:, 0]) - self.target.x_c
+        cost = critical_cost(err, InverseModelWeights())
+        return dataclasses.replace(rec, knot="trefoil" if cost < self.knot_cost else "unknot")
+
+
+@pytest.fixture(scope="module")
+def problem(robot):
+    target_knots = _knots(np.array([0.3, 0.25, -0.2, 0.3, 0.2, -0.3, 0.2]))
+    demo = model_demonstration(BezierCommand(target_knots, T), T_C, robot, ROPE)
+    target = DemoTarget.from_demonstration(demo, dt=ROPE.dt)
+    start = _knots(np.array([0.22, 0.3, -0.12, 0.22, 0.26, -0.22, 0.25]))
+    return target, start
+
+
+def _cell_for(robot, target, **kw):
+    """A ModelCell and a spy that tells it which knots are being played (a cell sees joints)."""
+    cell = ModelCell(robot, target, **kw)
+    orig = BezierCommand.joint_command
+
+    def spy(self, rate_hz=250.0):
+        cell.current = np.asarray(self.knots)
+        return orig(self, rate_hz)
+
+    return cell, spy
+
+
+def test_loop_learns_without_mismatch(robot, problem, monkeypatch, tmp_path):
+    target, start = problem
+    cell, spy = _cell_for(robot, target)
+    monkeypatch.setattr(BezierCommand, "joint_command", spy)
+    params = ILCParams(max_trials=6, rope_model=ROPE)
+    res = learn(cell, target, start, robot, params, run_dir=tmp_path / "run")
+    costs = [c for c in res.costs if c is not None]
+    assert costs[0] > 1e-3
+    assert res.first_success_trial is not None and res.first_success_trial <= 4
+    assert costs[-1] < 0.01 * costs[0]
+    assert res.stopped_because == "success"
+    # Everything was written as it happened.
+    rd = RunDirectory(tmp_path / "run")
+    assert len(rd.ledger()) == len(res.trials)
+    for s in res.trials:
+        assert rd.knots_path(s.trial).is_file()
+        TrialRecord.load(rd.record_stem(s.trial, s.attempt))
+
+
+def test_resume_neither_loses_nor_repeats_a_trial(robot, problem, monkeypatch, tmp_path):
+    target, start = problem
+    cell, spy = _cell_for(robot, target, knot_cost=0.0)  # never succeeds
+    monkeypatch.setattr(BezierCommand, "joint_command", spy)
+    params = ILCParams(max_trials=2, rope_model=ROPE)
+    learn(cell, target, start, robot, params, run_dir=tmp_path / "run")
+    assert cell.n == 2
+    more = dataclasses.replace(params, max_trials=4)
+    res = learn(cell, target, start, robot, more, run_dir=tmp_path / "run", resume=True)
+    assert cell.n == 4  # two more trials, none repeated
+    assert [s.trial for s in res.trials] == [0, 1, 2, 3]
+    with pytest.raises(ConfigError, match="already holds a run; use resume"):
+        learn(cell, target, start, robot, more, run_dir=tmp_path / "run")
+
+
+def test_fault_steps_halfway_back(robot, problem, monkeypatch):
+    target, start = problem
+    cell, spy = _cell_for(robot, target, knot_cost=0.0, fault_on=(1,))
+    monkeypatch.setattr(BezierCommand, "joint_command", spy)
+    res = learn(cell, target, start, robot, ILCParams(max_trials=3, rope_model=ROPE))
+    assert res.trials[1].fault is not None and res.trials[1].cost is None
+    p = cell.played
+    np.testing.assert_allclose(p[2], p[0] + 0.5 * (p[1] - p[0]), atol=1e-12)
+
+
+def test_faulting_initial_command_stops(robot, problem, monkeypatch):
+    target, start = problem
+    cell, spy = _cell_for(robot, target, fault_on=(0,))
+    monkeypatch.setattr(BezierCommand, "joint_command", spy)
+    res = learn(cell, target, start, robot, ILCParams(max_trials=3, rope_model=ROPE))
+    assert res.stopped_because == "initial command faults" and len(res.trials) == 1
+
+
+def test_params_validation():
+    with pytest.raises(
+        ConfigError, match=r"objective: unknown value 'x' \(valid choices: critical, equal\)"
+    ):
+        ILCParams(objective="x")
+    with pytest.raises(ConfigError, match="max_trials: must be an integer >= 1, got 0"):
+        ILCParams(max_trials=0)
