@@ -184,21 +184,23 @@ class SimLab:
 
         # Ticks run on the robot clock: tick i starts at sim time delay + i * tick.
         # Simulate the delay first (arm holding q0).
+        # The arm holds q0 during the delay; the trial's clock starts before it.
         pre_steps = int(round(delay / sim_dt))
-        t_sim0 = pre_steps * sim_dt
-        if pre_steps:
-            mujoco.mj_step(m, d, nstep=pre_steps)
-        n_steps = n_ticks * substeps
+        n_steps = pre_steps + n_ticks * substeps
         vert_hist = np.empty((n_steps + 1, *self.rope.vertex_positions(m, d).shape))
-        t_hist = t_sim0 + sim_dt * np.arange(n_steps + 1)
+        t_hist = sim_dt * np.arange(n_steps + 1)
         vert_hist[0] = self.rope.vertex_positions(m, d)
+        k = 0
+        for _ in range(pre_steps):
+            mujoco.mj_step(m, d)
+            k += 1
+            vert_hist[k] = self.rope.vertex_positions(m, d)
         q_meas = np.empty((n_ticks, N_JOINTS))
         tip_pos = np.empty((n_ticks, 3))
         tip_quat = np.empty((n_ticks, 4))
         q_sent = np.empty((n_ticks, N_JOINTS))
         first_contact: float | None = None
         hold = None
-        k = 0
         bar = tqdm(total=round(n_ticks * tick, 2), unit="sim s", disable=not progress,
                    desc=f"trial (rope {self.params.rope})", bar_format=_BAR)
         for i in range(n_ticks):
