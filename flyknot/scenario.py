@@ -1,0 +1,277 @@
+"""Scenario files: one TOML file per experiment, parsed into frozen dataclasses.
+
+Format (every field is validated; unknown keys are errors that list the valid ones)::
+
+    name = "ropes"                      # defaults to the file's stem
+    description = "Learning on each rope from the rope-1 demonstration"
+    kind = "learn"          # learn | track | transfer | sensitivity | objectives | demos
+    paper = "all 7 ropes within 10 trials"   # the paper's result, quoted in report.md
+
+    [defaults]                          # fields shared by every run (RunSpec below)
+    demo = "fast"
+    max_trials = 10
+
+    [defaults.rope_model]               # the learner's rope model (learner.rope_model)
+    stiffness = 1e5
+
+    [[run]]                             # one entry per run; overrides the defaults
+    name = "rope1"
+    rope = 1
+
+    [grid]                              # or: the product of lists makes the runs
+    rope = [1, 2, 3, 4, 5, 6, 7]
+
+A run may start from another run's learned command: ``start_from = "rope3"`` (the name of a
+run in the same scenario); it then runs after that one.
+"""
+
+from __future__ import annotations
+
+import itertools
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any
+
+from flyknot.constants import SCENARIOS_DIR
+from flyknot.errors import ConfigError, check_choice, check_nonnegative
+
+KINDS = ("learn", "track", "transfer", "sensitivity", "objectives", "demos")
+OBJECTIVES = ("critical", "equal")
+ROPE_MODEL_KEYS = ("stiffness", "damping", "link_mass", "end_mass", "link_length", "n_links", "dt")
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One learning run of a scenario.
+
+    Attributes:
+        name: Unique within the scenario (a directory name).
+        rope: Rope id in the simulated lab (1..7).
+        demo: Demonstration: a name under ``assets/demos`` (without ``.npz``) or a path.
+        seed: Seed of the lab's trial-to-trial variation.
+        max_trials: Learning trials at most (0: only play the initial command once).
+        objective: ``"critical"`` or ``"equal"``.
+        stop_at_success: Stop at the first knot.
+        repeats: After learning, play the final command this many more times (success rate).
+        settle_s: Settling time before the knot is judged [s].
+        backend: QP solver (``"clarabel"`` or ``"osqp"``).
+        start_from: Name of the run whose final command starts this one (transfer), or None.
+        rope_model: Overrides of the learner's rope model parameters.
+        label: Free text for figures (e.g. "k=1e3, m_e=5").
+    """
+
+    name: str
+    rope: int = 1
+    demo: str = "fast"
+    seed: int = 0
+    max_trials: int = 10
+    objective: str = "critical"
+    stop_at_success: bool = True
+    repeats: int = 0
+    settle_s: float = 1.5
+    backend: str = "clarabel"
+    start_from: str | None = None
+    rope_model: Mapping[str, float] = field(default_factory=dict)
+    label: str = ""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name or "/" in self.name:
+            raise ConfigError(
+                "run.name", f"must be a non-empty name without '/', got {self.name!r}"
+            )
+        check_choice("rope", self.rope, range(1, 8))
+        for f in ("seed", "max_trials", "repeats"):
+            v = getattr(self, f)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+                raise ConfigError(f, f"must be an integer >= 0, got {v!r}")
+        check_choice("objective", self.objective, OBJECTIVES)
+        check_choice("backend", self.backend, ("clarabel", "osqp"))
+        if not isinstance(self.stop_at_success, bool):
+            raise ConfigError(
+                "stop_at_success", f"must be true or false, got {self.stop_at_success!r}"
+            )
+        check_nonnegative("settle_s", self.settle_s)
+        rm = dict(self.rope_model)
+        for k in rm:
+            check_choice("rope_model key", k, ROPE_MODEL_KEYS)
+        object.__setattr__(self, "rope_model", rm)
+
+
+RUN_KEYS = tuple(f.name for f in fields(RunSpec))
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """An experiment: a list of runs plus what to report."""
+
+    name: str
+    kind: str
+    runs: tuple[RunSpec, ...]
+    description: str = ""
+    paper: str = ""
+    source: str | None = None
+
+    def __post_init__(self) -> None:
+        check_choice("kind", self.kind, KINDS)
+        if not self.runs:
+            raise ConfigError("run", "the scenario defines no runs")
+        names = [r.name for r in self.runs]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ConfigError("run.name", f"duplicate run names: {', '.join(dup)}")
+        for r in self.runs:
+            if r.start_from is not None:
+                check_choice(
+                    f"run {r.name!r} start_from", r.start_from, [n for n in names if n != r.name]
+                )
+
+    def order(self) -> list[list[RunSpec]]:
+        """Runs in waves: each wave depends only on earlier waves (for parallel workers)."""
+        done: set[str] = set()
+        left = list(self.runs)
+        waves = []
+        while left:
+            wave = [r for r in left if r.start_from is None or r.start_from in done]
+            if not wave:
+                raise ConfigError("start_from", "runs depend on each other in a cycle")
+            waves.append(wave)
+            done |= {r.name for r in wave}
+            left = [r for r in left if r.name not in done]
+        return waves
+
+
+def _coerce_override(value: str) -> Any:
+    for cast in (int, float):
+        try:
+            return cast(value)
+        except ValueError:
+            pass
+    low = value.lower()
+    if low in ("true", "false"):
+        return low == "true"
+    if low in ("none", "null"):
+        return None
+    return value
+
+
+def parse_overrides(pairs: list[str] | None) -> dict[str, Any]:
+    """``["max_trials=2", "rope_model.stiffness=1e3"]`` -> a nested dict of run fields."""
+    out: dict[str, Any] = {}
+    for p in pairs or []:
+        if "=" not in p:
+            raise ConfigError("--set", f"expected key=value, got {p!r}")
+        key, value = p.split("=", 1)
+        key = key.strip()
+        if key.startswith("rope_model."):
+            sub = key.split(".", 1)[1]
+            check_choice("rope_model key", sub, ROPE_MODEL_KEYS)
+            out.setdefault("rope_model", {})[sub] = _coerce_override(value)
+        elif key == "max_runs":
+            out["max_runs"] = int(value)
+        else:
+            check_choice("--set key", key, [k for k in RUN_KEYS if k != "name"] + ["max_runs"])
+            out[key] = _coerce_override(value)
+    return out
+
+
+def _make_run(raw: Mapping[str, Any], where: str) -> RunSpec:
+    for k in raw:
+        if k not in RUN_KEYS:
+            raise ConfigError(f"{where}.{k}", "unknown field", RUN_KEYS)
+    try:
+        return RunSpec(**raw)
+    except TypeError as e:
+        raise ConfigError(where, str(e)) from None
+
+
+def parse_scenario(
+    doc: Mapping[str, Any],
+    *,
+    name: str,
+    overrides: Mapping[str, Any] | None = None,
+    source: str | None = None,
+) -> Scenario:
+    """Build a :class:`Scenario` from a parsed TOML document (plus ``--set`` overrides)."""
+    allowed = ("name", "description", "kind", "paper", "defaults", "run", "grid")
+    for k in doc:
+        if k not in allowed:
+            raise ConfigError(k, "unknown top-level field", allowed)
+    defaults = dict(doc.get("defaults", {}))
+    overrides = dict(overrides or {})
+    max_runs = overrides.pop("max_runs", None)
+    rope_model = {**dict(defaults.pop("rope_model", {})), **dict(overrides.pop("rope_model", {}))}
+    raw_runs: list[dict[str, Any]] = []
+    if "grid" in doc:
+        grid = dict(doc["grid"])
+        keys = list(grid)
+        for k in keys:
+            if not isinstance(grid[k], list) or not grid[k]:
+                raise ConfigError(f"grid.{k}", "must be a non-empty list")
+        for combo in itertools.product(*(grid[k] for k in keys)):
+            entry = dict(zip(keys, combo, strict=True))
+            entry.setdefault("name", "-".join(f"{k}{v}" for k, v in entry.items()))
+            raw_runs.append(entry)
+    for entry in doc.get("run", []):
+        raw_runs.append(dict(entry))
+    runs = []
+    for i, entry in enumerate(raw_runs):
+        merged = {**defaults, **entry, **overrides}
+        merged["rope_model"] = {
+            **rope_model,
+            **dict(entry.get("rope_model", {})),
+            **dict(overrides.get("rope_model", {})),
+        }
+        merged.setdefault("name", f"run{i}")
+        runs.append(_make_run(merged, f"run[{i}]"))
+    scen = Scenario(
+        name=str(doc.get("name", name)),
+        kind=str(doc.get("kind", "learn")),
+        runs=tuple(runs),
+        description=str(doc.get("description", "")),
+        paper=str(doc.get("paper", "")),
+        source=source,
+    )
+    if max_runs is not None:
+        scen = limit_runs(scen, max_runs)
+    return scen
+
+
+def limit_runs(scen: Scenario, n: int) -> Scenario:
+    """Keep the first ``n`` runs plus the runs they start from (smoke tests)."""
+    if n < 1:
+        raise ConfigError("max_runs", f"must be >= 1, got {n}")
+    by_name = {r.name: r for r in scen.runs}
+    keep: list[str] = []
+    for r in scen.runs[:n]:
+        chain = []
+        cur: RunSpec | None = r
+        while cur is not None and cur.name not in keep and cur.name not in chain:
+            chain.append(cur.name)
+            cur = by_name.get(cur.start_from) if cur.start_from else None
+        keep.extend(reversed(chain))
+    runs = tuple(r for r in scen.runs if r.name in keep)
+    return replace(scen, runs=runs)
+
+
+def find_scenario(name_or_path: str) -> Path:
+    """A scenario by path, or by name under ``scenarios/`` (error lists the names)."""
+    p = Path(name_or_path)
+    if p.is_file():
+        return p
+    cand = SCENARIOS_DIR / f"{name_or_path}.toml"
+    if cand.is_file():
+        return cand
+    names = sorted(q.stem for q in SCENARIOS_DIR.glob("*.toml"))
+    raise ConfigError("scenario", f"no scenario file or name {name_or_path!r}", names)
+
+
+def load_scenario(name_or_path: str, overrides: Mapping[str, Any] | None = None) -> Scenario:
+    """Read and validate a scenario file."""
+    path = find_scenario(name_or_path)
+    try:
+        doc = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(str(path), f"not valid TOML: {e}") from None
+    return parse_scenario(doc, name=path.stem, overrides=overrides, source=str(path))
