@@ -2,16 +2,17 @@
 
 Model (chosen by measurement, see ``docs/rope-model.md``):
 
-* a ``flexcomp type="grid" dim="1"`` of ``segments`` capsules whose vertices are point-mass
-  bodies with three world-axis slide joints, under the world body (MuJoCo's fast path for flex
-  stiffness under Newton);
-* stretching held by the flex edge equality (one constraint row per edge), bending and
-  torsion by MuJoCo's discrete-elastic-rod elasticity (``young``, ``shear``, Rayleigh
-  ``damping``), integrated implicitly by the ``discrete`` integrator;
+* a ``dim=1`` flex of ``segments`` capsules built directly with ``MjSpec``: its vertices are
+  point-mass bodies with three world-axis slide joints under the world body (MuJoCo's fast
+  path for flex stiffness under Newton);
+* stretching held by the flex edge equality (one constraint row per edge), bending by MuJoCo's
+  discrete-elastic-rod elasticity (``young``, Rayleigh ``damping``), integrated implicitly by
+  the ``discrete`` integrator. No per-edge twist hinges by default (bending is the same, the
+  step ~40 % cheaper); ``add_rope(..., twist=True)`` builds MuJoCo's ``flexcomp`` with them;
 * the held end: two ``connect`` equalities pin vertex 0 and vertex 1 to sites on the anchor
   body (a dynamic body moved by joints, e.g. the robot's ``link7``), so the first segment
-  leaves along ``axis`` like a rope leaving a tube; the twist of the first segment about its
-  own axis is free (a held rope slips in its tube);
+  leaves along ``axis`` like a rope leaving a tube; the first segment may spin about its own
+  axis (a held rope slips in its tube);
 * the end weight: its mass is added to the last vertex body, plus a massless steel sphere there
   for contact;
 * contact: flex self-collision (elements sharing a vertex never collide), with the floor and
@@ -61,6 +62,8 @@ __all__ = [
     "hanging_vertices",
     "load_rope_table",
     "load_sim_settings",
+    "marker_arclengths",
+    "parse_rope_table",
     "points_at_arclength",
     "polyline_length",
     "quat_from_x_to",
@@ -146,12 +149,20 @@ class RopeParams:
         if self.segments < 2:
             raise ConfigError("segments", f"must be >= 2, got {self.segments}")
         if self.length / self.segments <= self.diameter:
+            n_max = max(1, int(self.length // self.diameter))
+            while n_max > 1 and self.length / n_max <= self.diameter:
+                n_max -= 1
             raise ConfigError(
                 "segments",
                 f"segment length {self.length / self.segments:.4g} m must exceed the diameter "
                 f"{self.diameter:.4g} m (elements sharing no vertex would touch at rest); "
-                f"use at most {math.ceil(self.length / self.diameter) - 1} segments",
+                f"use at most {n_max} segments",
             )
+
+    @property
+    def n_segments(self) -> int:
+        """Number of flex elements (alias of ``segments``)."""
+        return self.segments
 
     @property
     def radius(self) -> float:
@@ -211,6 +222,10 @@ class SimSettings:
         edge_timeconst: solref time constant of the edge and hold equalities [s].
         contact_timeconst: solref time constant of rope contacts [s].
         contact_dampratio: solref damping ratio of rope contacts [-].
+        contact_solimp: solimp (d0, d_width, width) of rope contacts: impedance at zero and at
+            ``width`` [m] penetration.
+        refsafe: MuJoCo's refsafe flag; under ``discrete`` it replaces contact rows stiffer than
+            the step can resolve (time constant < timestep) by the stiffest resolvable one.
         selfcollide: Flex self-collision midphase, one of ``auto``, ``sap``, ``bvh``,
             ``narrow``.
     """
@@ -221,8 +236,10 @@ class SimSettings:
     ls_iterations: int = 50
     tolerance: float = 1e-8
     edge_timeconst: float = 1e-4
-    contact_timeconst: float = 0.004
+    contact_timeconst: float = 0.001
     contact_dampratio: float = 1.0
+    contact_solimp: tuple[float, float, float] = (0.9, 0.95, 0.001)
+    refsafe: bool = True
     selfcollide: str = "auto"
 
     def __post_init__(self) -> None:
@@ -235,6 +252,16 @@ class SimSettings:
                 raise ConfigError(f, f"must be an integer >= 1, got {v!r}")
         for f in ("tolerance", "edge_timeconst", "contact_timeconst", "contact_dampratio"):
             check_positive(f, getattr(self, f))
+        imp = tuple(self.contact_solimp)
+        if len(imp) != 3 or not all(isinstance(v, (int, float)) for v in imp):
+            raise ConfigError("contact_solimp", f"must be 3 numbers, got {self.contact_solimp!r}")
+        if not (0 < imp[0] < 1 and 0 < imp[1] < 1 and imp[2] > 0):
+            raise ConfigError(
+                "contact_solimp", f"need 0 < d0, d_width < 1 and width > 0, got {imp!r}"
+            )
+        object.__setattr__(self, "contact_solimp", tuple(float(v) for v in imp))
+        if not isinstance(self.refsafe, bool):
+            raise ConfigError("refsafe", f"must be true or false, got {self.refsafe!r}")
 
 
 _SIM_FIELDS = tuple(f.name for f in fields(SimSettings))
@@ -341,6 +368,10 @@ def configure_options(
     opt.ls_iterations = s.ls_iterations
     opt.tolerance = s.tolerance
     opt.noslip_iterations = 0
+    if s.refsafe:
+        opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_REFSAFE)
+    else:
+        opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_REFSAFE)
 
 
 # ----------------------------------------------------------------------------------------
@@ -349,8 +380,10 @@ def configure_options(
 def quat_from_x_to(axis: np.ndarray) -> np.ndarray:
     """Unit quaternion (w, x, y, z) of the smallest rotation taking e_x to ``axis``.
 
-    q = normalise(1 + e_x . a, e_x x a) for a = axis / |axis|; for a = -e_x the rotation is
-    pi about e_z.
+    q = normalise(1 + u . a, u x a) takes a unit vector u to a = axis / |axis|. For
+    e_x . a >= 0 it is used with u = e_x; otherwise (where 1 + e_x . a would cancel) with
+    u = -e_x, composed with the half turn about e_z that takes e_x to -e_x:
+    q = q(-e_x -> a) (0, 0, 0, 1). (The result is the smallest rotation up to that choice.)
 
     Args:
         axis: Direction, shape (3,), non-zero.
@@ -360,12 +393,14 @@ def quat_from_x_to(axis: np.ndarray) -> np.ndarray:
     """
     a = np.asarray(axis, dtype=float)
     a = a / np.linalg.norm(a)
-    ex = np.array([1.0, 0.0, 0.0])
-    w = 1.0 + float(ex @ a)
-    if w < 1e-12:
-        return np.array([0.0, 0.0, 0.0, 1.0])
-    q = np.concatenate([[w], np.cross(ex, a)])
-    return q / np.linalg.norm(q)
+    flip = a[0] < 0
+    u = np.array([-1.0, 0.0, 0.0]) if flip else np.array([1.0, 0.0, 0.0])
+    q = np.concatenate([[1.0 + float(u @ a)], np.cross(u, a)])
+    q /= np.linalg.norm(q)
+    if flip:  # q (x) (0, 0, 0, 1)
+        w, x, y, z = q
+        q = np.array([-z, y, -x, w])
+    return q
 
 
 def sway_direction(sway_angle: float, sway_azimuth: float) -> np.ndarray:
@@ -460,8 +495,9 @@ def marker_arclengths(length: float) -> np.ndarray:
 # ----------------------------------------------------------------------------------------
 # building
 # ----------------------------------------------------------------------------------------
-def _flexcomp_xml(params: RopeParams, settings: SimSettings, pos: np.ndarray, quat: np.ndarray,
-                  name: str) -> str:
+def _flexcomp_xml(
+    params: RopeParams, settings: SimSettings, pos: np.ndarray, quat: np.ndarray, name: str
+) -> str:
     n, seg = params.segments, params.segment_length
     f = _fmt
     rgba = " ".join(f(c) for c in _RGBA[params.material])
@@ -476,7 +512,8 @@ def _flexcomp_xml(params: RopeParams, settings: SimSettings, pos: np.ndarray, qu
         f'damping="{f(params.damping)}"/>'
         f'<contact selfcollide="{settings.selfcollide}" contype="{ROPE_CONTYPE}" '
         f'conaffinity="{ROPE_CONAFFINITY}" condim="3" friction="{f(params.friction)}" '
-        f'solref="{f(settings.contact_timeconst)} {f(settings.contact_dampratio)}"/>'
+        f'solref="{f(settings.contact_timeconst)} {f(settings.contact_dampratio)}" '
+        f'solimp="{" ".join(f(v) for v in settings.contact_solimp)} 0.5 2"/>'
         "</flexcomp></worldbody></mujoco>"
     )
 
@@ -485,9 +522,45 @@ def _fmt(x: float) -> str:
     return repr(float(x))
 
 
-def _anchor_world_pose(
-    spec: mujoco.MjSpec, anchor_body: str
-) -> tuple[np.ndarray, np.ndarray]:
+def _add_raw_flex(
+    spec: mujoco.MjSpec, params: RopeParams, settings: SimSettings, x0: np.ndarray, name: str
+) -> None:
+    """Vertex bodies ``<name>_<k>`` at ``x0`` (n + 1, 3) on x/y/z slides under the world, a
+    ``dim=1`` flex through them with rod elasticity (bending only: no twist joints) and the
+    flex edge-length equality (named by the caller)."""
+    n = params.segments
+    box = 0.005  # inertia box side [m] (point masses; rotational inertia unused)
+    for k in range(n + 1):
+        b = spec.worldbody.add_body(name=f"{name}_{k}", pos=x0[k])
+        b.explicitinertial = True
+        b.mass = 1.0  # set by add_rope
+        b.inertia = [box * box / 6] * 3
+        for i, ax in enumerate(np.eye(3)):
+            b.add_joint(name=f"{name}_{k}_{'xyz'[i]}", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=ax)
+    f = spec.add_flex()
+    f.name = name
+    f.dim = 1
+    f.radius = params.radius
+    f.vertbody = [f"{name}_{k}" for k in range(n + 1)]
+    f.vert = [0.0] * (3 * (n + 1))
+    f.elem = [v for k in range(n) for v in (k, k + 1)]
+    f.young = params.bend_modulus
+    f.shear = params.shear_modulus
+    f.damping = params.damping
+    f.selfcollide = getattr(mujoco.mjtFlexSelf, f"mjFLEXSELF_{settings.selfcollide.upper()}")
+    f.contype = ROPE_CONTYPE
+    f.conaffinity = ROPE_CONAFFINITY
+    f.condim = 3
+    f.friction = [params.friction, 0.005, 0.0001]
+    f.solref = [settings.contact_timeconst, settings.contact_dampratio]
+    f.solimp = [*settings.contact_solimp, 0.5, 2.0]
+    f.rgba = _RGBA[params.material]
+    spec.add_equality(
+        type=mujoco.mjtEq.mjEQ_FLEX, name1=name, solref=[settings.edge_timeconst, 1.0]
+    )
+
+
+def _anchor_world_pose(spec: mujoco.MjSpec, anchor_body: str) -> tuple[np.ndarray, np.ndarray]:
     """World position (3,) and rotation matrix (3, 3) of a body at qpos0 (compiles a copy)."""
     try:
         model = spec.copy().compile()
@@ -508,6 +581,7 @@ def add_rope(
     axis: Sequence[float] = (0.0, 0.0, -1.0),
     prefix: str = "rope",
     settings: SimSettings | None = None,
+    twist: bool = False,
 ) -> RopeHandle:
     """Add a rope to ``spec`` held by ``anchor_body``.
 
@@ -523,6 +597,10 @@ def add_rope(
         axis: Direction the rope leaves in, in the anchor body's frame, shape (3,).
         prefix: Name prefix of everything added (bodies ``<prefix>_flex_<k>``, ...).
         settings: Simulation settings (default: ``[simulation]`` of ``assets/ropes.toml``).
+        twist: Build with MuJoCo's ``flexcomp``, which adds a twist hinge per edge (rod
+            torsion); the default builds the flex directly without them (bending only, ~30 %
+            faster; torsion is not driven anyway, since the held first edge may spin in its
+            tube). See ``docs/rope-model.md``.
 
     Returns:
         The rope's handle (names); bind it to the compiled model with
@@ -549,19 +627,23 @@ def add_rope(
     if not isinstance(prefix, str) or not prefix:
         raise ConfigError("prefix", f"must be a non-empty string, got {prefix!r}")
     flex_name = f"{prefix}_flex"
-    if spec.body(f"{flex_name}_0") is not None:
+    if spec.body(f"{flex_name}_0") is not None or spec.flex(flex_name) is not None:
         raise ConfigError("prefix", f"a rope with prefix {prefix!r} is already in the spec")
 
     n, seg, c = params.segments, params.segment_length, params.clearance
     xb, rb = _anchor_world_pose(spec, anchor_body)
     ax_w = rb @ ax
     p0 = xb + rb @ (pos + c * ax)
-    centre = p0 + ax_w * params.length / 2
-    child = mujoco.MjSpec.from_string(
-        _flexcomp_xml(params, settings, centre, quat_from_x_to(ax_w), "flex")
-    )
-    frame = spec.worldbody.add_frame()
-    spec.attach(child, frame=frame, prefix=f"{prefix}_")
+    if twist:
+        centre = p0 + ax_w * params.length / 2
+        child = mujoco.MjSpec.from_string(
+            _flexcomp_xml(params, settings, centre, quat_from_x_to(ax_w), "flex")
+        )
+        frame = spec.worldbody.add_frame()
+        spec.attach(child, frame=frame, prefix=f"{prefix}_")
+    else:
+        x0 = p0 + seg * np.arange(n + 1)[:, None] * ax_w
+        _add_raw_flex(spec, params, settings, x0, flex_name)
 
     vbodies = tuple(f"{flex_name}_{k}" for k in range(n + 1))
     # Trapezoidal lumping of the rope's mass: l rho per interior vertex, l rho / 2 at the ends.
@@ -572,10 +654,16 @@ def add_rope(
     last.mass = last.mass + params.end_mass
     end_geom = f"{prefix}_end_weight"
     last.add_geom(
-        name=end_geom, type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[params.end_radius, 0, 0],
-        mass=0.0, contype=ROPE_CONTYPE, conaffinity=ROPE_CONAFFINITY, condim=3,
+        name=end_geom,
+        type=mujoco.mjtGeom.mjGEOM_SPHERE,
+        size=[params.end_radius, 0, 0],
+        mass=0.0,
+        contype=ROPE_CONTYPE,
+        conaffinity=ROPE_CONAFFINITY,
+        condim=3,
         friction=[params.friction, 0.005, 0.0001],
         solref=[settings.contact_timeconst, settings.contact_dampratio],
+        solimp=[*settings.contact_solimp, 0.5, 2.0],
         rgba=[0.3, 0.3, 0.32, 1.0],
     )
     sites = (f"{prefix}_hold0", f"{prefix}_hold1")
@@ -586,20 +674,29 @@ def add_rope(
         vsite = f"{prefix}_vertex{k}"
         spec.body(vbodies[k]).add_site(name=vsite, group=5)
         spec.add_equality(
-            name=eqs[k], type=mujoco.mjtEq.mjEQ_CONNECT, objtype=mujoco.mjtObj.mjOBJ_SITE,
-            name1=vsite, name2=sites[k], solref=[settings.edge_timeconst, 1.0],
+            name=eqs[k],
+            type=mujoco.mjtEq.mjEQ_CONNECT,
+            objtype=mujoco.mjtObj.mjOBJ_SITE,
+            name1=vsite,
+            name2=sites[k],
+            solref=[settings.edge_timeconst, 1.0],
         )
     edge_eq = f"{prefix}_edges"
     for e in spec.equalities:
         if e.type == mujoco.mjtEq.mjEQ_FLEX and e.name1 == flex_name:
             e.name = edge_eq
-    twist = tuple(
-        j.name for j in spec.joints if j.name.startswith(f"{flex_name}_twist")
-    )
+    twist = tuple(j.name for j in spec.joints if j.name.startswith(f"{flex_name}_twist"))
     return RopeHandle(
-        params=params, prefix=prefix, flex=flex_name, vertex_bodies=vbodies,
-        twist_joints=twist, end_geom=end_geom, anchor_body=anchor_body, hold_sites=sites,
-        hold_equalities=eqs, edge_equality=edge_eq,
+        params=params,
+        prefix=prefix,
+        flex=flex_name,
+        vertex_bodies=vbodies,
+        twist_joints=twist,
+        end_geom=end_geom,
+        anchor_body=anchor_body,
+        hold_sites=sites,
+        hold_equalities=eqs,
+        edge_equality=edge_eq,
     )
 
 
@@ -682,7 +779,10 @@ class RopeHandle:
         return self.bind(model).length(model, data)
 
     def set_hanging(
-        self, model: mujoco.MjModel, data: mujoco.MjData, sway_angle: float = 0.0,
+        self,
+        model: mujoco.MjModel,
+        data: mujoco.MjData,
+        sway_angle: float = 0.0,
         sway_azimuth: float = 0.0,
     ) -> None:
         """See :meth:`BoundRope.set_hanging`."""
@@ -742,13 +842,19 @@ class BoundRope:
         later = [int(a) for a in model.flex_plasticadr if a > start]
         stop = min(later) if later else int(model.nplastic)
         return cls(
-            handle=handle, flex_id=fid, vert_adr=adr, n_vert=num, vert_body=vb,
-            vert_qpos=np.array(qpos, dtype=int), vert_dof=np.array(dof, dtype=int),
+            handle=handle,
+            flex_id=fid,
+            vert_adr=adr,
+            n_vert=num,
+            vert_body=vb,
+            vert_qpos=np.array(qpos, dtype=int),
+            vert_dof=np.array(dof, dtype=int),
             twist_qpos=model.jnt_qposadr[tj].astype(int) if len(tj) else np.zeros(0, int),
             twist_dof=model.jnt_dofadr[tj].astype(int) if len(tj) else np.zeros(0, int),
             end_geom=int(_ids(model, mujoco.mjtObj.mjOBJ_GEOM, [handle.end_geom], "geom")[0]),
             hold_sites=_ids(model, mujoco.mjtObj.mjOBJ_SITE, handle.hold_sites, "site"),
-            plastic=slice(start, stop), body_pos0=model.body_pos[vb].copy(),
+            plastic=slice(start, stop),
+            body_pos0=model.body_pos[vb].copy(),
         )
 
     @property
@@ -813,7 +919,10 @@ class BoundRope:
 
     # -- state write ---------------------------------------------------------------------
     def set_hanging(
-        self, model: mujoco.MjModel, data: mujoco.MjData, sway_angle: float = 0.0,
+        self,
+        model: mujoco.MjModel,
+        data: mujoco.MjData,
+        sway_angle: float = 0.0,
         sway_azimuth: float = 0.0,
     ) -> None:
         """Place the rope at rest, hanging from the anchor's current pose.
@@ -839,6 +948,28 @@ class BoundRope:
         p0 = data.site_xpos[self.hold_sites[0]]
         p1 = data.site_xpos[self.hold_sites[1]]
         x = hanging_vertices(p0, p1, sway_direction(sway_angle, sway_azimuth), self.n_segments)
+        self.set_vertices(model, data, x)
+
+    def set_vertices(self, model: mujoco.MjModel, data: mujoco.MjData, x: np.ndarray) -> None:
+        """Put the rope's vertices at ``x`` at rest, then run ``mj_forward``.
+
+        Zeroes the rope's velocities, twist angles, warm start and the rod's transported
+        reference frames (``mjData.plastic``; MuJoCo re-derives them from the new shape). The
+        hold equalities are not enforced here: vertices 0 and 1 should be at the hold sites.
+
+        Args:
+            model: The model bound to.
+            data: Its data.
+            x: Vertex positions, shape (n + 1, 3) [m], held end first.
+
+        Raises:
+            ConfigError: Wrong shape or non-finite values.
+        """
+        x = np.asarray(x, dtype=float)
+        if x.shape != (self.n_vert, 3) or not np.all(np.isfinite(x)):
+            raise ConfigError(
+                "x", f"must be finite with shape ({self.n_vert}, 3), got shape {x.shape}"
+            )
         data.qpos[self.vert_qpos] = x - self.body_pos0
         data.qvel[self.vert_dof] = 0.0
         data.qacc_warmstart[self.vert_dof] = 0.0

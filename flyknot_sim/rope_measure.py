@@ -49,7 +49,6 @@ from flyknot_sim.rope import (
     get_rope,
     load_sim_settings,
     polyline_length,
-    quat_from_x_to,
 )
 
 REFERENCE_MOTION = REPO_ROOT / "tests" / "data" / "reference_hand_motion_rope1.csv"
@@ -220,23 +219,33 @@ def add_capsule_chain(
         b = parent.add_body(name=f"{prefix}_{i}", pos=pos)
         if i > 0:
             j = b.add_joint(
-                name=f"{prefix}_j{i}", type=mujoco.mjtJoint.mjJNT_BALL, stiffness=[k],
-                damping=params.damping * k, armature=1e-7,
+                name=f"{prefix}_j{i}",
+                type=mujoco.mjtJoint.mjJNT_BALL,
+                stiffness=[k],
+                damping=params.damping * k,
+                armature=1e-7,
             )
             joints.append(j.name)
-        m = params.density * seg + (params.end_mass if i == n - 1 else 0.0)
         b.add_geom(
-            type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=[0, 0, 0, *(ax * seg)],
-            size=[r, 0, 0], mass=params.density * seg, contype=ROPE_CONTYPE,
-            conaffinity=ROPE_CONAFFINITY, friction=[params.friction, 0.005, 0.0001],
+            type=mujoco.mjtGeom.mjGEOM_CAPSULE,
+            fromto=[0, 0, 0, *(ax * seg)],
+            size=[r, 0, 0],
+            mass=params.density * seg,
+            contype=ROPE_CONTYPE,
+            conaffinity=ROPE_CONAFFINITY,
+            friction=[params.friction, 0.005, 0.0001],
             solref=[s.contact_timeconst, s.contact_dampratio],
+            solimp=[*s.contact_solimp, 0.5, 2],
         )
         if i == n - 1:
             b.add_geom(
-                type=mujoco.mjtGeom.mjGEOM_SPHERE, pos=ax * seg, size=[params.end_radius, 0, 0],
-                mass=params.end_mass, contype=ROPE_CONTYPE, conaffinity=ROPE_CONAFFINITY,
+                type=mujoco.mjtGeom.mjGEOM_SPHERE,
+                pos=ax * seg,
+                size=[params.end_radius, 0, 0],
+                mass=params.end_mass,
+                contype=ROPE_CONTYPE,
+                conaffinity=ROPE_CONAFFINITY,
             )
-        del m
         bodies.append(b.name)
         parent, pos = b, ax * seg
     return CapsuleChain(params, tuple(bodies), tuple(joints), ax)
@@ -273,6 +282,8 @@ def build_harness(
     integrator: str = "discrete",
     slide_force: float | None = None,
     free_end_at: Sequence[float] | None = None,
+    holder_mass: float = 0.5,
+    twist: bool = False,
 ) -> Harness:
     """Compile a holder + rope scene for the measurements.
 
@@ -287,6 +298,8 @@ def build_harness(
             the chain: flex elasticity requires ``discrete``).
         slide_force: Force cap of the holder's slide servos [N] (None: uncapped).
         free_end_at: If given, a connect equality pins the free end to this world point [m].
+        holder_mass: Mass of the holder [kg] (gravity-compensated); servo gains scale with it.
+        twist: Flex with per-edge twist joints (``flexcomp``), see :func:`add_rope`.
     """
     if kind not in MODEL_KINDS:
         raise ConfigError("kind", f"unknown value {kind!r}", MODEL_KINDS)
@@ -297,22 +310,30 @@ def build_harness(
     opt.integrator = getattr(mujoco.mjtIntegrator, f"mjINT_{integrator.upper()}")
     opt.solver = getattr(mujoco.mjtSolver, f"mjSOL_{s.solver.upper()}")
     opt.iterations, opt.ls_iterations, opt.tolerance = s.iterations, s.ls_iterations, s.tolerance
+    if not s.refsafe:
+        opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_REFSAFE)
     spec.worldbody.add_geom(
         name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3, 3, 0.1], contype=1, conaffinity=1
     )
     home = np.asarray(home, dtype=float)
-    h = spec.worldbody.add_body(name=HOLDER, pos=home)
+    h = spec.worldbody.add_body(name=HOLDER, pos=home, gravcomp=1.0)
     h.add_geom(
-        type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.01, 0, 0], mass=0.5, contype=0, conaffinity=0
+        type=mujoco.mjtGeom.mjGEOM_SPHERE,
+        size=[0.01, 0, 0],
+        mass=holder_mass,
+        contype=0,
+        conaffinity=0,
     )
     axes = [(1, 0, 0), (0, 1, 0), (0, 0, 1), (0, 1, 0), (1, 0, 0), (0, 0, 1)]
     for i, (name, ax) in enumerate(zip(HOLDER_JOINTS, axes, strict=True)):
         slide = i < 3
         h.add_joint(
-            name=name, axis=ax, armature=0.0 if slide else 0.01,
+            name=name,
+            axis=ax,
+            armature=0.0 if slide else 0.01,
             type=mujoco.mjtJoint.mjJNT_SLIDE if slide else mujoco.mjtJoint.mjJNT_HINGE,
         )
-        kp, inertia = (2e4, 0.5) if slide else (500.0, 0.01)
+        kp, inertia = (4e4 * holder_mass, holder_mass) if slide else (500.0, 0.01)
         a = spec.add_actuator(name=f"{name}_pos", target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
         a.set_to_position(kp=kp)
         v = spec.add_actuator(name=f"{name}_vel", target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
@@ -322,7 +343,7 @@ def build_harness(
                 act.forcelimited = True
                 act.forcerange = [-slide_force / 2, slide_force / 2]
     if kind == "flex":
-        handle = add_rope(spec, params, anchor_body=HOLDER, axis=axis, settings=s)
+        handle = add_rope(spec, params, anchor_body=HOLDER, axis=axis, settings=s, twist=twist)
         rope_last = handle.vertex_bodies[-1]
     else:
         chain = add_capsule_chain(spec, params, anchor_body=HOLDER, axis=axis, settings=s)
@@ -332,8 +353,11 @@ def build_harness(
         spec.body(rope_last).add_site(name="free_end", pos=tip)
         spec.worldbody.add_site(name="world_end", pos=np.asarray(free_end_at, dtype=float))
         spec.add_equality(
-            type=mujoco.mjtEq.mjEQ_CONNECT, objtype=mujoco.mjtObj.mjOBJ_SITE,
-            name1="free_end", name2="world_end", solref=[s.edge_timeconst, 1.0],
+            type=mujoco.mjtEq.mjEQ_CONNECT,
+            objtype=mujoco.mjtObj.mjOBJ_SITE,
+            name1="free_end",
+            name2="world_end",
+            solref=[s.edge_timeconst, 1.0],
         )
     model = spec.compile()
     data = mujoco.MjData(model)
@@ -406,8 +430,14 @@ def _det3(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
 
 
 def coplanarity_cubic(
-    a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray,
-    da: np.ndarray, db: np.ndarray, dc: np.ndarray, dd: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    c: np.ndarray,
+    d: np.ndarray,
+    da: np.ndarray,
+    db: np.ndarray,
+    dc: np.ndarray,
+    dd: np.ndarray,
 ) -> np.ndarray:
     """Coefficients of V(t) = det[B - A, C - A, D - A] with every point moving linearly.
 
@@ -481,9 +511,7 @@ def cubic_roots_unit(coef: np.ndarray, iters: int = 60) -> np.ndarray:
     return np.where(has, roots, np.nan)
 
 
-def segment_distance(
-    p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray
-) -> np.ndarray:
+def segment_distance(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) -> np.ndarray:
     """Shortest distance between segments [p1, q1] and [p2, q2], shape (...,) [m].
 
     Minimises |p1 + s d1 - p2 - u d2| over s, u in [0, 1]: s from the unconstrained optimum
@@ -495,21 +523,23 @@ def segment_distance(
     f = np.einsum("...i,...i->...", d2, r)
     c = np.einsum("...i,...i->...", d1, r)
     b = np.einsum("...i,...i->...", d1, d2)
+    tiny = 1e-24
     denom = a * e - b * b
     with np.errstate(divide="ignore", invalid="ignore"):
-        s = np.where(denom > 1e-18 * (a * e + 1e-300), (b * f - c * e) / denom, 0.0)
-        s = np.clip(s, 0.0, 1.0)
-        u = np.where(e > 0, (b * s + f) / e, 0.0)
+        # general case; a point-like first segment gives s = 0, a point-like second u = 0
+        s = np.where(denom > 1e-12 * a * e, (b * f - c * e) / denom, 0.0)
+        s = np.where(e <= tiny, -c / a, s)
+        s = np.where(a <= tiny, 0.0, np.clip(s, 0.0, 1.0))
+        u = np.where(e <= tiny, 0.0, (b * s + f) / e)
         u_c = np.clip(u, 0.0, 1.0)
-        s = np.where(u != u_c, np.clip(np.where(a > 0, (b * u_c - c) / a, 0.0), 0.0, 1.0), s)
+        s_u = np.where(a <= tiny, 0.0, np.clip((b * u_c - c) / a, 0.0, 1.0))
+        s = np.where(u != u_c, s_u, s)
     u = u_c
     diff = p1 + s[..., None] * d1 - p2 - u[..., None] * d2
     return np.linalg.norm(diff, axis=-1)
 
 
-def count_crossings(
-    x0: np.ndarray, x1: np.ndarray, min_gap: int = 2, tol: float = 1e-7
-) -> int:
+def count_crossings(x0: np.ndarray, x1: np.ndarray, min_gap: int = 2, tol: float = 1e-7) -> int:
     """Crossings of non-adjacent centreline segments while every vertex moves x0 -> x1.
 
     Segments i and j with j - i >= ``min_gap`` are tested. A crossing is a root t* in [0, 1]
@@ -547,8 +577,10 @@ def count_crossings(
         tt = t[ok][:, None]
         ii, jj = i[ok], j[ok]
         dist = segment_distance(
-            x0[ii] + tt * d[ii], x0[ii + 1] + tt * d[ii + 1],
-            x0[jj] + tt * d[jj], x0[jj + 1] + tt * d[jj + 1],
+            x0[ii] + tt * d[ii],
+            x0[ii + 1] + tt * d[ii + 1],
+            x0[jj] + tt * d[jj],
+            x0[jj + 1] + tt * d[jj + 1],
         )
         count += int(np.sum(dist < tol))
     return count
@@ -556,7 +588,9 @@ def count_crossings(
 
 def count_run_crossings(vertices: np.ndarray, min_gap: int = 2) -> int:
     """Sum of :func:`count_crossings` over consecutive frames of (T, n + 1, 3)."""
-    return sum(count_crossings(vertices[k], vertices[k + 1], min_gap) for k in range(len(vertices) - 1))
+    return sum(
+        count_crossings(vertices[k], vertices[k + 1], min_gap) for k in range(len(vertices) - 1)
+    )
 
 
 # ----------------------------------------------------------------------------------------
@@ -628,8 +662,13 @@ def overhand_knot_vertices(
     )
     lam = knot_length / float(polyline_length(unit))
     knot = lam * unit
-    tip = lam * np.array([math.sin(math.pi / 3) + 2 * math.sin(2 * math.pi / 3),
-                          math.cos(math.pi / 3) - 2 * math.cos(2 * math.pi / 3), 0.0])
+    tip = lam * np.array(
+        [
+            math.sin(math.pi / 3) + 2 * math.sin(2 * math.pi / 3),
+            math.cos(math.pi / 3) - 2 * math.cos(2 * math.pi / 3),
+            0.0,
+        ]
+    )
     out = np.append(tip[:2] / np.linalg.norm(tip[:2]), 0.0)
     tail = params.length  # generous; resampling stops after n chords
     up = np.linspace(0, 1, 200)[:, None]
@@ -637,8 +676,15 @@ def overhand_knot_vertices(
     bottom = knot[-1] + 0.02 * out - np.array([0, 0, 0.02])
     upper = np.vstack([top + np.array([0, 0, tail]) * (1 - up), knot[0][None]])
     lower = np.vstack([bottom[None], bottom + np.array([0, 0, -tail]) * up[1:]])
-    curve = np.vstack([upper[:-1], np.linspace(top, knot[0], 20)[:-1], knot,
-                       np.linspace(knot[-1], bottom, 20)[1:], lower[1:]])
+    curve = np.vstack(
+        [
+            upper[:-1],
+            np.linspace(top, knot[0], 20)[:-1],
+            knot,
+            np.linspace(knot[-1], bottom, 20)[1:],
+            lower[1:],
+        ]
+    )
     # start the rope so that the knot sits in the middle: drop the excess of the upper tail
     arc = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(curve, axis=0), axis=1))])
     i_knot = len(upper) - 1
@@ -649,18 +695,10 @@ def overhand_knot_vertices(
 
 
 def place_vertices(h: Harness, x: np.ndarray) -> None:
-    """Put a flex rope's vertices at ``x`` (n + 1, 3) at rest (holder stays where it is)."""
+    """Put the rope's vertices at ``x`` (n + 1, 3) at rest (holder stays where it is)."""
     r = h.rope
     m, d = h.model, h.data
-    if h.kind == "flex":
-        d.qpos[r.vert_qpos] = x - r.body_pos0
-        d.qvel[r.vert_dof] = 0.0
-        if len(r.twist_qpos):
-            d.qpos[r.twist_qpos] = 0.0
-            d.qvel[r.twist_dof] = 0.0
-        d.plastic[r.plastic] = 0.0
-    else:
-        r.set_vertices(m, d, x)
+    r.set_vertices(m, d, x)
     mujoco.mj_forward(m, d)
 
 
@@ -677,6 +715,7 @@ class Config:
     timestep: float | None = None
     integrator: str = "discrete"
     settings: SimSettings | None = None
+    twist: bool = False
 
     def rope_params(self) -> RopeParams:
         """The rope with this configuration's overrides."""
@@ -692,24 +731,30 @@ class Config:
         """Short description for tables."""
         p = self.rope_params()
         s = self.settings or load_sim_settings()
-        return (f"rope {self.rope} {self.kind} n={p.segments} dt={p.timestep * 1e3:g}ms "
-                f"{self.integrator} {s.solver} it={s.iterations}/{s.ls_iterations} "
-                f"tol={s.tolerance:g} self={s.selfcollide}")
+        return (
+            f"rope {self.rope} {self.kind} n={p.segments} dt={p.timestep * 1e3:g}ms "
+            f"{self.integrator} {s.solver} it={s.iterations}/{s.ls_iterations} "
+            f"tol={s.tolerance:g} self={s.selfcollide}"
+        )
 
 
-def measure_fast_motion(cfg: Config, settle_s: float = SETTLE_S, motion: HandMotion | None = None,
-                        judge_knot: bool = True) -> dict:
+def measure_fast_motion(
+    cfg: Config,
+    settle_s: float = SETTLE_S,
+    motion: HandMotion | None = None,
+    judge_knot: bool = True,
+) -> dict:
     """Replay the reference hand motion, then hold still ``settle_s``; see module docstring."""
     p = cfg.rope_params()
     motion = HandMotion.load() if motion is None else motion
-    h = build_harness(p, kind=cfg.kind, settings=cfg.settings, integrator=cfg.integrator,
-                      home=motion.pos[0])
+    h = build_harness(
+        p, kind=cfg.kind, settings=cfg.settings, integrator=cfg.integrator, home=motion.pos[0]
+    )
     dt = h.model.opt.timestep
-    n_steps = int(round((motion.duration + settle_s) / dt))
+    n_steps = round((motion.duration + settle_s) / dt)
     times = dt * np.arange(1, n_steps + 1)
     q, qd = holder_targets(motion, times, h.home)
-    h.data.qpos[:6] = q[0] * 0  # holder at home
-    mujoco.mj_kinematics(h.model, h.data)
+    mujoco.mj_kinematics(h.model, h.data)  # holder at home (zero joints)
     if cfg.kind == "flex":
         h.rope.set_hanging(h.model, h.data)
     run = simulate(h, q, qd)
@@ -734,23 +779,87 @@ def measure_fast_motion(cfg: Config, settle_s: float = SETTLE_S, motion: HandMot
     return out
 
 
-def measure_knot_pull(cfg: Config, speed: float = 4.0, hold_s: float = 0.4,
-                      force_cap: float = 40.0, self_collide: bool = True) -> dict:
-    """Pull a loose overhand knot tight at ``speed`` (see module docstring)."""
+def time_fast_motion(cfg: Config, repeats: int = 3, settle_s: float = 0.5) -> float:
+    """Best-of-``repeats`` wall seconds per simulated second (``mj_step`` only) of the
+    reference motion plus ``settle_s``; the best run is the least disturbed by other load."""
+    p = cfg.rope_params()
+    motion = HandMotion.load()
+    h = build_harness(
+        p,
+        kind=cfg.kind,
+        settings=cfg.settings,
+        integrator=cfg.integrator,
+        home=motion.pos[0],
+        twist=cfg.twist,
+    )
+    dt = h.model.opt.timestep
+    n_steps = round((motion.duration + settle_s) / dt)
+    q, qd = holder_targets(motion, dt * np.arange(1, n_steps + 1), h.home)
+    best = math.inf
+    for _ in range(repeats):
+        mujoco.mj_resetData(h.model, h.data)
+        mujoco.mj_kinematics(h.model, h.data)
+        if cfg.kind == "flex":
+            h.rope.set_hanging(h.model, h.data)
+        best = min(best, simulate(h, q, qd).wall_per_sim)
+    return best
+
+
+PULL_FORCE_FACTOR = 25.0
+"""Knot-pull force cap in rope weights (rope + end weight): about the peak tension at the hand
+in the fast reference motion (rope 1: 12.8 N = 21 weights; rope 4: 4.8 N = 24; rope 5:
+21.8 N = 11)."""
+
+
+PULL_HOLDER_MASS = 0.05
+"""Holder mass in the knot-pull [kg]: light, so the force cap (not the holder's momentum)
+bounds the tension when the knot jams."""
+
+
+def measure_knot_pull(
+    cfg: Config,
+    speed: float = 4.0,
+    hold_s: float = 0.4,
+    force_cap: float | None = None,
+    self_collide: bool = True,
+    knot_length: float = 0.7,
+) -> dict:
+    """Pull a loose overhand knot tight at ``speed`` (see module docstring).
+
+    Args:
+        cfg: Model configuration.
+        speed: Pull speed of the holder [m/s].
+        hold_s: Time held still after the pull [s].
+        force_cap: Force cap of the holder's slides [N] (default ``PULL_FORCE_FACTOR`` times
+            the weight of rope + end weight).
+        self_collide: False disables all contacts (to show that the crossing check works).
+        knot_length: Rope length in the initial loose knot [m].
+    """
     from flyknot_sim.knot import classify_centreline
 
     p = cfg.rope_params()
-    x = overhand_knot_vertices(p)
+    if force_cap is None:
+        force_cap = PULL_FORCE_FACTOR * (p.mass + p.end_mass) * 9.81
+    x = overhand_knot_vertices(p, knot_length)
     axis = x[1] - x[0]
     settings = cfg.settings or load_sim_settings()
     home = x[0] - p.clearance * axis / np.linalg.norm(axis)
-    h = build_harness(p, kind=cfg.kind, settings=settings, integrator=cfg.integrator,
-                      home=home, axis=axis, slide_force=force_cap, free_end_at=x[-1])
+    h = build_harness(
+        p,
+        kind=cfg.kind,
+        settings=settings,
+        integrator=cfg.integrator,
+        home=home,
+        axis=axis,
+        slide_force=force_cap,
+        free_end_at=x[-1],
+        holder_mass=PULL_HOLDER_MASS,
+    )
     place_vertices(h, x)
     knot0 = classify_centreline(h.vertices())
     dt = h.model.opt.timestep
     pull_s = 0.6 / speed
-    n_steps = int(round((pull_s + hold_s) / dt))
+    n_steps = round((pull_s + hold_s) / dt)
     times = dt * np.arange(1, n_steps + 1)
     q = np.zeros((n_steps, 6))
     qd = np.zeros((n_steps, 6))
@@ -761,6 +870,7 @@ def measure_knot_pull(cfg: Config, speed: float = 4.0, hold_s: float = 0.4,
     run = simulate(h, q, qd)
     return {
         "config": cfg.label(),
+        "force_cap": force_cap,
         "knot_before": knot0,
         "diverged": run.diverged,
         "crossings": count_run_crossings(run.vertices),
@@ -771,18 +881,177 @@ def measure_knot_pull(cfg: Config, speed: float = 4.0, hold_s: float = 0.4,
     }
 
 
+KNOT_LENGTHS = (0.6, 0.636, 0.671, 0.707, 0.743, 0.779, 0.814, 0.85)
+"""Initial loose-knot sizes of the repeated knot-pull (the outcome is sensitive to details)."""
+
+
+def measure_knot_pulls(
+    cfg: Config, knot_lengths: Sequence[float] = KNOT_LENGTHS, self_collide: bool = True
+) -> dict:
+    """:func:`measure_knot_pull` once per initial knot size; counts kept knots and crossings."""
+    runs = [measure_knot_pull(cfg, knot_length=k, self_collide=self_collide) for k in knot_lengths]
+    return {
+        "config": cfg.label(),
+        "force_cap": runs[0]["force_cap"],
+        "kept": sum(r["knot_after"] == "trefoil" for r in runs),
+        "trials": len(runs),
+        "crossings": sum(r["crossings"] for r in runs),
+        "diverged": sum(r["diverged"] for r in runs),
+        "max_edge_strain": max(r["max_edge_strain"] for r in runs),
+        "wall_per_sim": float(np.mean([r["wall_per_sim"] for r in runs])),
+    }
+
+
+def measure_shape_error(cfg: Config, ref: Config, t_end: float = 0.5) -> dict:
+    """Marker deviation of ``cfg`` from a finer ``ref`` model under the reference motion.
+
+    Both replay the reference hand motion up to ``t_end`` (before the rope first touches
+    itself); the 11 markers are compared at the coarser model's frames:
+    e = |m_cfg(t) - m_ref(t)| per marker and time.
+
+    Returns:
+        ``rms`` and ``max`` of e [m].
+    """
+    motion = HandMotion.load()
+    marks = []
+    for c in (cfg, ref):
+        p = c.rope_params()
+        h = build_harness(
+            p,
+            kind=c.kind,
+            settings=c.settings,
+            integrator=c.integrator,
+            home=motion.pos[0],
+            twist=c.twist,
+        )
+        dt = h.model.opt.timestep
+        n_steps = round(t_end / dt)
+        times = dt * np.arange(1, n_steps + 1)
+        q, qd = holder_targets(motion, times, h.home)
+        mujoco.mj_kinematics(h.model, h.data)
+        if c.kind == "flex":
+            h.rope.set_hanging(h.model, h.data)
+        run = simulate(h, q, qd)
+        from flyknot_sim.rope import marker_arclengths, points_at_arclength
+
+        mk = points_at_arclength(run.vertices, p.segment_length, marker_arclengths(p.length))
+        marks.append((run.t, mk))
+    (t0, m0), (t1, m1) = marks
+    idx = np.clip(np.searchsorted(t1, t0 - 1e-9), 0, len(t1) - 1)
+    e = np.linalg.norm(m0 - m1[idx], axis=-1)
+    return {"rms": float(np.sqrt(np.mean(e**2))), "max": float(e.max())}
+
+
+VARIANTS: dict[str, dict] = {
+    "chosen": {},
+    "twist dofs (flexcomp)": {"twist": True},
+    "40 segments": {"segments": 40},
+    "20 segments": {"segments": 20},
+    "dt 2 ms": {"timestep": 0.002},
+    "contact solref 4 ms": {"settings": {"contact_timeconst": 0.004}},
+    "capsule chain, implicit": {"kind": "chain", "integrator": "implicit"},
+}
+"""Model variants of the comparison table (changes from the rope table's settings)."""
+
+
+def variant_config(rope: int, changes: dict) -> Config:
+    """The :class:`Config` of a variant of :data:`VARIANTS` for one rope."""
+    ch = dict(changes)
+    over = ch.pop("settings", None)
+    settings = replace(load_sim_settings(), **over) if over else None
+    return Config(rope=rope, settings=settings, **ch)
+
+
+def measure_variant(rope: int, name: str) -> dict:
+    """All measurements of one rope and variant (fast motion, 8 knot-pulls, best-of-4 timing
+    of the fast motion)."""
+    cfg = variant_config(rope, VARIANTS[name])
+    t0 = time.perf_counter()
+    fast = measure_fast_motion(cfg)
+    pull = measure_knot_pulls(cfg)
+    fast["wall_per_sim"] = min(fast["wall_per_sim"], time_fast_motion(cfg))
+    return {
+        "rope": rope,
+        "variant": name,
+        "config": cfg.label(),
+        "fast": fast,
+        "pull": pull,
+        "elapsed_s": time.perf_counter() - t0,
+    }
+
+
+def format_row(r: dict) -> str:
+    """One markdown table row of :func:`measure_variant`'s result."""
+    f, p = r["fast"], r["pull"]
+    knot = (
+        "diverged"
+        if f["diverged"]
+        else f"{f.get('knot_end', '-')}"
+        + (" (formed)" if f.get("knot_any") and f.get("knot_end") != "trefoil" else "")
+    )
+    return (
+        f"| {r['rope']} | {r['variant']} | {f['wall_per_sim']:.3f} | "
+        f"{100 * f['max_stretch']:.2f} | {100 * f['max_edge_strain']:.1f} | "
+        f"{f['crossings']} | {knot} | {p['kept']}/{p['trials']} | {p['crossings']} |"
+    )
+
+
+TABLE_HEADER = (
+    "| rope | variant | wall s / sim s | max stretch % | max edge strain % | crossings "
+    "(fast) | knot at end (fast) | knot-pull kept | crossings (pull) |\n"
+    "|---|---|---|---|---|---|---|---|---|"
+)
+
+
 def main(argv: Sequence[str] | None = None) -> None:
-    """Print the measurement table (markdown)."""
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    """Print the comparison table of ``docs/rope-model.md`` (markdown), optionally as JSON."""
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--ropes", type=int, nargs="*", default=[1, 4, 5, 6])
-    ap.add_argument("--quick", action="store_true", help="rope 1 flex only")
+    ap.add_argument(
+        "--variants",
+        nargs="*",
+        default=list(VARIANTS),
+        choices=list(VARIANTS),
+        metavar="NAME",
+        help=f"any of: {', '.join(VARIANTS)}",
+    )
+    ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    ap.add_argument(
+        "--shape",
+        action="store_true",
+        help="also print marker deviations from a 60-segment, 0.5 ms reference",
+    )
     args = ap.parse_args(argv)
-    cfgs = [Config(rope=r) for r in args.ropes]
-    if args.quick:
-        cfgs = [Config(rope=1)]
-    for cfg in cfgs:
-        print(measure_fast_motion(cfg))
-        print(measure_knot_pull(cfg))
+    seen: dict[str, int] = {}
+
+    def count_warning(msg: str) -> None:
+        key = msg.split(". Time =")[0].strip()
+        seen[key] = seen.get(key, 0) + 1
+
+    mujoco.set_mju_user_warning(count_warning)
+    rows = []
+    print(TABLE_HEADER, flush=True)
+    for rope in args.ropes:
+        for name in args.variants:
+            r = measure_variant(rope, name)
+            rows.append(r)
+            print(format_row(r), flush=True)
+    if args.shape:
+        ref = Config(rope=1, segments=60, timestep=0.0005)
+        for name in ("chosen", "40 segments", "20 segments", "dt 2 ms"):
+            e = measure_shape_error(variant_config(1, VARIANTS[name]), ref)
+            print(
+                f"shape error rope 1 {name}: rms {1e3 * e['rms']:.1f} mm, "
+                f"max {1e3 * e['max']:.1f} mm",
+                flush=True,
+            )
+            rows.append({"shape": name, **e})
+    for msg, k in sorted(seen.items()):
+        print(f"MuJoCo warning x{k}: {msg}")
+    if args.json is not None:
+        import json
+
+        args.json.write_text(json.dumps(rows, indent=1, default=float))
 
 
 if __name__ == "__main__":

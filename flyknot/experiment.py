@@ -1,0 +1,286 @@
+"""Running scenarios: joins a demonstration, the learner and the simulated lab.
+
+This module is the orchestration layer above both sides of the seam: it builds a
+:class:`flyknot_sim.lab.SimLab` (the cell) and hands it to :func:`learner.ilc.learn`, which
+sees only what the cell's records carry.
+
+Output layout of ``flyknot run SCENARIO --out DIR``::
+
+    DIR/manifest.json              scenario, overrides, versions, start time
+    DIR/initial_guess/<demo>.npz   kappa_0 per demonstration (cached)
+    DIR/runs/<run>/learning/...    the ILC run directory (learner.ilc.RunDirectory)
+    DIR/runs/<run>/repeats/...     records of the repeated final command, if any
+    DIR/runs/<run>/result.json     this run's summary
+    DIR/summary.json               every run's summary
+    DIR/*.png, DIR/report.md       figures and the report (flyknot.report)
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from flyknot import __version__
+from flyknot.constants import DEMOS_DIR
+from flyknot.demo import Demonstration
+from flyknot.errors import ConfigError, FlyknotError
+from flyknot.scenario import RunSpec, Scenario
+
+
+def demo_path(demo: str) -> Path:
+    """A demonstration by path or by name under ``assets/demos`` (error lists names)."""
+    p = Path(demo)
+    if p.is_file():
+        return p
+    cand = DEMOS_DIR / f"{demo}.npz"
+    if cand.is_file():
+        return cand
+    names = sorted(q.stem for q in DEMOS_DIR.glob("*.npz")) if DEMOS_DIR.is_dir() else []
+    raise ConfigError("demo", f"no demonstration file or name {demo!r}", names)
+
+
+def prepare_target(demo_name: str, rope_dt: float):
+    """Trim the demonstration (paper's timing selection) and build the learner's target."""
+    from learner.demo_timing import select_demo_window, trim_demonstration
+    from learner.update import DemoTarget
+
+    demo = Demonstration.load(demo_path(demo_name))
+    window = select_demo_window(demo.t, demo.hand_pos, demo.t_c)
+    trimmed = trim_demonstration(demo, window)
+    return trimmed, DemoTarget.from_demonstration(trimmed, dt=rope_dt)
+
+
+def initial_knots(demo_name: str, out_dir: Path, robot, rope_dt: float) -> tuple[np.ndarray, dict]:
+    """kappa_0 for a demonstration, computed once per run directory and cached there."""
+    from scipy.spatial.transform import Rotation
+
+    from learner.initial_guess import initial_guess
+
+    cache = out_dir / "initial_guess" / f"{Path(demo_name).stem}.npz"
+    if cache.is_file():
+        with np.load(cache, allow_pickle=False) as z:
+            return z["knots"], json.loads(str(z["info"]))
+    trimmed, target = prepare_target(demo_name, rope_dt)
+    t = trimmed.t - trimmed.t[0]
+    R = Rotation.from_quat(trimmed.hand_quat, scalar_first=True).as_matrix()
+    res = initial_guess(t, trimmed.hand_pos, R, target.T, robot)
+    info = {
+        "status": res.status,
+        "success": bool(res.success),
+        "cost": float(res.cost),
+        "max_errors": dict(res.max_errors),
+        "rms_errors": dict(res.rms_errors),
+        "solve_time": float(res.solve_time),
+        "T": float(target.T),
+        "t_c": float(target.t_c),
+    }
+    if not res.success:
+        raise FlyknotError(f"initial guess for demo {demo_name!r} failed: {res.status}")
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(cache, knots=res.knots, info=np.array(json.dumps(info)))
+    return np.asarray(res.knots), info
+
+
+def _rope_model(spec: RunSpec):
+    from learner.rope_model import RopeModelParams
+
+    return RopeModelParams(**spec.rope_model)
+
+
+def execute_run(
+    spec: RunSpec, out_dir: Path, knots0: np.ndarray | None, *, resume: bool, progress: bool
+) -> dict[str, Any]:
+    """Learn (and optionally repeat) one run; write and return its summary."""
+    from tqdm import tqdm
+
+    from flyknot_sim.lab import LabParams, SimLab
+    from learner.bezier import BezierCommand
+    from learner.ilc import ILCParams, learn
+    from learner.kinematics import RobotModel
+
+    run_dir = out_dir / "runs" / spec.name
+    result_path = run_dir / "result.json"
+    if resume and result_path.is_file():
+        return json.loads(result_path.read_text())
+    t_start = time.perf_counter()
+    robot = RobotModel.from_mjcf()
+    rope_model = _rope_model(spec)
+    _, target = prepare_target(spec.demo, rope_model.dt)
+    ig_info: dict[str, Any] = {}
+    if knots0 is None:
+        knots0, ig_info = initial_knots(spec.demo, out_dir, robot, rope_model.dt)
+    lab = SimLab(LabParams(rope=spec.rope, seed=spec.seed, settle_s=spec.settle_s))
+    params = ILCParams(
+        max_trials=max(1, spec.max_trials),
+        stop_at_success=spec.stop_at_success,
+        objective=spec.objective,
+        backend=spec.backend,
+        rope_model=rope_model,
+    )
+    bar = tqdm(
+        total=params.max_trials, desc=spec.name, unit="trial", disable=not progress, leave=False
+    )
+
+    def on_trial(s) -> None:
+        bar.set_postfix_str(
+            f"knot={s.knot} cost={'-' if s.cost is None else f'{s.cost:.3g}'}"
+            + (" FAULT" if s.fault else "")
+        )
+        bar.n = s.trial + 1
+        bar.refresh()
+
+    res = learn(
+        lab,
+        target,
+        knots0,
+        robot,
+        params,
+        run_dir=run_dir / "learning",
+        resume=resume,
+        on_trial=on_trial,
+    )
+    bar.close()
+    np.save(run_dir / "final_knots.npy", res.final_knots)
+    repeats: list[str | None] = []
+    if spec.repeats:
+        command = BezierCommand(res.final_knots, target.T).joint_command()
+        for i in tqdm(
+            range(spec.repeats), desc=f"{spec.name} repeats", disable=not progress, leave=False
+        ):
+            rec = lab.run(command)
+            rec.save(run_dir / "repeats" / f"repeat_{i:03d}")
+            repeats.append("fault" if rec.fault else rec.knot)
+    counted = {s.trial: s for s in res.trials}
+    summary = {
+        "name": spec.name,
+        "label": spec.label,
+        "rope": spec.rope,
+        "demo": spec.demo,
+        "objective": spec.objective,
+        "rope_model": asdict(rope_model),
+        "start_from": spec.start_from,
+        "costs": res.costs,
+        "knots": res.knots,
+        "faults": [counted[k].fault for k in sorted(counted)],
+        "first_success_trial": res.first_success_trial,
+        "trials_to_success": None
+        if res.first_success_trial is None
+        else res.first_success_trial + 1,
+        "stopped_because": res.stopped_because,
+        "attempts": len(res.trials),
+        "repeats": repeats,
+        "repeat_success_rate": (sum(r == "trefoil" for r in repeats) / len(repeats))
+        if repeats
+        else None,
+        "initial_guess": ig_info,
+        "T": target.T,
+        "t_c": target.t_c,
+        "wall_s": time.perf_counter() - t_start,
+    }
+    result_path.write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def _worker(args):
+    spec, out_dir, knots0, resume = args
+    return execute_run(spec, out_dir, knots0, resume=resume, progress=False)
+
+
+def run_scenario(
+    scen: Scenario,
+    out_dir: str | Path,
+    *,
+    workers: int = 1,
+    resume: bool = False,
+    overrides: dict | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Run every run of a scenario (waves in order, runs of a wave in parallel)."""
+    import mujoco
+    from tqdm import tqdm
+
+    out_dir = Path(out_dir)
+    if not resume and (out_dir / "manifest.json").is_file():
+        raise ConfigError("--out", f"{str(out_dir)!r} already holds a run; use --resume")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if workers < 1:
+        raise ConfigError("--workers", f"must be >= 1, got {workers}")
+    manifest = {
+        "scenario": scen.name,
+        "kind": scen.kind,
+        "source": scen.source,
+        "description": scen.description,
+        "overrides": overrides or {},
+        "runs": [asdict(r) for r in scen.runs],
+        "versions": {
+            "flyknot": __version__,
+            "mujoco": mujoco.__version__,
+            "numpy": np.__version__,
+            "python": platform.python_version(),
+        },
+        "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
+    }
+    if not (resume and (out_dir / "manifest.json").is_file()):
+        (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2))
+    # Initial guesses first (cached; shared by runs of the same demo).
+    from learner.kinematics import RobotModel
+
+    robot = RobotModel.from_mjcf()
+    for demo in sorted({r.demo for r in scen.runs if r.start_from is None}):
+        dt = next(_rope_model(r).dt for r in scen.runs if r.demo == demo)
+        if progress:
+            print(f"initial guess for demo {demo!r} (trajectory optimisation)...", flush=True)
+        initial_knots(demo, out_dir, robot, dt)
+
+    results: dict[str, dict[str, Any]] = {}
+    overall = tqdm(total=len(scen.runs), desc=scen.name, unit="run", disable=not progress)
+    for wave in scen.order():
+        jobs = []
+        for spec in wave:
+            knots0 = None
+            if spec.start_from is not None:
+                knots0 = np.load(out_dir / "runs" / spec.start_from / "final_knots.npy")
+            jobs.append((spec, out_dir, knots0, resume))
+        if workers == 1 or len(jobs) == 1:
+            for spec, o, k0, r in jobs:
+                results[spec.name] = execute_run(spec, o, k0, resume=r, progress=progress)
+                overall.update(1)
+                _print_run(results[spec.name], overall)
+        else:
+            with ProcessPoolExecutor(max_workers=workers) as pool:
+                futs = {pool.submit(_worker, j): j[0].name for j in jobs}
+                for fut in as_completed(futs):
+                    results[futs[fut]] = fut.result()
+                    overall.update(1)
+                    _print_run(results[futs[fut]], overall)
+    overall.close()
+    summary = {
+        "scenario": scen.name,
+        "kind": scen.kind,
+        "paper": scen.paper,
+        "runs": [results[r.name] for r in scen.runs],
+    }
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    from flyknot.report import write_report
+
+    write_report(out_dir, summary)
+    return summary
+
+
+def _print_run(res: dict[str, Any], bar) -> None:
+    first = res["first_success_trial"]
+    msg = (
+        f"{res['name']}: rope {res['rope']}, "
+        + (f"knot at trial {first + 1}" if first is not None else "no knot")
+        + f" ({len(res['costs'])} trials)"
+    )
+    if res.get("repeat_success_rate") is not None:
+        msg += f", repeats {res['repeat_success_rate'] * 100:.0f} % of {len(res['repeats'])}"
+    bar.write(msg)
