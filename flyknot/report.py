@@ -1,0 +1,206 @@
+"""Figures and ``report.md`` of a scenario run, with the paper's numbers beside ours."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+# The paper's results (Suresh & Atkeson), quoted per scenario kind.
+PAPER = {
+    "track": "Tracking the demonstration hand alone never tied the knot on rope 1; "
+    "ropes 4 and 7 nearly succeeded.",
+    "objectives": "Critical-point objective: knot learned; equally weighted objective: "
+    "no knot (after 8 iterations shown).",
+    "learn": "All 7 ropes learned within 10 trials (fewest for ropes 3, 6, 7; most for 2, 5); "
+    "each learned command succeeded in 40/40 repeats.",
+    "demos": "All 4 demonstration variants (Fast, Slow, Swipe, Inverse) learned on rope 1; "
+    "Demo type 2 took the most trials.",
+    "transfer": "Most transfers needed 2-5 trials; commands transferred to rope 7 needed none; "
+    "5->2, 5->3 (and 6->2 or 6->3) failed within 10 trials.",
+    "sensitivity": "Trials until success on rope 1: k=1e5,m_e=5: 4; k=1e4: 4; k=1e3: 4; "
+    "k=1e2: >10; m_e=0.05: 8; m_e=0.005: 6.",
+}
+PAPER_SENSITIVITY = {
+    (1e5, 5.0): "4",
+    (1e4, 5.0): "4",
+    (1e3, 5.0): "4",
+    (1e2, 5.0): ">10",
+    (1e5, 0.05): "8",
+    (1e5, 0.005): "6",
+}
+
+
+def _trials_text(run: dict[str, Any]) -> str:
+    n = run.get("trials_to_success")
+    return str(n) if n is not None else f">{len(run['costs'])}"
+
+
+def plot_costs(runs: list[dict[str, Any]], path: Path, title: str) -> Path:
+    """Critical-point cost over trials; squares: first knot, dots: later knots."""
+    fig, ax = plt.subplots(figsize=(7, 4.2), constrained_layout=True)
+    for r in runs:
+        costs = [np.nan if c is None else c for c in r["costs"]]
+        x = np.arange(1, len(costs) + 1)
+        (line,) = ax.plot(x, costs, marker=".", lw=1.2, label=r.get("label") or r["name"])
+        knots = np.array(r["knots"], dtype=bool)
+        if knots.any():
+            first = int(np.argmax(knots))
+            ax.plot(x[first], costs[first], "s", ms=9, color=line.get_color())
+            later = np.flatnonzero(knots)[1:]
+            ax.plot(x[later], np.array(costs)[later], "o", ms=8, color=line.get_color())
+    ax.set_yscale("log")
+    ax.set(xlabel="trial", ylabel="critical-point cost ||x(t_c) - x_demo(t_c)||²_Q", title=title)
+    ax.legend(fontsize=7, ncol=2)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_transfer_grid(runs: list[dict[str, Any]], path: Path) -> Path:
+    """7x7 grid of trials needed to transfer rope A's command to rope B (red: failed)."""
+    grid = np.full((7, 7), np.nan)
+    failed = np.zeros((7, 7), dtype=bool)
+    src = {r["name"]: r for r in runs}
+    for r in runs:
+        if not r.get("start_from"):
+            continue
+        a = src[r["start_from"]]["rope"]
+        b = r["rope"]
+        n = r.get("first_success_trial")
+        if n is None:
+            failed[a - 1, b - 1] = True
+        else:
+            grid[a - 1, b - 1] = n  # trials of learning before the knot (0: none needed)
+    fig, ax = plt.subplots(figsize=(5.2, 4.6), constrained_layout=True)
+    ax.imshow(np.where(failed, np.nan, grid), cmap="Greens_r", vmin=0, vmax=10)
+    for a in range(7):
+        for b in range(7):
+            if failed[a, b]:
+                ax.add_patch(plt.Rectangle((b - 0.5, a - 0.5), 1, 1, color="#d9534f"))
+                ax.text(b, a, ">10", ha="center", va="center", fontsize=8, color="w")
+            elif np.isfinite(grid[a, b]):
+                ax.text(b, a, f"{int(grid[a, b])}", ha="center", va="center", fontsize=9)
+    ax.set_xticks(range(7), [str(i) for i in range(1, 8)])
+    ax.set_yticks(range(7), [str(i) for i in range(1, 8)])
+    ax.set(
+        xlabel="rope B (learning on)",
+        ylabel="rope A (command from)",
+        title="trials to transfer A -> B",
+    )
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_critical_overlays(run_dir: Path, run: dict[str, Any], path: Path) -> Path | None:
+    """Rope at t_c in each trial (measured, demo frame) against the demonstration's."""
+    from flyknot.record import TrialRecord
+    from learner.critical_state import critical_state_from_record
+    from learner.ilc import RunDirectory
+
+    rd = RunDirectory(run_dir / "learning")
+    ledger = rd.ledger()
+    if not ledger:
+        return None
+    upd = sorted((run_dir / "learning").glob("update_*.json"))
+    if not upd:
+        return None
+    first = json.loads(upd[0].read_text())
+    knots0 = rd.load_knots(0)
+    # x_demo = x_meas - err at trial 0
+    rec0 = TrialRecord.load(rd.record_stem(first["trial"], 0))
+    try:
+        x0 = critical_state_from_record(rec0, run["t_c"], knots0[7:, 0])
+    except Exception:
+        return None
+    x_demo = x0 - np.asarray(first["err"])
+    fig = plt.figure(figsize=(10, 4.2), constrained_layout=True)
+    axes = [fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)]
+    pd = x_demo[:33].reshape(11, 3)
+    for ax, (i, j) in zip(axes, [(0, 2), (1, 2)], strict=True):
+        ax.plot(pd[:, i], pd[:, j], "o-", color="#c0392b", lw=2.5, label="demonstration")
+    cmap = plt.cm.Greens
+    n = len(ledger)
+    for s in ledger:
+        if s.fault:
+            continue
+        try:
+            rec = TrialRecord.load(rd.record_stem(s.trial, s.attempt))
+            x = critical_state_from_record(rec, run["t_c"], rd.load_knots(s.trial)[7:, 0])
+        except Exception:
+            continue
+        p = x[:33].reshape(11, 3)
+        c = cmap(0.35 + 0.6 * (s.trial + 1) / max(1, n))
+        for ax, (i, j) in zip(axes, [(0, 2), (1, 2)], strict=True):
+            ax.plot(
+                p[:, i],
+                p[:, j],
+                ".-",
+                color=c,
+                lw=1.2,
+                label=f"trial {s.trial + 1}" + (" (knot)" if s.success else ""),
+            )
+    for ax, lab in zip(axes, ["x [m]", "y [m]"], strict=True):
+        ax.set(xlabel=lab, ylabel="z [m]", aspect="equal")
+    axes[0].set_title(f"rope at t_c = {run['t_c']:.3f} s, {run['name']}")
+    axes[1].legend(fontsize=7, loc="best")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def write_report(out_dir: str | Path, summary: dict[str, Any]) -> Path:
+    """Write figures and ``report.md`` for a scenario's ``summary.json`` content."""
+    out_dir = Path(out_dir)
+    runs = summary["runs"]
+    kind = summary["kind"]
+    figs = [plot_costs(runs, out_dir / "costs.png", summary["scenario"])]
+    if kind == "transfer":
+        figs.append(plot_transfer_grid(runs, out_dir / "transfer_grid.png"))
+    for r in runs[:8]:
+        p = plot_critical_overlays(
+            out_dir / "runs" / r["name"], r, out_dir / f"critical_point_{r['name']}.png"
+        )
+        if p is not None:
+            figs.append(p)
+    lines = [f"# {summary['scenario']}", ""]
+    lines += ["## The paper", "", summary.get("paper") or PAPER.get(kind, ""), "", "## Ours", ""]
+    if kind == "sensitivity":
+        lines += [
+            "| stiffness | end mass | trials until success (ours) | paper |",
+            "|---|---|---|---|",
+        ]
+        for r in runs:
+            k = r["rope_model"]["stiffness"]
+            me = r["rope_model"]["end_mass"]
+            lines.append(
+                f"| {k:g} | {me:g} | {_trials_text(r)} | {PAPER_SENSITIVITY.get((k, me), '-')} |"
+            )
+    else:
+        lines += [
+            "| run | rope | demo | objective | from | trials until knot | costs per trial "
+            "| repeats |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for r in runs:
+            costs = ", ".join("-" if c is None else f"{c:.3g}" for c in r["costs"])
+            rep = "-"
+            if r.get("repeat_success_rate") is not None:
+                rep = f"{sum(x == 'trefoil' for x in r['repeats'])}/{len(r['repeats'])}"
+            lines.append(
+                f"| {r['name']} | {r['rope']} | {r['demo']} | {r['objective']} | "
+                f"{r.get('start_from') or '-'} | {_trials_text(r)} | {costs} | {rep} |"
+            )
+    n_ok = sum(r["first_success_trial"] is not None for r in runs)
+    lines += ["", f"Knot learned in {n_ok} of {len(runs)} runs.", "", "## Figures", ""]
+    lines += [f"![{p.stem}]({p.name})" for p in figs]
+    path = out_dir / "report.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path
