@@ -27,8 +27,9 @@ frame's floor at the start, so the 1.1 m rope hangs clear.
 Decision variable (45,). The end conditions qd(0) = 7 (k_1 - k_0) / T = 0 and
 qd(T) = 7 (k_7 - k_6) / T = 0 are built in by tying k_1 = k_0 and k_6 = k_7: per joint six free
 columns c = (k_0, k_2, k_3, k_4, k_5, k_7) with ``kappa_arm = C E`` (E (6, 8) of 0/1), so the
-derivative basis cancels exactly and both end speeds are exactly 0.0 in floating point. x holds
-C (7, 6) row-major (joint j, free column c at 6 j + c), then b (3,).
+end knots are equal bitwise: 7 (k_1 - k_0) / T is exactly 0.0 (evaluating the whole basis
+product adds only rounding, ~1e-15, where BLAS fuses multiply-adds). x holds C (7, 6) row-major
+(joint j, free column c at 6 j + c), then b (3,).
 
 Rotation residual. The paper's Log(R_h^T R_tip) (rotation vector, |Log| = theta) is not smooth
 at theta = pi. The optimiser uses the quaternion-based vector part instead: with the quaternion
@@ -59,7 +60,16 @@ so ``torque_limits=True`` (default) adds |robot.inverse_dynamics(q, qd, qdd)| <=
 the limit samples; which terms that includes (armature, damping, springs) is fixed when the
 RobotModel is built (``RobotModel.from_mjcf`` flags).
 
-Solver: CasADi + IPOPT (MUMPS, exact Hessian; the paper used SNOPT through Drake). Seed: every
+Solver: CasADi + IPOPT (MUMPS, default options; the paper used SNOPT through Drake). IPOPT gets
+exact first and second derivatives assembled from per-sample ones (:func:`build_problem`):
+CasADi's own Hessian through all samples at once needs 45 directional sweeps and was 2-3x
+slower on the reference motion. Measured there (T = 0.715 s, 144 demo samples at 200 Hz, 180
+limit samples, 2 shared cores): ~33-45 iterations, 3-6 s; ~75 % of it the torque rows' Hessian
+(torque_limits=False: 1.5 s). A coarser cost grid hardly helps because the 250 Hz torque rows
+dominate: 200 / 100 / 50 / 25 Hz gave 3.3 / 3.0 / 3.3 / 6.3 s with tracking errors on the
+200 Hz demo within 4 % of each other, so the default keeps the demonstration's samples. The
+problem is non-convex: other seeds can reach other local minima (62.6 vs 67.5 on the reference
+motion with joint 1 or 7 of the seed moved). Seed: every
 knot at ``q_seed`` (default the xArm home) and b such that FK(q_seed) + b = p_h(t_0), so the
 seed tracks the first sample exactly and stands still. A failed solve is reported through
 ``status``/``success``; only :func:`require_success` raises.
@@ -107,6 +117,7 @@ for _c in range(1, N_FREE - 1):
     _E[_c, _c + 1] = 1.0
 _E[N_FREE - 1, N_KNOTS - 2] = _E[N_FREE - 1, N_KNOTS - 1] = 1.0
 _E.setflags(write=False)
+_KNOT_COLUMN = np.argmax(_E, axis=0)  # (8,): free column of each knot, (0, 0, 1, 2, 3, 4, 5, 5)
 
 
 # --------------------------------------------------------------------------------------------
@@ -315,7 +326,7 @@ def knots_from_x(x: np.ndarray) -> np.ndarray:
         raise ConfigError("x", f"must have shape ({N_X},), got {x.shape}")
     C = x[: N_JOINTS * N_FREE].reshape(N_JOINTS, N_FREE)
     out = np.empty((N_ROWS, N_KNOTS))
-    out[:N_JOINTS] = C @ _E
+    out[:N_JOINTS] = C[:, _KNOT_COLUMN]  # = C E, by indexing so the ties are bitwise
     out[N_JOINTS:] = x[N_JOINTS * N_FREE :, None]
     return out
 
@@ -959,6 +970,7 @@ __all__ = [
     "HOME_Q",
     "IPOPT_SUCCESS",
     "LIMIT_BLOCKS",
+    "N_X",
     "POSITION_MARGIN",
     "InitialGuessParams",
     "InitialGuessProblem",
@@ -969,6 +981,7 @@ __all__ = [
     "hand_velocity",
     "initial_guess",
     "knots_from_x",
+    "lift_matrix",
     "limit_sample_times",
     "require_success",
     "rotation_error_sq",

@@ -191,7 +191,11 @@ def test_input_validation_messages(robot, change, message):
     a=arrays(float, (2, 3), elements=st.floats(-4.0, 4.0)),
 )
 def test_rotation_error_sq_is_quaternion_vector_part(a):
-    """3 - tr(R_h^T R) = 4 sin^2(theta / 2) = |2 v|^2; theta^2 (1 - theta^2 / 12) <= e <= theta^2."""
+    """The smooth rotation term is the squared quaternion vector part, close to |Log|^2.
+
+    3 - tr(R_h^T R) = 4 sin^2(theta / 2) = |2 v|^2 and theta^2 (1 - theta^2 / 12) <= it <= theta^2,
+    with theta = |Log(R_h^T R)| and v the quaternion vector part.
+    """
     R_h = Rotation.from_rotvec(a[:1]).as_matrix()
     R = Rotation.from_rotvec(a[1:]).as_matrix()
     e = rotation_error_sq(R_h, R)[0]
