@@ -60,6 +60,20 @@ def _cmd_showcase(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_run(args: argparse.Namespace) -> int:
+    from flyknot.experiment import run_scenario
+    from flyknot.scenario import load_scenario, parse_overrides
+
+    overrides = parse_overrides(args.set)
+    scen = load_scenario(args.scenario, overrides)
+    out = Path(args.out) if args.out else Path("runs") / scen.name
+    print(f"scenario {scen.name!r} ({scen.kind}, {len(scen.runs)} runs) -> {out}")
+    summary = run_scenario(scen, out, workers=args.workers, resume=args.resume, overrides=overrides)
+    ok = sum(r["first_success_trial"] is not None for r in summary["runs"])
+    print(f"knot learned in {ok} of {len(summary['runs'])} runs; report: {out / 'report.md'}")
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from flyknot import bench
 
@@ -70,9 +84,22 @@ def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``flyknot`` (exposed for tests and docs)."""
     p = argparse.ArgumentParser(
         prog="flyknot",
-        description="Learn the overhand flying knot with Task-Level ILC, in a simulated or real lab.",
+        description="Learn the overhand flying knot with Task-Level ILC (simulated or real lab).",
     )
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+
+    r = sub.add_parser("run", help="run a scenario (an experiment of the paper) headless")
+    r.add_argument("scenario", help="scenario name under scenarios/ or a .toml path")
+    r.add_argument("--out", default=None, help="run directory (default runs/<scenario>)")
+    r.add_argument("--workers", type=int, default=1, help="processes for independent runs")
+    r.add_argument(
+        "--set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="override a run field, e.g. max_trials=3 or rope_model.stiffness=1e3",
+    )
+    r.add_argument("--resume", action="store_true", help="continue an interrupted run")
+    r.set_defaults(func=_cmd_run)
 
     k = sub.add_parser("knot", help="classify a rope centreline (.npy or .csv, (n, 3))")
     k.add_argument("file", help="centreline file; first point at the held end")

@@ -412,6 +412,27 @@ def base_equality_rows(base_update: str = "constant") -> np.ndarray:
     return np.array(rows)
 
 
+def rest_equality_rows() -> np.ndarray:
+    """Equality rows ``E x = 0`` keeping the command at rest at both ends.
+
+    A degree-7 Bezier has qd(0) = 7 (kappa_1 - kappa_0) / T and qd(T) = 7 (kappa_7 -
+    kappa_6) / T, so ``dkappa[r, 1] - dkappa[r, 0] = 0`` and ``dkappa[r, 7] - dkappa[r, 6] = 0``
+    for the 7 arm rows r keep an update from giving the command a start or end velocity (the
+    robot is at rest before and after a trial; a jump would fault it).
+
+    Returns:
+        E, shape (14, 80).
+    """
+    rows = []
+    for r in range(N_JOINTS):
+        for a, b in ((1, 0), (N_KNOTS - 1, N_KNOTS - 2)):
+            e = np.zeros(N_VARS)
+            e[r * N_KNOTS + a] = 1.0
+            e[r * N_KNOTS + b] = -1.0
+            rows.append(e)
+    return np.array(rows)
+
+
 def build_inverse_qp(
     *,
     M_crit: np.ndarray | None = None,
@@ -421,6 +442,7 @@ def build_inverse_qp(
     limits: LimitRows | None = None,
     equal: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
     base_update: str = "constant",
+    keep_rest: bool = True,
 ) -> QPData:
     """Assemble the inverse-model QP (see the module docstring for every term).
 
@@ -438,6 +460,7 @@ def build_inverse_qp(
         equal: Equally weighted baseline: ``[(M_s (6N, 80), err_s (6N,)), ...]`` over
             pre-collision samples, used *instead of* ``M_crit``/``err_crit``.
         base_update: ``"constant"`` (one base update for all knots) or ``"zero"``.
+        keep_rest: Add :func:`rest_equality_rows` (keep zero joint velocity at t = 0 and T).
 
     Returns:
         The QP.
@@ -477,10 +500,14 @@ def build_inverse_qp(
     P = 2.0 * H
     P = 0.5 * (P + P.T)  # exact symmetry against rounding in the sums
     E = base_equality_rows(base_update)
+    blocks = {"base": (0, E.shape[0])}
+    if keep_rest:
+        R = rest_equality_rows()
+        blocks["rest"] = (E.shape[0], E.shape[0] + R.shape[0])
+        E = np.vstack([E, R])
     A_blocks = [E]
     l_blocks = [np.zeros(E.shape[0])]
     u_blocks = [np.zeros(E.shape[0])]
-    blocks = {"base": (0, E.shape[0])}
     if limits is not None:
         off = E.shape[0]
         A_blocks.append(-limits.J)
@@ -651,6 +678,7 @@ __all__ = [
     "QPData",
     "QPResult",
     "base_equality_rows",
+    "rest_equality_rows",
     "build_inverse_qp",
     "limit_rows",
     "require_solved",

@@ -19,6 +19,7 @@ from learner.inverse_qp import (
     JointLimits,
     LimitRows,
     base_equality_rows,
+    rest_equality_rows,
     build_inverse_qp,
     limit_rows,
     require_solved,
@@ -222,7 +223,7 @@ def test_limit_rows_values_and_jacobians(robot: RobotModel):
 def test_without_limits_solution_is_closed_form(mode: str):
     M, err, follow = _problem(5)
     qp = build_inverse_qp(M_crit=M, err_crit=err, follow=follow, base_update=mode)
-    E = base_equality_rows(mode)
+    E = np.vstack([base_equality_rows(mode), rest_equality_rows()])
     P = qp.P.toarray()
     kkt = np.block([[P, E.T], [E, np.zeros((E.shape[0], E.shape[0]))]])
     x = np.linalg.solve(kkt, np.concatenate([-qp.q, np.zeros(E.shape[0])]))[:80]
@@ -232,6 +233,19 @@ def test_without_limits_solution_is_closed_form(mode: str):
         assert res.objective == pytest.approx(qp.objective(x), rel=1e-6)
         base = res.dkappa[7:]
         np.testing.assert_allclose(base, base[:, :1].repeat(8, axis=1), atol=1e-8)
+        arm = res.dkappa[:7]
+        np.testing.assert_allclose(arm[:, 1], arm[:, 0], atol=1e-8)  # qd(0) stays 0
+        np.testing.assert_allclose(arm[:, 7], arm[:, 6], atol=1e-8)  # qd(T) stays 0
+
+
+def test_rest_rows_can_be_dropped():
+    M, err, _ = _problem(5)
+    with_rest = build_inverse_qp(M_crit=M, err_crit=err)
+    without = build_inverse_qp(M_crit=M, err_crit=err, keep_rest=False)
+    assert with_rest.A.shape[0] == without.A.shape[0] + 14
+    assert with_rest.blocks["rest"] == (21, 35)
+    x = require_solved(solve_qp(without, "clarabel")).dkappa
+    assert np.abs(x[:7, 1] - x[:7, 0]).max() > 1e-6  # unconstrained, the start moves
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -267,7 +281,7 @@ def test_binding_position_and_velocity_limits_hold_on_the_sampled_trajectory(
     knots[1] = 1.7  # joint 2 at rest, 0.2 rad below q_max = 1.9
     target = np.zeros((10, 8))
     target[1] = -0.5  # subtracting it would put joint 2 at 2.2 rad
-    target[0] = 1.2 * np.array([0, 1, -1, 1, -1, 1, -1, 0])  # fast swings of joint 1
+    target[0] = 3.0 * np.array([0, 0, -1, 1, -1, 1, 0, 0])  # fast swings of joint 1, at rest at the ends
     rng = np.random.default_rng(7)
     M = rng.normal(size=(6 * N_MARK, 80)) * 0.3
     err = M @ target.ravel()
@@ -309,8 +323,8 @@ def test_realistic_size_agrees_across_backends(robot: RobotModel):
     M, err, follow = _problem(9)
     limits = limit_rows(_knots(), T, T_SAMPLES, robot)
     qp = build_inverse_qp(M_crit=M, err_crit=err * 10, follow=follow, limits=limits)
-    assert qp.m == 21 + 4 * 7 * T_SAMPLES.size
-    assert set(qp.blocks) == {"base", "pos", "vel", "acc", "tau"}
+    assert qp.m == 21 + 14 + 4 * 7 * T_SAMPLES.size
+    assert set(qp.blocks) == {"base", "rest", "pos", "vel", "acc", "tau"}
     res = {name: require_solved(solve_qp(qp, name)) for name in BACKENDS}
     np.testing.assert_allclose(res["osqp"].dkappa, res["clarabel"].dkappa, atol=AGREE)
     for r in res.values():

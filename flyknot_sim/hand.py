@@ -1,0 +1,610 @@
+"""The hand lab: a free 6-DoF hand that holds rope by its end, for synthetic demonstrations.
+
+Scene (built with ``mujoco.MjSpec``): a floor and a ``hand`` body at ``home`` on six joints,
+slides along world x, y, z, then hinges about y (angle b), x (a) and z (c), so the hand's
+orientation is R = Ry(b) Rx(a) Rz(c). The rope (:func:`flyknot_sim.rope.add_rope`) hangs from
+the hand's origin along the hand's -z axis; a ``fingertip`` site there has its z axis along the
+rope's exit (R_tip = R Rx(pi)), the convention of the robot's fingertip site, so a
+demonstration's hand pose is directly a fingertip target for the learner.
+
+Servos: each joint has a position servo (kp = I w^2), a velocity servo fed with the target's
+rate (kv = 2 I w, critically damped) and a force actuator fed with the target's acceleration
+times the joint's inertia I (feed-forward): a hand that knows the motion it makes. The hand
+body is gravity-compensated, so only the rope pulls it off its target.
+
+A trial (:meth:`HandLab.run`), like the robot lab's:
+
+1. seeded variation: servo gains x (1 + N(0, servo_gain_rel^2)) each, the rope's initial
+   tilt |N(0, sway_deg^2)| towards a uniform azimuth, a start delay uniform in
+   [0, start_delay_max_s) and a tempo factor 1 + N(0, tempo_rel^2) on the motion's duration;
+2. hand at the motion's first pose, rope hanging at rest; ``hang_s`` still, then the motion
+   (targets evaluated at every step's end), then ``settle_s`` holding its last pose;
+3. the knot is judged on the settled centreline; ``knot_any`` and the fraction of knotted
+   settling frames are judged on frames every 1 / ``judge_rate_hz`` seconds (for search
+   shaping: knots often form and then slide off the free end).
+
+Everything is recorded at every simulation step (hand pose, joint targets and positions, rope
+vertices, the first rope self-contact); :func:`trial_demonstration` turns a trial into what the
+motion capture of a human demonstration gives (200 Hz, marker noise and tracking loss by
+:func:`flyknot_sim.mocap.emulate`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import mujoco
+import numpy as np
+
+from flyknot.constants import SETTLE_S
+from flyknot.demo import Demonstration
+from flyknot.errors import ConfigError, check_nonnegative, check_positive
+from flyknot_sim import mocap
+from flyknot_sim.knot import TREFOIL, classify_centreline
+from flyknot_sim.rope import (
+    BoundRope,
+    RopeParams,
+    SimSettings,
+    add_rope,
+    configure_options,
+    get_rope,
+)
+
+__all__ = [
+    "FINGERTIP_SITE",
+    "HAND_BODY",
+    "HAND_JOINTS",
+    "HandLab",
+    "HandParams",
+    "HandTrial",
+    "HandVariation",
+    "JointTrajectory",
+    "build_hand_scene",
+    "hand_rotation",
+    "trial_demonstration",
+]
+
+HAND_BODY = "hand"
+FINGERTIP_SITE = "fingertip"
+HAND_JOINTS = ("hand_x", "hand_y", "hand_z", "hand_b", "hand_a", "hand_c")
+"""Slides along world x, y, z; hinges about y (b), x (a), z (c): R = Ry(b) Rx(a) Rz(c)."""
+_JOINT_AXES = ((1, 0, 0), (0, 1, 0), (0, 0, 1), (0, 1, 0), (1, 0, 0), (0, 0, 1))
+_FINGERTIP_QUAT = (0.0, 1.0, 0.0, 0.0)  # Rx(pi): site z along the rope's exit (hand -z)
+N_HAND_DOF = 6
+
+
+# ----------------------------------------------------------------------------------------
+# parameters
+# ----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class HandVariation:
+    """Seeded trial-to-trial variation of a hand trial (the robot lab's, plus tempo).
+
+    Attributes:
+        sway_deg: Std of the rope's initial tilt from vertical [deg].
+        servo_gain_rel: Relative std of each servo's stiffness and damping gain [-].
+        start_delay_max_s: The motion starts after a uniform delay in [0, this) [s].
+        tempo_rel: Relative std of the motion's duration (a person never repeats a tempo
+            exactly) [-].
+    """
+
+    sway_deg: float = 1.0
+    servo_gain_rel: float = 0.03
+    start_delay_max_s: float = 0.004
+    tempo_rel: float = 0.005
+
+    def __post_init__(self) -> None:
+        for f in ("sway_deg", "servo_gain_rel", "start_delay_max_s", "tempo_rel"):
+            check_nonnegative(f"HandVariation.{f}", getattr(self, f))
+        if self.tempo_rel >= 0.2:
+            raise ConfigError("HandVariation.tempo_rel", f"must be < 0.2, got {self.tempo_rel!r}")
+
+    @classmethod
+    def none(cls) -> HandVariation:
+        """No variation: every trial of a motion is the same."""
+        return cls(0.0, 0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class HandParams:
+    """Everything that defines the hand lab.
+
+    Attributes:
+        rope: Rope id (1..7, see ``assets/ropes.toml``).
+        home: Hand position at zero joints [m]; the rope hangs from it.
+        hand_mass: Mass of the hand [kg] (gravity-compensated).
+        hand_inertia: Rotational inertia of the hand about each axis [kg m^2].
+        slide_bandwidth: Natural frequency w of the slide servos [rad/s].
+        hinge_bandwidth: Natural frequency w of the hinge servos [rad/s].
+        hang_s: Time the hand holds still before the motion [s].
+        settle_s: Time the hand holds its last pose before the knot is judged [s].
+        judge_rate_hz: Rate of the frames judged for ``knot_any`` and the settling
+            fraction [Hz].
+        variation: Trial-to-trial variation.
+        settings: Rope simulation settings (default: the ``[simulation]`` table of
+            ``assets/ropes.toml``).
+    """
+
+    rope: int = 1
+    home: tuple[float, float, float] = (0.0, 0.0, 1.5)
+    hand_mass: float = 0.5
+    hand_inertia: float = 1e-3
+    slide_bandwidth: float = 200.0
+    hinge_bandwidth: float = 200.0
+    hang_s: float = 0.05
+    settle_s: float = SETTLE_S
+    judge_rate_hz: float = 10.0
+    variation: HandVariation = field(default_factory=HandVariation)
+    settings: SimSettings | None = None
+
+    def __post_init__(self) -> None:
+        get_rope(self.rope)  # validates the id, listing the valid choices
+        home = tuple(float(v) for v in np.asarray(self.home, dtype=float).ravel())
+        if len(home) != 3 or not all(math.isfinite(v) for v in home):
+            raise ConfigError("HandParams.home", f"must be 3 finite numbers, got {self.home!r}")
+        object.__setattr__(self, "home", home)
+        for f in (
+            "hand_mass",
+            "hand_inertia",
+            "slide_bandwidth",
+            "hinge_bandwidth",
+            "judge_rate_hz",
+        ):
+            check_positive(f"HandParams.{f}", getattr(self, f))
+        check_nonnegative("HandParams.hang_s", self.hang_s)
+        check_nonnegative("HandParams.settle_s", self.settle_s)
+        if not isinstance(self.variation, HandVariation):
+            raise ConfigError(
+                "HandParams.variation",
+                f"must be a HandVariation, got {type(self.variation).__name__}",
+            )
+
+    @property
+    def rope_params(self) -> RopeParams:
+        """The rope."""
+        return get_rope(self.rope)
+
+    def joint_inertia(self) -> np.ndarray:
+        """Inertia seen by each joint, (m, m, m, I, I, I), shape (6,) [kg, kg m^2]."""
+        return np.array([self.hand_mass] * 3 + [self.hand_inertia] * 3)
+
+    def servo_gains(self) -> tuple[np.ndarray, np.ndarray]:
+        """Nominal servo gains: kp = I w^2 [N/m, N m/rad], kv = 2 I w [N s/m, N m s/rad].
+
+        Returns:
+            kp, kv, shape (6,) each.
+        """
+        inertia = self.joint_inertia()
+        w = np.array([self.slide_bandwidth] * 3 + [self.hinge_bandwidth] * 3)
+        return inertia * w**2, 2.0 * inertia * w
+
+
+# ----------------------------------------------------------------------------------------
+# motions
+# ----------------------------------------------------------------------------------------
+class JointTrajectory(Protocol):
+    """A hand motion as targets of the six hand joints (see :data:`HAND_JOINTS`)."""
+
+    @property
+    def duration(self) -> float:
+        """Length of the motion [s]; it is at rest at 0 and from ``duration`` on."""
+        ...
+
+    def joint_targets(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Joint targets at times ``t`` (T,) [s] from the motion's start (held outside
+        [0, duration]): q (T, 6) [m, rad] relative to ``home``, qd (T, 6), qdd (T, 6)."""
+        ...
+
+
+def hand_rotation(b: np.ndarray, a: np.ndarray, c: np.ndarray | None = None) -> np.ndarray:
+    """Hand orientation R = Ry(b) Rx(a) Rz(c) of the hinge chain.
+
+    Args:
+        b: Angles about world y, shape (T,) [rad].
+        a: Angles about x (after the y turn), shape (T,) [rad].
+        c: Angles about z (last), shape (T,) [rad]; None means 0.
+
+    Returns:
+        Rotation matrices, shape (T, 3, 3).
+    """
+    b = np.atleast_1d(np.asarray(b, dtype=float))
+    a = np.atleast_1d(np.asarray(a, dtype=float))
+    c = np.zeros_like(a) if c is None else np.atleast_1d(np.asarray(c, dtype=float))
+    cb, sb, ca, sa, cc, sc = np.cos(b), np.sin(b), np.cos(a), np.sin(a), np.cos(c), np.sin(c)
+    one, zero = np.ones_like(a), np.zeros_like(a)
+    ry = np.stack([cb, zero, sb, zero, one, zero, -sb, zero, cb], -1).reshape(-1, 3, 3)
+    rx = np.stack([one, zero, zero, zero, ca, -sa, zero, sa, ca], -1).reshape(-1, 3, 3)
+    rz = np.stack([cc, -sc, zero, sc, cc, zero, zero, zero, one], -1).reshape(-1, 3, 3)
+    return ry @ rx @ rz
+
+
+# ----------------------------------------------------------------------------------------
+# scene
+# ----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class HandScene:
+    """A compiled hand scene.
+
+    Attributes:
+        model: The compiled model.
+        rope: The rope bound to ``model``.
+        qpos: qpos addresses of the hand joints, shape (6,).
+        dof: dof addresses of the hand joints, shape (6,).
+        act_pos: Position-servo actuator ids, shape (6,).
+        act_vel: Velocity-servo actuator ids, shape (6,).
+        act_ff: Feed-forward force actuator ids, shape (6,).
+        fingertip: Fingertip site id.
+    """
+
+    model: mujoco.MjModel
+    rope: BoundRope
+    qpos: np.ndarray
+    dof: np.ndarray
+    act_pos: np.ndarray
+    act_vel: np.ndarray
+    act_ff: np.ndarray
+    fingertip: int
+
+
+def build_hand_scene(params: HandParams) -> HandScene:
+    """Compile floor + hand + rope ``params.rope`` (see the module docstring)."""
+    rope_params = params.rope_params
+    spec = mujoco.MjSpec()
+    spec.modelname = "flyknot_hand"
+    spec.worldbody.add_geom(
+        name="floor",
+        type=mujoco.mjtGeom.mjGEOM_PLANE,
+        size=[3.0, 3.0, 0.1],
+        contype=1,
+        conaffinity=1,
+    )
+    hand = spec.worldbody.add_body(name=HAND_BODY, pos=list(params.home), gravcomp=1.0)
+    hand.explicitinertial = True
+    hand.mass = params.hand_mass
+    hand.inertia = [params.hand_inertia] * 3
+    hand.add_geom(
+        name="palm",
+        type=mujoco.mjtGeom.mjGEOM_SPHERE,
+        size=[0.012, 0, 0],
+        pos=[0, 0, 0.015],
+        contype=0,
+        conaffinity=0,
+        mass=0.0,
+        rgba=[0.85, 0.65, 0.55, 1],
+    )
+    hand.add_site(name=FINGERTIP_SITE, quat=list(_FINGERTIP_QUAT))
+    kp, kv = params.servo_gains()
+    for i, (name, axis) in enumerate(zip(HAND_JOINTS, _JOINT_AXES, strict=True)):
+        slide = i < 3
+        hand.add_joint(
+            name=name,
+            axis=list(axis),
+            type=mujoco.mjtJoint.mjJNT_SLIDE if slide else mujoco.mjtJoint.mjJNT_HINGE,
+        )
+        a = spec.add_actuator(name=f"{name}_pos", target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        a.set_to_position(kp=float(kp[i]))
+        v = spec.add_actuator(name=f"{name}_vel", target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        v.set_to_velocity(kv=float(kv[i]))
+        f = spec.add_actuator(name=f"{name}_ff", target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        f.set_to_motor()
+    handle = add_rope(
+        spec,
+        rope_params,
+        anchor_body=HAND_BODY,
+        axis=(0.0, 0.0, -1.0),
+        prefix="rope",
+        settings=params.settings,
+    )
+    configure_options(spec, [rope_params], params.settings)
+    model = spec.compile()
+    jid = [model.joint(n).id for n in HAND_JOINTS]
+    return HandScene(
+        model=model,
+        rope=handle.bind(model),
+        qpos=model.jnt_qposadr[jid].astype(int),
+        dof=model.jnt_dofadr[jid].astype(int),
+        act_pos=np.array([model.actuator(f"{n}_pos").id for n in HAND_JOINTS]),
+        act_vel=np.array([model.actuator(f"{n}_vel").id for n in HAND_JOINTS]),
+        act_ff=np.array([model.actuator(f"{n}_ff").id for n in HAND_JOINTS]),
+        fingertip=model.site(FINGERTIP_SITE).id,
+    )
+
+
+# ----------------------------------------------------------------------------------------
+# trial
+# ----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class HandTrial:
+    """What one hand trial produced (sim-only data; a demonstration is made from it).
+
+    Attributes:
+        t: Times of the saved states, shape (N + 1,) [s], 0 = trial start.
+        hand_pos: Fingertip position, shape (N + 1, 3) [m].
+        hand_quat: Fingertip orientation (w, x, y, z), sign-continuous, shape (N + 1, 4).
+        q: Hand joint positions, shape (N + 1, 6) [m, rad] (slides relative to ``home``).
+        q_target: Hand joint targets, shape (N + 1, 6) [m, rad].
+        vertices: Rope centreline vertices, shape (N + 1, n + 1, 3) [m].
+        first_contact: Time of the rope's first self-contact [s], or None.
+        motion_start: Time the motion starts (``hang_s`` + start delay) [s].
+        motion_end: Time the motion ends [s].
+        knot: Knot type of the settled rope (``unknot``, ``trefoil``, ...), None if the
+            simulation diverged.
+        knot_any: A trefoil in any judged frame from the motion's start on.
+        settle_fraction: Fraction of the judged frames in the settling phase that are
+            trefoils (the last frame included).
+        diverged: MuJoCo reset the state (NaN) during the trial.
+        variation: The drawn variation (gain factors, sway, azimuth, delay, tempo).
+        wall_s: Wall time of the trial [s].
+    """
+
+    t: np.ndarray
+    hand_pos: np.ndarray
+    hand_quat: np.ndarray
+    q: np.ndarray
+    q_target: np.ndarray
+    vertices: np.ndarray
+    first_contact: float | None
+    motion_start: float
+    motion_end: float
+    knot: str | None
+    knot_any: bool
+    settle_fraction: float
+    diverged: bool
+    variation: Mapping[str, Any]
+    wall_s: float
+
+    @property
+    def tied(self) -> bool:
+        """The settled rope holds a trefoil."""
+        return self.knot == TREFOIL
+
+    def tracking_error(self) -> tuple[float, float]:
+        """Largest servo tracking errors max_t |p - p_target| [m] and
+        max_t max_j |angle_j - target_j| [rad] over the trial."""
+        e = self.q - self.q_target
+        return float(np.max(np.linalg.norm(e[:, :3], axis=1))), float(np.max(np.abs(e[:, 3:])))
+
+
+class HandLab:
+    """The hand lab: compiles the scene once and plays hand motions on it."""
+
+    def __init__(self, params: HandParams | None = None):
+        self.params = HandParams() if params is None else params
+        self.scene = build_hand_scene(self.params)
+        self.model = self.scene.model
+        self.data = mujoco.MjData(self.model)
+        self._kp0 = self.model.actuator_gainprm[self.scene.act_pos, 0].copy()
+        self._bias0 = self.model.actuator_biasprm[self.scene.act_pos, :3].copy()
+        self._kv0 = self.model.actuator_gainprm[self.scene.act_vel, 0].copy()
+        self._vbias0 = self.model.actuator_biasprm[self.scene.act_vel, :3].copy()
+        self._inertia = self.params.joint_inertia()
+
+    @property
+    def rope(self) -> BoundRope:
+        """The rope bound to the model."""
+        return self.scene.rope
+
+    def draw_variation(self, rng: np.random.Generator) -> dict[str, Any]:
+        """Draw one trial's variation (see :class:`HandVariation`).
+
+        Returns:
+            ``kp_factor`` (6,), ``kv_factor`` (6,), ``sway`` [rad], ``azimuth`` [rad],
+            ``delay`` [s], ``tempo`` [-].
+        """
+        if not isinstance(rng, np.random.Generator):
+            raise ConfigError("rng", f"must be a numpy.random.Generator, got {type(rng).__name__}")
+        v = self.params.variation
+        kp = 1.0 + v.servo_gain_rel * rng.standard_normal(N_HAND_DOF)
+        kv = 1.0 + v.servo_gain_rel * rng.standard_normal(N_HAND_DOF)
+        sway = math.radians(v.sway_deg) * abs(float(rng.standard_normal()))
+        azimuth = float(rng.uniform(0.0, 2.0 * math.pi))
+        delay = float(rng.uniform(0.0, v.start_delay_max_s)) if v.start_delay_max_s else 0.0
+        tempo = 1.0 + v.tempo_rel * float(rng.standard_normal())
+        return {
+            "kp_factor": np.clip(kp, 0.5, 1.5).tolist(),
+            "kv_factor": np.clip(kv, 0.5, 1.5).tolist(),
+            "sway": min(sway, math.radians(30.0)),
+            "azimuth": azimuth,
+            "delay": delay,
+            "tempo": tempo,
+        }
+
+    def _apply_gains(self, kp_factor: np.ndarray, kv_factor: np.ndarray) -> None:
+        m, s = self.model, self.scene
+        m.actuator_gainprm[s.act_pos, 0] = self._kp0 * kp_factor
+        m.actuator_biasprm[s.act_pos, :3] = self._bias0 * kp_factor[:, None]
+        m.actuator_gainprm[s.act_vel, 0] = self._kv0 * kv_factor
+        m.actuator_biasprm[s.act_vel, :3] = self._vbias0 * kv_factor[:, None]
+
+    def run(
+        self,
+        motion: JointTrajectory,
+        rng: np.random.Generator | None = None,
+        *,
+        variation: Mapping[str, Any] | None = None,
+        judge: bool = True,
+    ) -> HandTrial:
+        """Play ``motion`` once from rest (see the module docstring).
+
+        Args:
+            motion: Hand joint targets over time.
+            rng: Source of the variation (ignored if ``variation`` is given); None draws
+                nothing and plays the nominal trial.
+            variation: A variation as returned by :meth:`draw_variation` (to replay one).
+            judge: Judge the knot (False skips knot classification: ``knot`` is None).
+
+        Returns:
+            The trial.
+        """
+        if variation is None:
+            variation = self.draw_variation(rng) if rng is not None else _nominal_variation()
+        tic = time.perf_counter()
+        p, m, d, s = self.params, self.model, self.data, self.scene
+        dt = m.opt.timestep
+        tempo = float(variation["tempo"])
+        motion_start = p.hang_s + float(variation["delay"])
+        motion_len = float(motion.duration) * tempo
+        n_steps = int(math.ceil((motion_start + motion_len + p.settle_s) / dt - 1e-9))
+        t = dt * np.arange(n_steps + 1)
+        tau = (t - motion_start) / tempo
+        q_t, qd_t, qdd_t = motion.joint_targets(tau)
+        qd_t = qd_t / tempo
+        qdd_t = qdd_t / tempo**2
+
+        mujoco.mj_resetData(m, d)
+        self._apply_gains(np.asarray(variation["kp_factor"]), np.asarray(variation["kv_factor"]))
+        d.qpos[s.qpos] = q_t[0]
+        mujoco.mj_kinematics(m, d)
+        s.rope.set_hanging(m, d, float(variation["sway"]), float(variation["azimuth"]))
+
+        nv = s.rope.n_vert
+        verts = np.empty((n_steps + 1, nv, 3))
+        q = np.empty((n_steps + 1, N_HAND_DOF))
+        pos = np.empty((n_steps + 1, 3))
+        quat = np.empty((n_steps + 1, 4))
+        first_contact: float | None = None
+        diverged = False
+        ff = qdd_t * self._inertia  # inertial feed-forward [N, N m]
+        for k in range(n_steps + 1):
+            verts[k] = d.flexvert_xpos[s.rope.vert_adr : s.rope.vert_adr + nv]
+            q[k] = d.qpos[s.qpos]
+            pos[k] = d.site_xpos[s.fingertip]
+            mujoco.mju_mat2Quat(quat[k], d.site_xmat[s.fingertip])
+            if first_contact is None and k > 0 and s.rope.self_contact(m, d):
+                first_contact = float(t[k])
+            if k == n_steps:
+                break
+            d.ctrl[s.act_pos] = q_t[k + 1]
+            d.ctrl[s.act_vel] = qd_t[k + 1]
+            d.ctrl[s.act_ff] = ff[k + 1]
+            before = d.time
+            mujoco.mj_step(m, d)
+            if d.time < before:  # MuJoCo reset a diverged state
+                diverged = True
+                verts[k + 1 :] = np.nan
+                q[k + 1 :] = np.nan
+                pos[k + 1 :] = np.nan
+                quat[k + 1 :] = np.nan
+                break
+        quat = _sign_continuous(quat)
+        knot: str | None = None
+        knot_any = False
+        settle_fraction = 0.0
+        if judge and not diverged:
+            knot, knot_any, settle_fraction = _judge(
+                t, verts, motion_start, motion_start + motion_len, p.judge_rate_hz
+            )
+        return HandTrial(
+            t=t,
+            hand_pos=pos,
+            hand_quat=quat,
+            q=q,
+            q_target=q_t,
+            vertices=verts,
+            first_contact=first_contact,
+            motion_start=motion_start,
+            motion_end=motion_start + motion_len,
+            knot=knot,
+            knot_any=knot_any,
+            settle_fraction=settle_fraction,
+            diverged=diverged,
+            variation=dict(variation),
+            wall_s=time.perf_counter() - tic,
+        )
+
+
+def _nominal_variation() -> dict[str, Any]:
+    return {
+        "kp_factor": [1.0] * N_HAND_DOF,
+        "kv_factor": [1.0] * N_HAND_DOF,
+        "sway": 0.0,
+        "azimuth": 0.0,
+        "delay": 0.0,
+        "tempo": 1.0,
+    }
+
+
+def _sign_continuous(quat: np.ndarray) -> np.ndarray:
+    """Flip quaternion signs so consecutive rows have a non-negative dot product."""
+    out = quat.copy()
+    for k in range(1, len(out)):
+        if np.dot(out[k], out[k - 1]) < 0:
+            out[k] = -out[k]
+    return out
+
+
+def _judge(
+    t: np.ndarray, verts: np.ndarray, start: float, end: float, rate_hz: float
+) -> tuple[str, bool, float]:
+    """Knot at the end, knot at any judged frame after ``start``, knotted settling fraction.
+
+    Judged frames: every round(1 / (rate_hz dt)) steps from ``start`` on, plus the last.
+    """
+    dt = float(t[1] - t[0])
+    stride = max(1, round(1.0 / (rate_hz * dt)))
+    k0 = int(math.ceil(start / dt - 1e-9))
+    idx = list(range(k0, len(t) - 1, stride)) + [len(t) - 1]
+    names = {k: classify_centreline(verts[k]) for k in idx}
+    end_knot = names[len(t) - 1]
+    knot_any = any(n == TREFOIL for n in names.values())
+    settle = [k for k in idx if t[k] >= end - 1e-9]
+    fraction = sum(names[k] == TREFOIL for k in settle) / len(settle)
+    return end_knot, knot_any, float(fraction)
+
+
+def trial_demonstration(
+    trial: HandTrial,
+    rope: BoundRope,
+    mocap_params: mocap.MocapParams,
+    rng: np.random.Generator,
+    *,
+    rope_id: int,
+    metadata: Mapping[str, Any] | None = None,
+) -> Demonstration:
+    """A demonstration as the motion capture would record the trial.
+
+    The capture runs at ``mocap_params.rate_hz`` from t = 0 (the trial start) to the trial's
+    end. Hand pose: the fingertip's, interpolated linearly (quaternions renormalised) from the
+    simulation steps, without noise. Markers: the 11 rope markers through
+    :func:`flyknot_sim.mocap.emulate` (noise, NaN from ``first_contact + loss_delay`` on).
+    t_c = the first rope self-contact of the simulation.
+
+    Args:
+        trial: A trial with a self-contact.
+        rope: The rope the trial was run with (for the marker arc lengths).
+        mocap_params: Capture settings.
+        rng: Source of the capture noise.
+        rope_id: Rope id stored in the demonstration.
+        metadata: Extra plain data.
+
+    Returns:
+        The demonstration.
+
+    Raises:
+        ConfigError: The trial diverged or the rope never touched itself (no t_c).
+    """
+    if trial.diverged:
+        raise ConfigError("trial", "diverged; no demonstration can be made from it")
+    if trial.first_contact is None:
+        raise ConfigError("trial", "the rope never touched itself, so there is no t_c")
+    t_mocap = mocap.sample_times(float(trial.t[-1]), mocap_params.rate_hz)
+    markers_true = rope.markers_from_vertices(trial.vertices)
+    markers = mocap.emulate(
+        trial.t, markers_true, t_mocap, trial.first_contact, mocap_params, rng
+    )
+    pos = np.column_stack([np.interp(t_mocap, trial.t, trial.hand_pos[:, i]) for i in range(3)])
+    quat = np.column_stack([np.interp(t_mocap, trial.t, trial.hand_quat[:, i]) for i in range(4)])
+    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
+    return Demonstration(
+        t=t_mocap,
+        hand_pos=pos,
+        hand_quat=quat,
+        markers=markers,
+        t_c=float(trial.first_contact),
+        rope=rope_id,
+        metadata=dict(metadata or {}),
+    )
