@@ -57,11 +57,17 @@ def prepare_target(demo_name: str, rope_dt: float):
     return trimmed, DemoTarget.from_demonstration(trimmed, dt=rope_dt)
 
 
-def initial_knots(demo_name: str, out_dir: Path, robot, rope_dt: float) -> tuple[np.ndarray, dict]:
-    """kappa_0 for a demonstration, computed once per run directory and cached there."""
+def initial_knots(
+    demo_name: str, out_dir: Path, robot, rope_dt: float, base_height: float
+) -> tuple[np.ndarray, dict]:
+    """kappa_0 for a demonstration, computed once per run directory and cached there.
+
+    ``base_height`` is the lab's robot base height above its floor, so that the fingertip
+    starts at least z_min above the real floor (the rope hangs clear).
+    """
     from scipy.spatial.transform import Rotation
 
-    from learner.initial_guess import initial_guess
+    from learner.initial_guess import InitialGuessParams, initial_guess
 
     cache = out_dir / "initial_guess" / f"{Path(demo_name).stem}.npz"
     if cache.is_file():
@@ -70,7 +76,8 @@ def initial_knots(demo_name: str, out_dir: Path, robot, rope_dt: float) -> tuple
     trimmed, target = prepare_target(demo_name, rope_dt)
     t = trimmed.t - trimmed.t[0]
     R = Rotation.from_quat(trimmed.hand_quat, scalar_first=True).as_matrix()
-    res = initial_guess(t, trimmed.hand_pos, R, target.T, robot)
+    params = InitialGuessParams(base_height=base_height)
+    res = initial_guess(t, trimmed.hand_pos, R, target.T, robot, params=params)
     info = {
         "status": res.status,
         "success": bool(res.success),
@@ -114,9 +121,11 @@ def execute_run(
     rope_model = _rope_model(spec)
     _, target = prepare_target(spec.demo, rope_model.dt)
     ig_info: dict[str, Any] = {}
-    if knots0 is None:
-        knots0, ig_info = initial_knots(spec.demo, out_dir, robot, rope_model.dt)
     lab = SimLab(LabParams(rope=spec.rope, seed=spec.seed, settle_s=spec.settle_s))
+    if knots0 is None:
+        knots0, ig_info = initial_knots(
+            spec.demo, out_dir, robot, rope_model.dt, float(lab.base_pose[2])
+        )
     params = ILCParams(
         max_trials=max(1, spec.max_trials),
         stop_at_success=spec.stop_at_success,
@@ -230,6 +239,7 @@ def run_scenario(
     if not (resume and (out_dir / "manifest.json").is_file()):
         (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2))
     # Initial guesses first (cached; shared by runs of the same demo).
+    from flyknot_sim.scene import SceneParams, robot_base_pose
     from learner.kinematics import RobotModel
 
     robot = RobotModel.from_mjcf()
@@ -237,7 +247,7 @@ def run_scenario(
         dt = next(_rope_model(r).dt for r in scen.runs if r.demo == demo)
         if progress:
             print(f"initial guess for demo {demo!r} (trajectory optimisation)...", flush=True)
-        initial_knots(demo, out_dir, robot, dt)
+        initial_knots(demo, out_dir, robot, dt, float(robot_base_pose(SceneParams())[2]))
 
     results: dict[str, dict[str, Any]] = {}
     overall = tqdm(total=len(scen.runs), desc=scen.name, unit="run", disable=not progress)

@@ -18,7 +18,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from flyknot.constants import COMMAND_RATE_HZ, KNOT_OUTCOMES, N_JOINTS, N_MARKERS
+from flyknot.constants import COMMAND_RATE_HZ, N_JOINTS, N_MARKERS
 from flyknot.errors import CommandError, RecordError
 
 RECORD_FORMAT_VERSION = 1
@@ -107,7 +107,7 @@ class JointCommand:
         if path.suffix == ".npy":
             try:
                 q = np.load(path, allow_pickle=False)
-            except Exception as e:  # noqa: BLE001 - numpy raises many kinds
+            except Exception as e:
                 raise CommandError(f"command file {str(path)!r} is not a valid .npy: {e}") from e
             return cls(q)
         if path.suffix != ".csv":
@@ -220,10 +220,9 @@ class TrialRecord:
             got = getattr(self, name).shape
             if got != shape:
                 raise RecordError(f"TrialRecord.{name} must have shape {shape}, got {got}")
-        if self.knot is not None and self.knot not in KNOT_OUTCOMES:
-            # Named knots beyond the trefoil are allowed (e.g. "4_1"), but not empty text.
-            if not isinstance(self.knot, str) or not self.knot:
-                raise RecordError(f"TrialRecord.knot must be a knot name or None, got {self.knot!r}")
+        # Named knots beyond the trefoil are allowed (e.g. "4_1"), but not empty text.
+        if self.knot is not None and (not isinstance(self.knot, str) or not self.knot):
+            raise RecordError(f"TrialRecord.knot must be a knot name or None, got {self.knot!r}")
         truth = {k: _frozen(v) for k, v in dict(self.truth).items()}
         object.__setattr__(self, "truth", truth)
         object.__setattr__(self, "metadata", json.loads(json.dumps(dict(self.metadata))))
@@ -300,7 +299,14 @@ class TrialRecord:
 
 @runtime_checkable
 class Cell(Protocol):
-    """A place where a command can be tried: the simulated lab or the real lab."""
+    """A place where a command can be tried: the simulated lab or the real lab.
+
+    Attributes:
+        base_pose: The lab's calibration: robot base in the mocap frame,
+            (x, y, z, qw, qx, qy, qz); z is the base's height above the floor [m].
+    """
+
+    base_pose: np.ndarray
 
     def run(self, command: JointCommand) -> TrialRecord:
         """Play ``command`` once from rest and return what was measured."""

@@ -264,6 +264,8 @@ def build_hand_scene(params: HandParams) -> HandScene:
     )
     hand = spec.worldbody.add_body(name=HAND_BODY, pos=list(params.home), gravcomp=1.0)
     hand.explicitinertial = True
+    hand.ipos = [0.0, 0.0, 0.0]
+    hand.iquat = [1.0, 0.0, 0.0, 0.0]
     hand.mass = params.hand_mass
     hand.inertia = [params.hand_inertia] * 3
     hand.add_geom(

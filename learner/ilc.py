@@ -39,7 +39,7 @@ from learner.bezier import BezierCommand
 from learner.inverse_qp import BACKENDS, InverseModelWeights
 from learner.kinematics import RobotModel
 from learner.rope_model import RopeModelParams
-from learner.update import DemoTarget, ilc_update
+from learner.update import DemoTarget, ilc_update, sampled_violation
 
 OBJECTIVES = ("critical", "equal")
 
@@ -281,7 +281,7 @@ def learn(
                 return _finish(trials, knots, params, why)
             new = prev_knots + 0.5 * (knots - prev_knots)
         elif summary.update_solved:
-            new = np.asarray(update["new_knots"])
+            new = _safe_step(knots, np.asarray(update["dkappa"]), target.T, robot, limits)
         else:
             new = knots  # failed QP: command unchanged (reported in the ledger)
         prev_knots, knots = knots, new
@@ -292,6 +292,29 @@ def learn(
     return _finish(
         trials, knots, params, "max_trials" if first is None else "max_trials (knot tied)"
     )
+
+
+MAX_HALVINGS = 4
+
+
+def _safe_step(
+    knots: np.ndarray, dkappa: np.ndarray, T: float, robot: RobotModel, limits: JointLimits
+) -> np.ndarray:
+    """kappa - alpha dkappa with the largest alpha in 1, 1/2, ..., 1/16 whose command keeps
+    every limit on its 250 Hz samples (torque by the robot model's inverse dynamics).
+
+    The QP holds the limits only to first order (torque is linearised); a step that breaks a
+    limit would fault the robot and teach nothing. If even 1/16 breaks one, that step is
+    taken anyway and the lab's controller decides.
+    """
+    t = BezierCommand(knots, T).sample_times()
+    alpha = 1.0
+    for _ in range(MAX_HALVINGS + 1):
+        new = knots - alpha * dkappa
+        if sampled_violation(new, T, t, robot, limits) <= 1e-9:
+            return new
+        alpha *= 0.5
+    return knots - 2 * alpha * dkappa
 
 
 def _finish(trials, knots, params, why) -> LearnResult:

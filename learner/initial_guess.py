@@ -137,7 +137,11 @@ class InitialGuessParams:
         w_p: Fingertip position weight [1 / m^2].
         w_r: Fingertip rotation weight [1 / rad^2].
         w_v: Fingertip velocity weight [s^2 / m^2].
-        z_min: Lowest fingertip height at the start, in the demonstration frame [m].
+        z_min: Lowest fingertip height at the start above the floor [m].
+        base_height: Height of the robot base above the lab's floor [m] (the lab's
+            calibration). Given, the start height is the lab's: z_tip(q(0)) + base_height
+            >= z_min, so the rope hangs clear of the real floor whatever the base offset;
+            None measures it in the demonstration frame: z_tip(q(0)) + b_z >= z_min.
         sample_rate_hz: Rate of the uniform cost grid [Hz]; None uses the demonstration's own
             samples.
         max_iter: IPOPT iteration limit (integer >= 1).
@@ -153,6 +157,7 @@ class InitialGuessParams:
     w_r: float = 0.2
     w_v: float = 0.5
     z_min: float = Z_MIN_TIP
+    base_height: float | None = None
     sample_rate_hz: float | None = None
     max_iter: int = 500
     limit_margin: float = 0.05
@@ -168,6 +173,8 @@ class InitialGuessParams:
             raise ConfigError("z_min", f"must be a finite number [m], got {z!r}")
         if self.sample_rate_hz is not None:
             check_positive("sample_rate_hz", self.sample_rate_hz)
+        if self.base_height is not None:
+            check_nonnegative("base_height", self.base_height)
         mi = self.max_iter
         if isinstance(mi, bool) or not isinstance(mi, numbers.Integral) or mi < 1:
             raise ConfigError("max_iter", f"must be an integer >= 1, got {mi!r}")
@@ -672,8 +679,13 @@ def build_problem(
     e_b = np.zeros((1, N_X))
     e_b[0, N_X - 1] = 1.0
     P0 = lift_matrix([np.eye(1, N_FREE)], with_base=False)  # (7, 45): q(0) from x
-    z_jac = fun.z_grad(q0) @ ca.DM(P0) + ca.DM(e_b)
-    rows.append(("z", robot.fk(q0)[0][2] + b[2], z_jac, [params.z_min], [np.inf]))
+    if params.base_height is None:  # height in the demonstration frame
+        z_jac = fun.z_grad(q0) @ ca.DM(P0) + ca.DM(e_b)
+        rows.append(("z", robot.fk(q0)[0][2] + b[2], z_jac, [params.z_min], [np.inf]))
+    else:  # height above the lab's floor
+        z_jac = fun.z_grad(q0) @ ca.DM(P0)
+        z_expr = robot.fk(q0)[0][2] + params.base_height
+        rows.append(("z", z_expr, z_jac, [params.z_min], [np.inf]))
     bounds = {
         "pos": (lim.q_min + POSITION_MARGIN, lim.q_max - POSITION_MARGIN),
         "vel": (-keep * lim.qd_max, keep * lim.qd_max),
@@ -834,7 +846,8 @@ def check_command(
                 f"{name} joint {j + 1} = {values[name][a, j]:.4g} at t = {t[a]:.3f} s "
                 f"({ratio[a, j]:.3f} x limit)"
             )
-    z0 = float(np.asarray(robot.fk(knots[:N_JOINTS, 0])[0])[2, 0] + knots[N_ROWS - 1, 0])
+    z_base = knots[N_ROWS - 1, 0] if params.base_height is None else params.base_height
+    z0 = float(np.asarray(robot.fk(knots[:N_JOINTS, 0])[0])[2, 0] + z_base)
     usage["z"] = z0 - params.z_min
     if usage["z"] < -Z_TOL:
         violations.append(f"z start height {z0:.4f} m below z_min {params.z_min:g} m")

@@ -678,9 +678,9 @@ __all__ = [
     "QPData",
     "QPResult",
     "base_equality_rows",
-    "rest_equality_rows",
     "build_inverse_qp",
     "limit_rows",
     "require_solved",
+    "rest_equality_rows",
     "solve_qp",
 ]

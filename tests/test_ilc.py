@@ -139,3 +139,21 @@ def test_params_validation():
         ILCParams(objective="x")
     with pytest.raises(ConfigError, match="max_trials: must be an integer >= 1, got 0"):
         ILCParams(max_trials=0)
+
+
+def test_safe_step_halves_a_step_that_would_break_a_limit(robot):
+    from flyknot.limits import JointLimits
+    from learner.ilc import _safe_step
+    from learner.update import sampled_violation
+
+    knots = _knots(np.zeros(7))
+    dk = np.zeros((10, 8))
+    dk[0, 2:6] = [-1.5, 1.5, -1.5, 1.5]  # a fast wiggle of joint 1 if taken whole
+    t = BezierCommand(knots, T).sample_times()
+    assert sampled_violation(knots - dk, T, t, robot, JointLimits()) > 0
+    new = _safe_step(knots, dk, T, robot, JointLimits())
+    assert sampled_violation(new, T, t, robot, JointLimits()) <= 1e-9
+    alpha = (knots - new)[0, 2] / dk[0, 2]
+    assert alpha in (0.5, 0.25, 0.125, 0.0625)
+    small = 0.01 * dk
+    np.testing.assert_allclose(_safe_step(knots, small, T, robot, JointLimits()), knots - small)

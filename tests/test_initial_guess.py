@@ -460,3 +460,22 @@ def test_failure_is_reported_not_raised(robot):
         require_success(res)
     assert str(exc.value).startswith("ipopt failed with status 'Maximum_Iterations_Exceeded'")
     assert exc.value.status == "Maximum_Iterations_Exceeded"
+
+
+def test_start_height_in_the_lab_frame_ignores_the_base_offset():
+    """With the lab's base height given, z_min holds above the lab's floor, not the demo's."""
+    from learner.kinematics import RobotModel
+
+    robot = RobotModel.from_mjcf()
+    T = 0.5
+    t = np.linspace(0, T, 51)
+    # A hand held still low in the demo frame: tracking it pulls the fingertip down.
+    p = np.tile([0.4, 0.0, 0.6], (t.size, 1))
+    R = np.tile(np.diag([1.0, -1.0, -1.0]), (t.size, 1, 1))
+    params = InitialGuessParams(base_height=1.0, z_min=1.2, torque_limits=False)
+    res = initial_guess(t, p, R, T, robot, params=params)
+    assert res.success, res.status
+    z_lab = float(np.asarray(robot.fk(res.knots[:7, 0])[0])[2, 0]) + 1.0
+    assert z_lab >= 1.2 - 1e-6
+    with pytest.raises(ConfigError, match="base_height: must be a finite number >= 0"):
+        InitialGuessParams(base_height=-1.0)
