@@ -39,5 +39,8 @@ def swing_command(
     """
     check_positive("duration", duration)
     t = np.arange(int(round(duration * rate_hz)) + 1) / rate_hz
-    q = np.asarray(q0)[None, :] + np.asarray(amplitude)[None, :] * smooth_bump(t / duration)[:, None]
+    q = (
+        np.asarray(q0)[None, :]
+        + np.asarray(amplitude)[None, :] * smooth_bump(t / duration)[:, None]
+    )
     return JointCommand(q, rate_hz)

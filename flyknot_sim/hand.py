@@ -595,9 +595,7 @@ def trial_demonstration(
         raise ConfigError("trial", "the rope never touched itself, so there is no t_c")
     t_mocap = mocap.sample_times(float(trial.t[-1]), mocap_params.rate_hz)
     markers_true = rope.markers_from_vertices(trial.vertices)
-    markers = mocap.emulate(
-        trial.t, markers_true, t_mocap, trial.first_contact, mocap_params, rng
-    )
+    markers = mocap.emulate(trial.t, markers_true, t_mocap, trial.first_contact, mocap_params, rng)
     pos = np.column_stack([np.interp(t_mocap, trial.t, trial.hand_pos[:, i]) for i in range(3)])
     quat = np.column_stack([np.interp(t_mocap, trial.t, trial.hand_quat[:, i]) for i in range(4)])
     quat /= np.linalg.norm(quat, axis=1, keepdims=True)

@@ -201,8 +201,13 @@ class SimLab:
         q_sent = np.empty((n_ticks, N_JOINTS))
         first_contact: float | None = None
         hold = None
-        bar = tqdm(total=round(n_ticks * tick, 2), unit="sim s", disable=not progress,
-                   desc=f"trial (rope {self.params.rope})", bar_format=_BAR)
+        bar = tqdm(
+            total=round(n_ticks * tick, 2),
+            unit="sim s",
+            disable=not progress,
+            desc=f"trial (rope {self.params.rope})",
+            bar_format=_BAR,
+        )
         for i in range(n_ticks):
             if i % 25 == 0:
                 bar.n = round(i * tick, 2)

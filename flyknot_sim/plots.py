@@ -21,7 +21,11 @@ def plot_trial(record: TrialRecord, path: str | Path) -> Path:
     for j in range(7):
         (line,) = ax1.plot(record.t_joint, record.q_cmd[:, j], lw=1, label=f"q{j + 1}")
         ax1.plot(record.t_joint, record.q_meas[:, j], lw=1, ls="--", color=line.get_color())
-    ax1.set(xlabel="t [s] (robot clock)", ylabel="joint [rad]", title="command (solid), measured (dashed)")
+    ax1.set(
+        xlabel="t [s] (robot clock)",
+        ylabel="joint [rad]",
+        title="command (solid), measured (dashed)",
+    )
     ax1.legend(fontsize=7, ncol=4)
     ax2 = fig.add_subplot(1, 3, 2)
     for i in range(record.markers.shape[1]):

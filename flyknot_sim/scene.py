@@ -52,22 +52,37 @@ def rigid_scene_mjcf(params: SceneParams = SceneParams()) -> mjcf.RootElement:
     root = mjcf.RootElement(model="flyknot_lab")
     root.visual.headlight.ambient = [0.4, 0.4, 0.4]
     root.asset.add(
-        "texture", name="grid", type="2d", builtin="checker", width=512, height=512,
-        rgb1=[0.82, 0.84, 0.86], rgb2=[0.72, 0.74, 0.77],
+        "texture",
+        name="grid",
+        type="2d",
+        builtin="checker",
+        width=512,
+        height=512,
+        rgb1=[0.82, 0.84, 0.86],
+        rgb2=[0.72, 0.74, 0.77],
     )
     root.asset.add("material", name="floor", texture="grid", texrepeat=[8, 8])
     # Floor: contype 1 so the rope (conaffinity 1) lands on it.
     root.worldbody.add(
-        "geom", name="floor", type="plane", size=[params.floor_size, params.floor_size, 0.1],
-        material="floor", contype=1, conaffinity=1,
+        "geom",
+        name="floor",
+        type="plane",
+        size=[params.floor_size, params.floor_size, 0.1],
+        material="floor",
+        contype=1,
+        conaffinity=1,
     )
     root.worldbody.add("light", name="key", pos=[1.5, -1.5, 3.5], dir=[-0.4, 0.4, -1])
     h = params.pedestal_height
     ped = root.worldbody.add("body", name="pedestal", pos=[0, 0, h / 2])
     ped.add(
-        "geom", name="pedestal", type="box",
+        "geom",
+        name="pedestal",
+        type="box",
         size=[params.pedestal_half_width, params.pedestal_half_width, h / 2],
-        rgba=[0.35, 0.36, 0.4, 1], contype=1, conaffinity=1,
+        rgba=[0.35, 0.36, 0.4, 1],
+        contype=1,
+        conaffinity=1,
     )
     top = ped.add("site", name="robot_mount", pos=[0, 0, h / 2])
     robot = mjcf.from_path(str(XARM7_XML))

@@ -68,7 +68,9 @@ def test_bad_params():
 
 
 @settings(max_examples=30, deadline=None)
-@given(q=st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.1))
+@given(
+    q=st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.1)
+)
 def test_quat_to_matrix_is_a_rotation(q):
     R = quat_to_matrix(np.array(q))
     np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)

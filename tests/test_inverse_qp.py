@@ -281,7 +281,9 @@ def test_binding_position_and_velocity_limits_hold_on_the_sampled_trajectory(
     knots[1] = 1.7  # joint 2 at rest, 0.2 rad below q_max = 1.9
     target = np.zeros((10, 8))
     target[1] = -0.5  # subtracting it would put joint 2 at 2.2 rad
-    target[0] = 3.0 * np.array([0, 0, -1, 1, -1, 1, 0, 0])  # fast swings of joint 1, at rest at the ends
+    target[0] = 3.0 * np.array(
+        [0, 0, -1, 1, -1, 1, 0, 0]
+    )  # fast swings of joint 1, at rest at the ends
     rng = np.random.default_rng(7)
     M = rng.normal(size=(6 * N_MARK, 80)) * 0.3
     err = M @ target.ravel()

@@ -53,7 +53,9 @@ def test_record_arrays_are_read_only():
 
 
 def test_record_shape_error_names_field():
-    with pytest.raises(RecordError, match=r"TrialRecord.q_meas must have shape \(25, 7\), got \(25, 6\)"):
+    with pytest.raises(
+        RecordError, match=r"TrialRecord.q_meas must have shape \(25, 7\), got \(25, 6\)"
+    ):
         _record(q_meas=np.zeros((25, 6)))
 
 
@@ -95,11 +97,15 @@ def test_command_csv_errors(tmp_path):
     p.write_text("t,q1,q2,q3,q4,q5,q6,q7\n0,0,0,0,0,0,0,0\n0.004,0,0,0,x,0,0,0\n")
     with pytest.raises(CommandError, match="line 3"):
         JointCommand.load(p)
-    p.write_text("t,q1,q2,q3,q4,q5,q6,q7\n0,0,0,0,0,0,0,0\n0.004,0,0,0,0,0,0,0\n0.010,0,0,0,0,0,0,0\n")
+    p.write_text(
+        "t,q1,q2,q3,q4,q5,q6,q7\n0,0,0,0,0,0,0,0\n0.004,0,0,0,0,0,0,0\n0.010,0,0,0,0,0,0,0\n"
+    )
     with pytest.raises(CommandError, match="uniformly spaced"):
         JointCommand.load(p)
     (tmp_path / "x.txt").write_text("")
-    with pytest.raises(CommandError, match=r"unknown extension '.txt' \(valid choices: .csv, .npy\)"):
+    with pytest.raises(
+        CommandError, match=r"unknown extension '.txt' \(valid choices: .csv, .npy\)"
+    ):
         JointCommand.load(tmp_path / "x.txt")
     with pytest.raises(CommandError, match="does not exist"):
         JointCommand.load(tmp_path / "missing.csv")

@@ -1,0 +1,127 @@
+"""Scenario files: every shipped file validates; bad input gets exact messages."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from flyknot.constants import SCENARIOS_DIR
+from flyknot.errors import ConfigError
+from flyknot.scenario import limit_runs, load_scenario, parse_overrides, parse_scenario
+
+FILES = sorted(SCENARIOS_DIR.glob("*.toml"))
+
+
+def test_the_paper_experiments_are_all_there():
+    names = {p.stem for p in FILES}
+    for n in (
+        "quick",
+        "learn-rope1",
+        "01-tracking",
+        "02-objectives",
+        "03-ropes",
+        "04-success-rate",
+        "05-demos",
+        "06-transfer",
+        "07-sensitivity",
+    ):
+        assert n in names
+
+
+@pytest.mark.parametrize("path", FILES, ids=lambda p: p.stem)
+def test_every_scenario_file_validates(path: Path):
+    scen = load_scenario(str(path))
+    assert scen.runs
+    waves = scen.order()
+    assert sum(len(w) for w in waves) == len(scen.runs)
+
+
+def test_transfer_covers_all_49_pairs_after_the_learning_runs():
+    scen = load_scenario("06-transfer")
+    waves = scen.order()
+    assert [len(w) for w in waves] == [7, 49]
+    pairs = {(r.start_from, r.rope) for r in waves[1]}
+    assert len(pairs) == 49
+
+
+def test_sensitivity_matches_the_paper_table():
+    scen = load_scenario("07-sensitivity")
+    got = [(r.rope_model["stiffness"], r.rope_model["end_mass"]) for r in scen.runs]
+    assert got == [(1e5, 5.0), (1e4, 5.0), (1e3, 5.0), (1e2, 5.0), (1e5, 0.05), (1e5, 0.005)]
+
+
+def test_overrides_apply_to_every_run():
+    ov = parse_overrides(["max_trials=2", "rope_model.stiffness=1e3", "settle_s=0.5"])
+    scen = load_scenario("03-ropes", ov)
+    assert all(r.max_trials == 2 and r.settle_s == 0.5 for r in scen.runs)
+    assert all(r.rope_model["stiffness"] == 1e3 for r in scen.runs)
+
+
+def test_limit_runs_keeps_dependencies():
+    scen = load_scenario("06-transfer", parse_overrides(["max_runs=1"]))
+    assert [r.name for r in scen.runs] == ["learn-rope1"]
+    doc = {"run": [{"name": "b", "start_from": "a"}, {"name": "a"}, {"name": "c"}]}
+    sub = limit_runs(parse_scenario(doc, name="x"), 1)
+    assert [r.name for r in sub.runs] == ["b", "a"]  # b needs a; c is dropped
+    assert [[r.name for r in w] for w in sub.order()] == [["a"], ["b"]]
+
+
+@pytest.mark.parametrize(
+    ("doc", "message"),
+    [
+        (
+            {"kind": "dance", "run": [{"name": "a"}]},
+            "kind: unknown value 'dance' (valid choices: learn, track, transfer, sensitivity, "
+            "objectives, demos)",
+        ),
+        (
+            {"run": [{"name": "a", "rope": 9}]},
+            "rope: unknown value 9 (valid choices: 1, 2, 3, 4, 5, 6, 7)",
+        ),
+        (
+            {"run": [{"name": "a", "objective": "best"}]},
+            "objective: unknown value 'best' (valid choices: critical, equal)",
+        ),
+        (
+            {"run": [{"name": "a", "max_trial": 3}]},
+            "run[0].max_trial: unknown field (valid choices: name, rope, demo, seed, max_trials, "
+            "objective, stop_at_success, repeats, settle_s, backend, start_from, rope_model, "
+            "label)",
+        ),
+        ({"run": [{"name": "a"}, {"name": "a"}]}, "run.name: duplicate run names: a"),
+        (
+            {"run": [{"name": "a", "start_from": "b"}]},
+            "run 'a' start_from: unknown value 'b' (valid choices: )",
+        ),
+        (
+            {"run": [{"name": "a", "rope_model": {"stiff": 1.0}}]},
+            "rope_model key: unknown value 'stiff' (valid choices: stiffness, damping, link_mass, "
+            "end_mass, link_length, n_links, dt)",
+        ),
+        (
+            {"runs": []},
+            "runs: unknown top-level field (valid choices: name, description, kind, "
+            "paper, defaults, run, grid)",
+        ),
+        ({}, "run: the scenario defines no runs"),
+    ],
+)
+def test_bad_scenarios_have_exact_messages(doc, message):
+    with pytest.raises(ConfigError) as e:
+        parse_scenario(doc, name="x")
+    assert str(e.value) == message
+
+
+def test_unknown_scenario_lists_names():
+    with pytest.raises(
+        ConfigError, match=r"no scenario file or name 'nope' \(valid choices: .*quick"
+    ):
+        load_scenario("nope")
+
+
+def test_bad_override():
+    with pytest.raises(ConfigError, match="--set: expected key=value, got 'max_trials'"):
+        parse_overrides(["max_trials"])
+    with pytest.raises(ConfigError, match="--set key: unknown value 'trials'"):
+        parse_overrides(["trials=3"])
