@@ -38,7 +38,7 @@ def swing_command(
     q(t) = q0 + amplitude * b(t / duration), t in [0, duration]; shape (n, 7) [rad].
     """
     check_positive("duration", duration)
-    t = np.arange(int(round(duration * rate_hz)) + 1) / rate_hz
+    t = np.arange(round(duration * rate_hz) + 1) / rate_hz
     q = (
         np.asarray(q0)[None, :]
         + np.asarray(amplitude)[None, :] * smooth_bump(t / duration)[:, None]

@@ -37,7 +37,6 @@ from flyknot_sim.knot import classify_centreline
 from flyknot_sim.rope import RopeParams, add_rope, configure_options, get_rope
 from flyknot_sim.scene import ROBOT_PREFIX, SceneParams, robot_base_pose, scene_spec
 
-
 _BAR = "{desc}: {percentage:3.0f}%|{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}]"
 
 
@@ -177,15 +176,15 @@ class SimLab:
 
         delay = self.reset(q_cmd[0], rng)
         n_cmd = command.n
-        n_settle = int(round(self.params.settle_s / tick))
+        n_settle = round(self.params.settle_s / tick)
         n_ticks = n_cmd + n_settle
         if fault is not None:
-            n_ticks = fault.tick + int(round(self.params.brake_s / tick)) + 1
+            n_ticks = fault.tick + round(self.params.brake_s / tick) + 1
 
         # Ticks run on the robot clock: tick i starts at sim time delay + i * tick.
         # Simulate the delay first (arm holding q0).
         # The arm holds q0 during the delay; the trial's clock starts before it.
-        pre_steps = int(round(delay / sim_dt))
+        pre_steps = round(delay / sim_dt)
         n_steps = pre_steps + n_ticks * substeps
         vert_hist = np.empty((n_steps + 1, *self.rope.vertex_positions(m, d).shape))
         t_hist = sim_dt * np.arange(n_steps + 1)
@@ -217,10 +216,7 @@ class SimLab:
             mujoco.mju_mat2Quat(tip_quat[i], d.site_xmat[self._tip_site])
             if fault is not None and i == fault.tick:
                 hold = q_meas[i].copy()  # brake: hold where the arm is
-            if hold is not None:
-                target = hold
-            else:
-                target = q_cmd[min(i, n_cmd - 1)]
+            target = hold if hold is not None else q_cmd[min(i, n_cmd - 1)]
             q_sent[i] = target
             d.ctrl[self._act] = target
             for _ in range(substeps):

@@ -7,10 +7,10 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from flyknot.record import TrialRecord  # noqa: E402
+from flyknot.record import TrialRecord
 
 
 def plot_trial(record: TrialRecord, path: str | Path) -> Path:

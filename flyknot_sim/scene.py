@@ -21,7 +21,7 @@ from flyknot.constants import XARM7_XML
 from flyknot.errors import check_positive
 
 os.environ.setdefault("MUJOCO_GL", "disable")  # PyMJCF only builds XML; no rendering here.
-from dm_control import mjcf  # noqa: E402
+from dm_control import mjcf
 
 ROBOT_PREFIX = "xarm7/"
 

@@ -46,9 +46,9 @@ def test_lost_before_tc_is_an_error():
     t = np.arange(0, 1.0, 0.005)
     y = np.ones((t.size, 3))
     y[t > 0.4] = np.nan
-    with pytest.raises(RecordError, match="nearest finite marker sample is 100.0 ms from t_c"):
+    with pytest.raises(RecordError, match=r"nearest finite marker sample is 100\.0 ms from t_c"):
         local_polyfit_state(t, y, 0.5, MarkerFitParams(half_window=0.2))
-    with pytest.raises(RecordError, match="only 0 finite marker samples"):
+    with pytest.raises(RecordError, match=r"only 0 finite marker samples"):
         local_polyfit_state(t, y, 0.5)
 
 
@@ -56,7 +56,7 @@ def test_marker_index_named_in_error():
     t = np.arange(0, 1.0, 0.005)
     m = np.zeros((t.size, 11, 3))
     m[:, 7] = np.nan
-    with pytest.raises(RecordError, match="^marker 7: only 0 finite"):
+    with pytest.raises(RecordError, match=r"^marker 7: only 0 finite"):
         markers_state_at(t, m, 0.5)
 
 

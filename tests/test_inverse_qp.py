@@ -19,10 +19,10 @@ from learner.inverse_qp import (
     JointLimits,
     LimitRows,
     base_equality_rows,
-    rest_equality_rows,
     build_inverse_qp,
     limit_rows,
     require_solved,
+    rest_equality_rows,
     solve_qp,
 )
 from learner.kinematics import RobotModel
