@@ -184,21 +184,32 @@ class SimLab:
         # Ticks run on the robot clock: tick i starts at sim time delay + i * tick.
         # Simulate the delay first (arm holding q0).
         # The arm holds q0 during the delay; the trial's clock starts before it.
+        # Timing: after mj_step number j, body positions and contacts in MjData are those of
+        # the state *before* that step (MuJoCo computes them in the step's forward pass), so
+        # the reading after step j is stored as sample j - 1 (time (j - 1) * sim_dt); the last
+        # sample comes from one mj_kinematics at the end.
         pre_steps = round(delay / sim_dt)
         n_steps = pre_steps + n_ticks * substeps
-        vert_hist = np.empty((n_steps + 1, *self.rope.vertex_positions(m, d).shape))
+        n_vert = self.rope.vertex_positions(m, d).shape
+        vert_hist = np.empty((n_steps + 1, *n_vert))
         t_hist = sim_dt * np.arange(n_steps + 1)
-        vert_hist[0] = self.rope.vertex_positions(m, d)
-        k = 0
-        for _ in range(pre_steps):
+        j = 0  # steps taken
+        first_contact: float | None = None
+
+        def step() -> None:
+            nonlocal j, first_contact
             mujoco.mj_step(m, d)
-            k += 1
-            vert_hist[k] = self.rope.vertex_positions(m, d)
+            j += 1
+            vert_hist[j - 1] = self.rope.vertex_positions(m, d)
+            if first_contact is None and self.rope.self_contact(m, d):
+                first_contact = float(t_hist[j - 1])
+
+        for _ in range(pre_steps):
+            step()
         q_meas = np.empty((n_ticks, N_JOINTS))
         tip_pos = np.empty((n_ticks, 3))
         tip_quat = np.empty((n_ticks, 4))
         q_sent = np.empty((n_ticks, N_JOINTS))
-        first_contact: float | None = None
         hold = None
         bar = tqdm(
             total=round(n_ticks * tick, 2),
@@ -211,6 +222,7 @@ class SimLab:
             if i % 25 == 0:
                 bar.n = round(i * tick, 2)
                 bar.refresh()
+            mujoco.mj_kinematics(m, d)  # fingertip pose of the current joint angles
             q_meas[i] = d.qpos[self._qadr]
             tip_pos[i] = d.site_xpos[self._tip_site]
             mujoco.mju_mat2Quat(tip_quat[i], d.site_xmat[self._tip_site])
@@ -220,11 +232,9 @@ class SimLab:
             q_sent[i] = target
             d.ctrl[self._act] = target
             for _ in range(substeps):
-                mujoco.mj_step(m, d)
-                k += 1
-                vert_hist[k] = self.rope.vertex_positions(m, d)
-                if first_contact is None and self.rope.self_contact(m, d):
-                    first_contact = float(t_hist[k])
+                step()
+        mujoco.mj_kinematics(m, d)
+        vert_hist[n_steps] = self.rope.vertex_positions(m, d)
         bar.n = bar.total
         bar.close()
         # Joints are stamped on the robot's clock (0 at the first command sample); markers
@@ -247,7 +257,7 @@ class SimLab:
         }
         return TrialRecord(
             t_joint=t_joint,
-            q_cmd=q_cmd[np.minimum(np.arange(n_ticks), n_cmd - 1)],
+            q_cmd=q_sent,
             q_meas=q_meas,
             t_marker=t_mocap,
             markers=markers,
