@@ -10,8 +10,8 @@ import pytest
 
 from flyknot.cli import main
 from flyknot.errors import ConfigError
-from flyknot.record import Cell, JointCommand, TrialRecord
-from flyknot_sim.commands import HOME_Q, swing_command
+from flyknot.record import Cell, TrialRecord
+from flyknot_sim.commands import swing_command
 from flyknot_sim.lab import LabParams, SimLab, VariationParams
 from flyknot_sim.mocap import MocapParams
 
