@@ -1,0 +1,57 @@
+"""The command line: one-word knot output, bench JSON shape, clean errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from flyknot.cli import main
+from flyknot.constants import REPO_ROOT
+
+KNOTS = REPO_ROOT / "tests" / "data" / "knots"
+
+
+@pytest.mark.parametrize(
+    ("name", "word"),
+    [
+        ("overhand_41.csv", "trefoil"),
+        ("figure_eight_41.npy", "4_1"),
+        ("slip_41.npy", "unknot"),
+        ("free_end_above_hand_60.npy", "unknot"),
+    ],
+)
+def test_knot_prints_exactly_one_word(capsys, name, word):
+    assert main(["knot", str(KNOTS / name)]) == 0
+    assert capsys.readouterr().out == f"{word}\n"
+
+
+def test_knot_straight_rope(tmp_path, capsys):
+    p = tmp_path / "line.npy"
+    np.save(p, np.column_stack([np.zeros(30), np.zeros(30), -np.linspace(0, 1.1, 30)]))
+    assert main(["knot", str(p)]) == 0
+    assert capsys.readouterr().out == "unknot\n"
+
+
+def test_knot_errors_are_one_line(tmp_path, capsys):
+    assert main(["knot", str(tmp_path / "missing.npy")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("flyknot: error: ") and err.count("\n") == 1
+    p = tmp_path / "c.txt"
+    p.write_text("1,2,3\n")
+    assert main(["knot", str(p)]) == 2
+    assert "valid choices: .csv, .npy" in capsys.readouterr().err
+
+
+def test_bench_sim_json_shape(capsys):
+    assert main(["bench", "sim", "--json", "--ropes", "6"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert list(out) == ["ropes"] and out["ropes"][0]["rope"] == 6
+    row = out["ropes"][0]
+    assert row["realtime_factor"] == pytest.approx(1 / row["wall_per_sim_s"])
+
+
+def test_bench_rejects_unknown_rope(capsys):
+    assert main(["bench", "sim", "--ropes", "8"]) == 2
+    assert "unknown rope id 8" in capsys.readouterr().err
