@@ -55,3 +55,19 @@ def test_bench_sim_json_shape(capsys):
 def test_bench_rejects_unknown_rope(capsys):
     assert main(["bench", "sim", "--ropes", "8"]) == 2
     assert "unknown rope id 8" in capsys.readouterr().err
+
+
+def test_bench_learner_json_keys(capsys):
+    assert main(["bench", "learner", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    for key in (
+        "rollout_s",
+        "linearise_s",
+        "qp_build_s",
+        "qp_osqp_s",
+        "qp_clarabel_s",
+        "update_s",
+        "fd_jacobian_s",
+    ):
+        assert out[key] > 0, key
+    assert out["ift_over_fd"] > 1 and out["fd_rel_err"] < 1e-4
