@@ -74,6 +74,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_view(args: argparse.Namespace) -> int:
+    from flyknot.viewer import serve
+
+    serve(args.record, host=args.host, port=args.port)
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from flyknot import bench
 
@@ -119,6 +126,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0, help="trial-to-trial variation seed")
     s.add_argument("--out", default="runs/showcase", help="output directory")
     s.set_defaults(func=_cmd_showcase)
+
+    v = sub.add_parser("view", help="3D viewer of a trial record in the browser (viser)")
+    v.add_argument("record", help="trial record (.json/.npz stem, e.g. runs/x/trial)")
+    v.add_argument("--host", default="127.0.0.1", help="address to serve on")
+    v.add_argument("--port", type=int, default=8080, help="port to serve on")
+    v.set_defaults(func=_cmd_view)
 
     b = sub.add_parser("bench", help="benchmarks: sim (lab speed per rope), learner")
     b.add_argument("what", choices=["sim", "learner"])
