@@ -94,6 +94,7 @@ class TrialSummary:
     predicted_cost_after: float | None
     action: str
     wall_s: float
+    t_eff: float | None = None
 
     @property
     def success(self) -> bool:
@@ -384,6 +385,7 @@ def _assess(
         "new_knots": res.new_knots.tolist(),
         "timings": dict(res.timings),
         "limit_rounds": res.limit_rounds,
+        "t_eff": res.t_eff,
         "sampled_violation": res.sampled_violation,
     }
     cost = critical_cost(res.err, params.weights) if np.all(np.isfinite(res.err)) else None
@@ -394,5 +396,11 @@ def _assess(
         update_solved=res.solved,
         update_status=res.qp_status,
         predicted_cost_after=res.predicted_cost_after if res.solved else None,
-        action="update" if res.solved else "QP failed: command unchanged",
+        t_eff=res.t_eff,
+        action=("update" if res.solved else "QP failed: command unchanged")
+        + (
+            ""
+            if abs(res.t_eff - target.t_c) < 1e-9
+            else f" (critical point at {res.t_eff:.3f} s: tracking lost before t_c)"
+        ),
     ), update

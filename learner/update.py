@@ -45,7 +45,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from flyknot.constants import COMMAND_RATE_HZ, MODEL_DT, N_JOINTS, N_KNOTS, N_ROWS
 from flyknot.demo import Demonstration
-from flyknot.errors import ConfigError, RecordError, check_choice, check_positive
+from flyknot.errors import ConfigError, RecordError, check_choice, check_nonnegative, check_positive
 from flyknot.limits import JointLimits
 from flyknot.record import TrialRecord
 from learner.bezier import BezierCommand, sample_command
@@ -286,6 +286,8 @@ class UpdateResult:
             250 Hz samples (q, qd, qdd exact; torque by inverse dynamics, so the torque
             linearisation error shows here), as a fraction of the half range (0 when all
             hold, without limits or when not solved).
+        t_eff: Time of the critical point actually used [s]: t_c, or the fallback time
+            before it when the record lost tracking before t_c.
     """
 
     dkappa: np.ndarray
@@ -305,6 +307,7 @@ class UpdateResult:
     limit_violation: float = 0.0
     qp_objective: float = float("nan")
     sampled_violation: float = 0.0
+    t_eff: float = float("nan")
 
     def __post_init__(self) -> None:
         for name in ("dkappa", "new_knots"):
@@ -437,6 +440,39 @@ def _check_rounds(max_rounds: object) -> int:
 # --------------------------------------------------------------------------------------------
 
 
+def _fallback_critical_point(
+    record: TrialRecord,
+    target: DemoTarget,
+    base: np.ndarray,
+    fit: MarkerFitParams,
+    fallback_s: float,
+) -> tuple[int, np.ndarray]:
+    """The latest model step k with t_c - fallback_s <= t_k < t_c where the record's and the
+    demonstration's marker states both exist, and the error there, x_meas(t_k) - x_demo(t_k).
+
+    Raises:
+        RecordError: no such step (tracking lost before t_c - fallback_s).
+    """
+    check_nonnegative("fallback_s", fallback_s)
+    grid = target.t
+    for k in range(len(target.x_pre) - 1, -1, -1):
+        if grid[k] >= target.t_c - _TIME_TOL:
+            continue
+        if grid[k] < target.t_c - fallback_s - _TIME_TOL:
+            break
+        if not np.all(np.isfinite(target.x_pre[k])):
+            continue
+        try:
+            x = critical_state_from_record(record, float(grid[k]), base, fit)
+        except RecordError:
+            continue
+        return k, x - target.x_pre[k]
+    raise RecordError(
+        f"tracking lost before t_c = {target.t_c:.3f} s and no state within "
+        f"{fallback_s:.3f} s before it"
+    )
+
+
 def ilc_update(
     record: TrialRecord,
     command: BezierCommand,
@@ -455,6 +491,7 @@ def ilc_update(
     interpolation: str = "cubic",
     fit: MarkerFitParams | None = None,
     solver_settings: Mapping[str, object] | None = None,
+    fallback_s: float = 0.25,
 ) -> UpdateResult:
     """One ILC update: measured error -> linearised model -> inverse-model QP -> new knots.
 
@@ -486,14 +523,18 @@ def ilc_update(
         fit: Marker fit parameters of the measured (and equal-objective) states (default
             :class:`MarkerFitParams()`).
         solver_settings: Extra settings for the QP solver.
+        fallback_s: When the record lost tracking before t_c (the rope touched itself
+            early), the critical point falls back to the latest model step within
+            ``fallback_s`` before t_c at which both the record and the demonstration give a
+            marker state (``UpdateResult.t_eff``); 0 disables the fallback.
 
     Returns:
         The :class:`UpdateResult`.
 
     Raises:
         ConfigError: on inconsistent inputs.
-        RecordError: if the record lost tracking before t_c (critical objective) or has no
-            usable sample (equal objective).
+        RecordError: if the record lost tracking before t_c - fallback_s (critical
+            objective) or has no usable sample (equal objective).
         SolverError: if the rope model fails on the measured motion.
     """
     t_all = time.perf_counter()
@@ -547,12 +588,15 @@ def ilc_update(
 
     # 1. errors
     t0 = time.perf_counter()
+    t_eff = t_c
     try:
         err = critical_state_from_record(record, t_c, base, fit) - demo_target.x_c
     except RecordError:
         if objective == "critical":
-            raise
-        err = np.full(STATE_DIM, np.nan)
+            k_c, err = _fallback_critical_point(record, demo_target, base, fit, fallback_s)
+            t_eff = float(grid[k_c])
+        else:
+            err = np.full(STATE_DIM, np.nan)
     samples: list[tuple[int, np.ndarray]] = []
     if objective == "equal":
         for k, x_demo in enumerate(demo_target.x_pre):
@@ -682,6 +726,7 @@ def ilc_update(
         limit_violation=float(viol.max()) if (res.solved and viol.size) else 0.0,
         qp_objective=float(res.objective),
         sampled_violation=sampled,
+        t_eff=t_eff,
     )
 
 

@@ -300,7 +300,7 @@ def test_equal_objective_uses_every_tracked_pre_collision_sample(robot, problem)
     lost = _with_lost_markers(record, -1.0, 1.0)
     with pytest.raises(RecordError, match="no pre-collision model step has markers in both"):
         ilc_update(lost, command, target, robot, PARAMS, objective="equal")
-    with pytest.raises(RecordError, match="marker 0: only 0 finite marker samples"):
+    with pytest.raises(RecordError, match="tracking lost before t_c = 0.450 s and no state"):
         ilc_update(lost, command, target, robot, PARAMS)
 
 
@@ -375,3 +375,19 @@ def test_update_input_errors(robot, problem):
             hand_v=target.hand_v,
             x_pre=target.x_pre,
         )
+
+
+def test_tracking_lost_before_tc_falls_back_to_the_last_tracked_step(robot, problem):
+    command, record, target, _ = problem
+    lost = _with_lost_markers(record, T_C - 0.06, 10.0)  # the rope "touched itself" early
+    res = ilc_update(lost, command, target, robot, PARAMS, limits=None, follow_through=False)
+    assert res.solved
+    # the latest step whose local fit still has a sample within 15 ms, before t_c
+    assert T_C - 0.1 < res.t_eff <= T_C - 0.06 + 0.015
+    k = round(res.t_eff / target.dt)
+    x = critical_state_from_record(lost, res.t_eff, command.base_offset)
+    np.testing.assert_allclose(res.err, x - target.x_pre[k], atol=1e-12)
+    full = ilc_update(record, command, target, robot, PARAMS, limits=None, follow_through=False)
+    assert full.t_eff == pytest.approx(T_C)
+    with pytest.raises(RecordError, match="tracking lost before t_c"):
+        ilc_update(lost, command, target, robot, PARAMS, fallback_s=0.03)
