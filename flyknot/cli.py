@@ -60,13 +60,32 @@ def _cmd_showcase(args: argparse.Namespace) -> int:
     return 0
 
 
+def _default_run_dir(name: str, resume: bool) -> Path:
+    """``runs/<name>``; a new run never overwrites an old one (``runs/<name>-2``, ...), and
+    ``--resume`` without ``--out`` continues the newest."""
+    base = Path("runs") / name
+    taken = [base] + sorted(
+        (p for p in base.parent.glob(f"{name}-*") if p.name[len(name) + 1 :].isdigit()),
+        key=lambda p: int(p.name[len(name) + 1 :]),
+    )
+    taken = [p for p in taken if (p / "manifest.json").is_file()]
+    if resume:
+        return taken[-1] if taken else base
+    if not taken:
+        return base
+    n = 2
+    while (base.parent / f"{name}-{n}" / "manifest.json").is_file():
+        n += 1
+    return base.parent / f"{name}-{n}"
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     from flyknot.experiment import run_scenario
     from flyknot.scenario import load_scenario, parse_overrides
 
     overrides = parse_overrides(args.set)
     scen = load_scenario(args.scenario, overrides)
-    out = Path(args.out) if args.out else Path("runs") / scen.name
+    out = Path(args.out) if args.out else _default_run_dir(scen.name, args.resume)
     print(f"scenario {scen.name!r} ({scen.kind}, {len(scen.runs)} runs) -> {out}")
     summary = run_scenario(scen, out, workers=args.workers, resume=args.resume, overrides=overrides)
     ok = sum(r["first_success_trial"] is not None for r in summary["runs"])

@@ -71,3 +71,15 @@ def test_bench_learner_json_keys(capsys):
     ):
         assert out[key] > 0, key
     assert out["ift_over_fd"] > 1 and out["fd_rel_err"] < 1e-4
+
+
+def test_default_run_dir_never_overwrites(tmp_path, monkeypatch):
+    from flyknot.cli import _default_run_dir
+
+    monkeypatch.chdir(tmp_path)
+    assert _default_run_dir("quick", False).as_posix() == "runs/quick"
+    for d in ("runs/quick", "runs/quick-2"):
+        (tmp_path / d).mkdir(parents=True)
+        (tmp_path / d / "manifest.json").write_text("{}")
+    assert _default_run_dir("quick", False).as_posix() == "runs/quick-3"
+    assert _default_run_dir("quick", True).as_posix() == "runs/quick-2"
