@@ -64,10 +64,13 @@ def _default_run_dir(name: str, resume: bool) -> Path:
     """``runs/<name>``; a new run never overwrites an old one (``runs/<name>-2``, ...), and
     ``--resume`` without ``--out`` continues the newest."""
     base = Path("runs") / name
-    taken = [base] + sorted(
-        (p for p in base.parent.glob(f"{name}-*") if p.name[len(name) + 1 :].isdigit()),
-        key=lambda p: int(p.name[len(name) + 1 :]),
-    )
+    taken = [
+        base,
+        *sorted(
+            (p for p in base.parent.glob(f"{name}-*") if p.name[len(name) + 1 :].isdigit()),
+            key=lambda p: int(p.name[len(name) + 1 :]),
+        ),
+    ]
     taken = [p for p in taken if (p / "manifest.json").is_file()]
     if resume:
         return taken[-1] if taken else base
