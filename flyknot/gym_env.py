@@ -137,3 +137,6 @@ class FlyknotEnv(gym.Env):
         obs, reward, success, info = self._trial()
         truncated = not success and self.trials >= self.max_trials
         return obs, reward, success, truncated, info
+
+
+gym.register(id="flyknot/FlyingKnot-v0", entry_point="flyknot.gym_env:FlyknotEnv")

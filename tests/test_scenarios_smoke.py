@@ -1,0 +1,67 @@
+"""Every scenario file runs end to end at tiny size (1 trial, short settle, few runs)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from flyknot.constants import DEMOS_DIR, SCENARIOS_DIR
+from flyknot.experiment import initial_knots, run_scenario
+from flyknot.scenario import load_scenario, parse_overrides
+from flyknot_sim.scene import SceneParams, robot_base_pose
+
+FILES = sorted(SCENARIOS_DIR.glob("*.toml"))
+TINY = ["max_trials=1", "settle_s=0.2", "max_runs=2"]
+
+
+@pytest.fixture(scope="session")
+def guess_cache(tmp_path_factory):
+    """Initial guesses of the shipped demos, computed once for all smoke runs."""
+    from learner.kinematics import RobotModel
+
+    root = tmp_path_factory.mktemp("ig")
+    robot = RobotModel.from_mjcf()
+    z = float(robot_base_pose(SceneParams())[2])
+    for demo in sorted(DEMOS_DIR.glob("*.npz")):
+        initial_knots(demo.stem, root, robot, 0.005, z)
+    return root / "initial_guess"
+
+
+@pytest.mark.parametrize("path", FILES, ids=lambda p: p.stem)
+def test_scenario_runs_at_tiny_size(path: Path, tmp_path, guess_cache):
+    overrides = parse_overrides(TINY)
+    scen = load_scenario(str(path), overrides)
+    if any(r.repeats for r in scen.runs):
+        scen = load_scenario(str(path), parse_overrides([*TINY, "repeats=1"]))
+    out = tmp_path / scen.name
+    shutil.copytree(guess_cache, out / "initial_guess")
+    summary = run_scenario(scen, out, overrides=overrides, progress=False)
+    on_disk = json.loads((out / "summary.json").read_text())
+    assert on_disk == json.loads(json.dumps(summary))
+    for run in summary["runs"]:
+        for key in ("rope", "objective", "costs", "knots", "first_success_trial"):
+            assert key in run
+        assert len(run["costs"]) == len(run["knots"]) == 1
+        assert (out / "runs" / run["name"] / "final_knots.npy").is_file()
+        if run["repeats"]:
+            assert len(run["repeats"]) == 1
+    assert (out / "report.md").read_text().startswith(f"# {scen.name}")
+    assert (out / "costs.png").is_file()
+    if scen.kind == "transfer":
+        assert (out / "transfer_grid.png").is_file()
+
+
+def test_resume_after_an_interrupted_run_repeats_nothing(tmp_path, guess_cache):
+    scen = load_scenario(
+        "quick", parse_overrides(["max_trials=2", "settle_s=0.2", "stop_at_success=false"])
+    )
+    out = tmp_path / "q"
+    shutil.copytree(guess_cache, out / "initial_guess")
+    first = run_scenario(scen, out, progress=False)
+    ledger = (out / "runs" / "rope1" / "learning" / "ledger.jsonl").read_text()
+    again = run_scenario(scen, out, resume=True, progress=False)
+    assert (out / "runs" / "rope1" / "learning" / "ledger.jsonl").read_text() == ledger
+    assert again["runs"][0]["costs"] == first["runs"][0]["costs"]
