@@ -149,6 +149,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default="runs/showcase", help="output directory")
     s.set_defaults(func=_cmd_showcase)
 
+    from flyknot_sim.demo_cli import add_demo_parser
+
+    add_demo_parser(sub)
+
     v = sub.add_parser("view", help="3D viewer of a trial record in the browser (viser)")
     v.add_argument("record", help="trial record (.json/.npz stem, e.g. runs/x/trial)")
     v.add_argument("--host", default="127.0.0.1", help="address to serve on")

@@ -110,6 +110,7 @@ def execute_run(
     from flyknot_sim.lab import LabParams, SimLab
     from learner.bezier import BezierCommand
     from learner.ilc import ILCParams, learn
+    from learner.inverse_qp import InverseModelWeights
     from learner.kinematics import RobotModel
 
     run_dir = out_dir / "runs" / spec.name
@@ -132,6 +133,8 @@ def execute_run(
         objective=spec.objective,
         backend=spec.backend,
         rope_model=rope_model,
+        gain=spec.gain,
+        weights=InverseModelWeights(**spec.weights),
     )
     bar = tqdm(
         total=params.max_trials, desc=spec.name, unit="trial", disable=not progress, leave=False
@@ -174,6 +177,8 @@ def execute_run(
         "demo": spec.demo,
         "objective": spec.objective,
         "rope_model": asdict(rope_model),
+        "gain": spec.gain,
+        "weights": dict(spec.weights),
         "start_from": spec.start_from,
         "costs": res.costs,
         "knots": res.knots,

@@ -40,6 +40,18 @@ from flyknot.errors import ConfigError, check_choice, check_nonnegative
 KINDS = ("learn", "track", "transfer", "sensitivity", "objectives", "demos")
 OBJECTIVES = ("critical", "equal")
 ROPE_MODEL_KEYS = ("stiffness", "damping", "link_mass", "end_mass", "link_length", "n_links", "dt")
+WEIGHT_KEYS = (
+    "w_control",
+    "w_crit_pos",
+    "w_crit_vel",
+    "w_pc",
+    "w_vc",
+    "w_rc",
+    "w_pft",
+    "w_vft",
+    "w_rft",
+    "w_ft_velocity",
+)
 
 
 @dataclass(frozen=True)
@@ -59,6 +71,8 @@ class RunSpec:
         backend: QP solver (``"clarabel"`` or ``"osqp"``).
         start_from: Name of the run whose final command starts this one (transfer), or None.
         rope_model: Overrides of the learner's rope model parameters.
+        gain: ILC learning gain in (0, 1] (the paper: 1).
+        weights: Overrides of the inverse-model weights (learner.inverse_qp).
         label: Free text for figures (e.g. "k=1e3, m_e=5").
     """
 
@@ -74,6 +88,8 @@ class RunSpec:
     backend: str = "clarabel"
     start_from: str | None = None
     rope_model: Mapping[str, float] = field(default_factory=dict)
+    gain: float = 1.0
+    weights: Mapping[str, float] = field(default_factory=dict)
     label: str = ""
 
     def __post_init__(self) -> None:
@@ -97,6 +113,12 @@ class RunSpec:
         for k in rm:
             check_choice("rope_model key", k, ROPE_MODEL_KEYS)
         object.__setattr__(self, "rope_model", rm)
+        w = dict(self.weights)
+        for k in w:
+            check_choice("weights key", k, WEIGHT_KEYS)
+        object.__setattr__(self, "weights", w)
+        if not (isinstance(self.gain, (int, float)) and 0 < self.gain <= 1):
+            raise ConfigError("gain", f"must lie in (0, 1], got {self.gain!r}")
 
 
 RUN_KEYS = tuple(f.name for f in fields(RunSpec))
@@ -168,6 +190,10 @@ def parse_overrides(pairs: list[str] | None) -> dict[str, Any]:
             sub = key.split(".", 1)[1]
             check_choice("rope_model key", sub, ROPE_MODEL_KEYS)
             out.setdefault("rope_model", {})[sub] = _coerce_override(value)
+        elif key.startswith("weights."):
+            sub = key.split(".", 1)[1]
+            check_choice("weights key", sub, WEIGHT_KEYS)
+            out.setdefault("weights", {})[sub] = _coerce_override(value)
         elif key == "max_runs":
             out["max_runs"] = int(value)
         else:
@@ -202,6 +228,7 @@ def parse_scenario(
     overrides = dict(overrides or {})
     max_runs = overrides.pop("max_runs", None)
     rope_model = {**dict(defaults.pop("rope_model", {})), **dict(overrides.pop("rope_model", {}))}
+    weights = {**dict(defaults.pop("weights", {})), **dict(overrides.pop("weights", {}))}
     raw_runs: list[dict[str, Any]] = []
     if "grid" in doc:
         grid = dict(doc["grid"])
@@ -223,6 +250,7 @@ def parse_scenario(
             **dict(entry.get("rope_model", {})),
             **dict(overrides.get("rope_model", {})),
         }
+        merged["weights"] = {**weights, **dict(entry.get("weights", {}))}
         merged.setdefault("name", f"run{i}")
         runs.append(_make_run(merged, f"run[{i}]"))
     scen = Scenario(

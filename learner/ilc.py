@@ -55,6 +55,8 @@ class ILCParams:
         backend: QP solver, ``"clarabel"`` or ``"osqp"``.
         tracking_retries: Repeats of a trial whose markers were lost before t_c.
         follow_through: Include the follow-through fingertip tracking term.
+        gain: ILC learning gain alpha in (0, 1]: the command moves by alpha dkappa (the
+            paper: 1).
         weights: Inverse-model weights (default: the paper's).
         rope_model: The learner's rope model (default: the paper's).
     """
@@ -65,6 +67,7 @@ class ILCParams:
     backend: str = "clarabel"
     tracking_retries: int = 2
     follow_through: bool = True
+    gain: float = 1.0
     weights: InverseModelWeights = field(default_factory=InverseModelWeights)
     rope_model: RopeModelParams = field(default_factory=RopeModelParams)
 
@@ -77,6 +80,8 @@ class ILCParams:
             )
         check_choice("objective", self.objective, OBJECTIVES)
         check_choice("backend", self.backend, BACKENDS)
+        if not (isinstance(self.gain, (int, float)) and 0 < self.gain <= 1):
+            raise ConfigError("gain", f"must lie in (0, 1], got {self.gain!r}")
 
 
 @dataclass(frozen=True)
@@ -282,7 +287,8 @@ def learn(
                 return _finish(trials, knots, params, why)
             new = prev_knots + 0.5 * (knots - prev_knots)
         elif summary.update_solved:
-            new = _safe_step(knots, np.asarray(update["dkappa"]), target.T, robot, limits)
+            dk = params.gain * np.asarray(update["dkappa"])
+            new = _safe_step(knots, dk, target.T, robot, limits)
         else:
             new = knots  # failed QP: command unchanged (reported in the ledger)
         prev_knots, knots = knots, new

@@ -157,3 +157,17 @@ def test_safe_step_halves_a_step_that_would_break_a_limit(robot):
     assert alpha in (0.5, 0.25, 0.125, 0.0625)
     small = 0.01 * dk
     np.testing.assert_allclose(_safe_step(knots, small, T, robot, JointLimits()), knots - small)
+
+
+def test_gain_scales_the_step(robot, problem, monkeypatch):
+    target, start = problem
+    cell, spy = _cell_for(robot, target, knot_cost=0.0)
+    monkeypatch.setattr(BezierCommand, "joint_command", spy)
+    full = learn(cell, target, start, robot, ILCParams(max_trials=2, rope_model=ROPE))
+    step_full = cell.played[1] - cell.played[0]
+    cell.played.clear()
+    learn(cell, target, start, robot, ILCParams(max_trials=2, rope_model=ROPE, gain=0.25))
+    np.testing.assert_allclose(cell.played[1] - cell.played[0], 0.25 * step_full, atol=1e-9)
+    assert full.trials[0].cost is not None
+    with pytest.raises(ConfigError, match=r"gain: must lie in \(0, 1\], got 0"):
+        ILCParams(gain=0)

@@ -87,7 +87,7 @@ def test_limit_runs_keeps_dependencies():
             {"run": [{"name": "a", "max_trial": 3}]},
             "run[0].max_trial: unknown field (valid choices: name, rope, demo, seed, max_trials, "
             "objective, stop_at_success, repeats, settle_s, backend, start_from, rope_model, "
-            "label)",
+            "gain, weights, label)",
         ),
         ({"run": [{"name": "a"}, {"name": "a"}]}, "run.name: duplicate run names: a"),
         (
@@ -118,6 +118,15 @@ def test_unknown_scenario_lists_names():
         ConfigError, match=r"no scenario file or name 'nope' \(valid choices: .*quick"
     ):
         load_scenario("nope")
+
+
+def test_gain_and_weight_overrides():
+    scen = load_scenario("quick", parse_overrides(["gain=0.5", "weights.w_control=5"]))
+    assert scen.runs[0].gain == 0.5 and scen.runs[0].weights == {"w_control": 5}
+    with pytest.raises(ConfigError, match=r"gain: must lie in \(0, 1\], got 2"):
+        load_scenario("quick", parse_overrides(["gain=2"]))
+    with pytest.raises(ConfigError, match="weights key: unknown value 'w_x'"):
+        parse_overrides(["weights.w_x=1"])
 
 
 def test_bad_override():
