@@ -65,6 +65,7 @@ __all__ = [
     "JointTrajectory",
     "build_hand_scene",
     "hand_rotation",
+    "judged_frames",
     "trial_demonstration",
 ]
 
@@ -118,6 +119,8 @@ class HandParams:
         home: Hand position at zero joints [m]; the rope hangs from it.
         hand_mass: Mass of the hand [kg] (gravity-compensated).
         hand_inertia: Rotational inertia of the hand about each axis [kg m^2].
+        hinge_armature: Armature of each hinge [kg m^2]; keeps the mass matrix regular where
+            the y and z hinges align (a = +-90 degrees).
         slide_bandwidth: Natural frequency w of the slide servos [rad/s].
         hinge_bandwidth: Natural frequency w of the hinge servos [rad/s].
         hang_s: Time the hand holds still before the motion [s].
@@ -133,6 +136,7 @@ class HandParams:
     home: tuple[float, float, float] = (0.0, 0.0, 1.5)
     hand_mass: float = 0.5
     hand_inertia: float = 1e-3
+    hinge_armature: float = 2e-4
     slide_bandwidth: float = 200.0
     hinge_bandwidth: float = 200.0
     hang_s: float = 0.05
@@ -150,6 +154,7 @@ class HandParams:
         for f in (
             "hand_mass",
             "hand_inertia",
+            "hinge_armature",
             "slide_bandwidth",
             "hinge_bandwidth",
             "judge_rate_hz",
@@ -169,8 +174,9 @@ class HandParams:
         return get_rope(self.rope)
 
     def joint_inertia(self) -> np.ndarray:
-        """Inertia seen by each joint, (m, m, m, I, I, I), shape (6,) [kg, kg m^2]."""
-        return np.array([self.hand_mass] * 3 + [self.hand_inertia] * 3)
+        """Inertia seen by each joint, (m, m, m, I + I_a, I + I_a, I + I_a), shape (6,)
+        [kg, kg m^2] (the hinges' coupling through the chain is neglected)."""
+        return np.array([self.hand_mass] * 3 + [self.hand_inertia + self.hinge_armature] * 3)
 
     def servo_gains(self) -> tuple[np.ndarray, np.ndarray]:
         """Nominal servo gains: kp = I w^2 [N/m, N m/rad], kv = 2 I w [N s/m, N m s/rad].
@@ -286,6 +292,7 @@ def build_hand_scene(params: HandParams) -> HandScene:
             name=name,
             axis=list(axis),
             type=mujoco.mjtJoint.mjJNT_SLIDE if slide else mujoco.mjtJoint.mjJNT_HINGE,
+            armature=0.0 if slide else params.hinge_armature,
         )
         a = spec.add_actuator(name=f"{name}_pos", target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
         a.set_to_position(kp=float(kp[i]))
@@ -338,6 +345,7 @@ class HandTrial:
         knot_any: A trefoil in any judged frame from the motion's start on.
         settle_fraction: Fraction of the judged frames in the settling phase that are
             trefoils (the last frame included).
+        judged: Indices into ``t`` of the judged frames, shape (J,) (empty if not judged).
         diverged: MuJoCo reset the state (NaN) during the trial.
         variation: The drawn variation (gain factors, sway, azimuth, delay, tempo).
         wall_s: Wall time of the trial [s].
@@ -355,6 +363,7 @@ class HandTrial:
     knot: str | None
     knot_any: bool
     settle_fraction: float
+    judged: np.ndarray
     diverged: bool
     variation: Mapping[str, Any]
     wall_s: float
@@ -384,6 +393,12 @@ class HandLab:
         self._kv0 = self.model.actuator_gainprm[self.scene.act_vel, 0].copy()
         self._vbias0 = self.model.actuator_biasprm[self.scene.act_vel, :3].copy()
         self._inertia = self.params.joint_inertia()
+
+    @staticmethod
+    def nominal_variation() -> dict[str, Any]:
+        """The variation of a nominal trial: unit gain factors, no sway, delay or tempo
+        change."""
+        return _nominal_variation()
 
     @property
     def rope(self) -> BoundRope:
@@ -450,7 +465,7 @@ class HandLab:
         tempo = float(variation["tempo"])
         motion_start = p.hang_s + float(variation["delay"])
         motion_len = float(motion.duration) * tempo
-        n_steps = int(math.ceil((motion_start + motion_len + p.settle_s) / dt - 1e-9))
+        n_steps = math.ceil((motion_start + motion_len + p.settle_s) / dt - 1e-9)
         t = dt * np.arange(n_steps + 1)
         tau = (t - motion_start) / tempo
         q_t, qd_t, qdd_t = motion.joint_targets(tau)
@@ -496,10 +511,10 @@ class HandLab:
         knot: str | None = None
         knot_any = False
         settle_fraction = 0.0
+        judged = np.zeros(0, dtype=int)
         if judge and not diverged:
-            knot, knot_any, settle_fraction = _judge(
-                t, verts, motion_start, motion_start + motion_len, p.judge_rate_hz
-            )
+            judged = judged_frames(t, motion_start, p.judge_rate_hz)
+            knot, knot_any, settle_fraction = _judge(t, verts, judged, motion_start + motion_len)
         return HandTrial(
             t=t,
             hand_pos=pos,
@@ -513,6 +528,7 @@ class HandLab:
             knot=knot,
             knot_any=knot_any,
             settle_fraction=settle_fraction,
+            judged=judged,
             diverged=diverged,
             variation=dict(variation),
             wall_s=time.perf_counter() - tic,
@@ -520,6 +536,7 @@ class HandLab:
 
 
 def _nominal_variation() -> dict[str, Any]:
+    """The variation of a nominal trial (nothing varied)."""
     return {
         "kp_factor": [1.0] * N_HAND_DOF,
         "kv_factor": [1.0] * N_HAND_DOF,
@@ -539,21 +556,24 @@ def _sign_continuous(quat: np.ndarray) -> np.ndarray:
     return out
 
 
-def _judge(
-    t: np.ndarray, verts: np.ndarray, start: float, end: float, rate_hz: float
-) -> tuple[str, bool, float]:
-    """Knot at the end, knot at any judged frame after ``start``, knotted settling fraction.
-
-    Judged frames: every round(1 / (rate_hz dt)) steps from ``start`` on, plus the last.
-    """
+def judged_frames(t: np.ndarray, start: float, rate_hz: float) -> np.ndarray:
+    """Indices of the frames judged for knots: every round(1 / (rate_hz dt)) steps from the
+    first step at or after ``start`` [s], plus the last frame; shape (J,)."""
     dt = float(t[1] - t[0])
     stride = max(1, round(1.0 / (rate_hz * dt)))
-    k0 = int(math.ceil(start / dt - 1e-9))
-    idx = list(range(k0, len(t) - 1, stride)) + [len(t) - 1]
-    names = {k: classify_centreline(verts[k]) for k in idx}
+    k0 = min(math.ceil(start / dt - 1e-9), len(t) - 1)
+    return np.array(sorted(set(range(k0, len(t) - 1, stride)) | {len(t) - 1}), dtype=int)
+
+
+def _judge(
+    t: np.ndarray, verts: np.ndarray, judged: np.ndarray, end: float
+) -> tuple[str, bool, float]:
+    """Knot at the last frame, a trefoil in any judged frame, and the trefoil fraction of
+    the judged frames at or after ``end`` [s] (the settling phase)."""
+    names = {int(k): classify_centreline(verts[k]) for k in judged}
     end_knot = names[len(t) - 1]
     knot_any = any(n == TREFOIL for n in names.values())
-    settle = [k for k in idx if t[k] >= end - 1e-9]
+    settle = [k for k in names if t[k] >= end - 1e-9]
     fraction = sum(names[k] == TREFOIL for k in settle) / len(settle)
     return end_knot, knot_any, float(fraction)
 

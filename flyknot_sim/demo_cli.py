@@ -1,0 +1,177 @@
+"""``flyknot demo``: synthesize a flying-knot demonstration with the simulated hand, replay one.
+
+The lead's ``flyknot/cli.py`` adds these with one call, ``add_demo_parser(sub)``; this module
+also runs alone as ``python -m flyknot_sim.demo_cli demo ...`` (same parser, same errors).
+
+* ``flyknot demo synthesize --variant NAME --seed S --out FILE`` searches a motion of the
+  variant (progress on stderr), saves the nominal trial as a demonstration (``.npz``) and
+  checks it with ``--check-repeats`` varied replays (the rate goes into its metadata).
+* ``flyknot demo replay FILE --rope N [--repeats K] [--out DIR] [--json]`` plays the stored
+  motion again with the lab's trial-to-trial variation and reports the settled knot and t_c
+  of each replay; ``--out`` saves each replay (``replay_000.npz``, ... ; format in
+  ``assets/demos/README.md``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from flyknot.errors import ConfigError, FlyknotError
+
+
+def _positive_int(name: str, value: int, minimum: int = 1) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ConfigError(name, f"must be an integer >= {minimum}, got {value!r}")
+    return value
+
+
+def _cmd_synthesize(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from flyknot_sim import demo_synth as ds
+
+    variant = ds.get_variant(args.variant)
+    _positive_int("--seed", args.seed, 0)
+    _positive_int("--check-repeats", args.check_repeats, 0)
+    from flyknot_sim.rope import get_rope
+
+    get_rope(args.rope)
+    out = Path(args.out)
+    if out.suffix != ".npz":
+        raise ConfigError("--out", f"must be a .npz file, got {str(out)!r}")
+    config = ds.SynthConfig()
+    if args.budget is not None:
+        config = replace(config, total_budget=_positive_int("--budget", args.budget))
+    config = replace(config, search=replace(config.search, hand=ds.HandParams(rope=args.rope)))
+    result = ds.synthesize(
+        variant.name,
+        args.seed,
+        config,
+        check_repeats=args.check_repeats,
+        progress=not args.quiet,
+    )
+    result.demo.save(out)
+    summary = {"file": str(out), **result.summary()}
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print("\n".join(f"{k}: {v}" for k, v in summary.items()))
+    return 0
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from flyknot.demo import Demonstration
+    from flyknot_sim import demo_synth as ds
+
+    _positive_int("--repeats", args.repeats)
+    _positive_int("--seed", args.seed, 0)
+    demo = Demonstration.load(args.file)
+    result = ds.replay(
+        demo,
+        rope=args.rope,
+        repeats=args.repeats,
+        seed=args.seed,
+        vary=not args.nominal,
+        settle_s=args.settle,
+        keep_trials=args.out is not None,
+        progress=not args.json and not args.quiet,
+    )
+    if args.out is not None:
+        from flyknot_sim.hand import HandLab
+
+        rope_binding = HandLab(ds.hand_from_demo(demo, result.rope, vary=False)).rope
+        for i, trial in enumerate(result.trials):
+            ds.save_replay(
+                Path(args.out) / f"replay_{i:03d}.npz",
+                trial,
+                rope_binding,
+                rope=result.rope,
+                seed=args.seed,
+                index=i,
+                source=str(args.file),
+            )
+    if args.json:
+        print(json.dumps(result.to_json()))
+    else:
+        for i, (o, t) in enumerate(zip(result.outcomes, result.t_c, strict=True)):
+            tc = "none" if t is None else f"{t:.3f} s"
+            print(f"replay {i}: {o}, t_c {tc}")
+        print(f"knots: {result.knots}/{len(result.outcomes)} (rope {result.rope})")
+    return 0
+
+
+def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add ``demo synthesize`` and ``demo replay`` to a ``flyknot`` subparser set.
+
+    Args:
+        subparsers: The object returned by ``parser.add_subparsers()``.
+
+    Returns:
+        The ``demo`` parser.
+    """
+    from flyknot_sim.demo_synth import VARIANTS
+
+    d = subparsers.add_parser("demo", help="synthesize or replay a flying-knot demonstration")
+    dsub = d.add_subparsers(dest="demo_cmd", required=True, metavar="ACTION")
+
+    s = dsub.add_parser(
+        "synthesize", help="search a hand motion that ties the knot and save it as a demo"
+    )
+    s.add_argument("--variant", required=True, help=f"one of: {', '.join(VARIANTS)}")
+    s.add_argument("--seed", type=int, default=0, help="search seed (default 0)")
+    s.add_argument("--out", required=True, help="output file (.npz)")
+    s.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
+    s.add_argument("--budget", type=int, default=None, help="most simulated trials in total")
+    s.add_argument(
+        "--check-repeats",
+        type=int,
+        default=20,
+        help="varied replays that check the saved demo (default 20; 0 skips)",
+    )
+    s.add_argument("--json", action="store_true", help="print a JSON summary")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=_cmd_synthesize)
+
+    r = dsub.add_parser("replay", help="replay a synthesized demo's hand motion")
+    r.add_argument("file", help="demonstration file (.npz) made by `demo synthesize`")
+    r.add_argument("--rope", type=int, default=None, help="rope id (default: the demo's)")
+    r.add_argument("--repeats", type=int, default=1, help="number of replays (default 1)")
+    r.add_argument("--seed", type=int, default=0, help="variation seed (default 0)")
+    r.add_argument(
+        "--nominal", action="store_true", help="no trial-to-trial variation (exact replay)"
+    )
+    r.add_argument("--settle", type=float, default=None, help="settling time [s]")
+    r.add_argument("--out", default=None, help="directory for one file per replay")
+    r.add_argument("--json", action="store_true", help="print one JSON object")
+    r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.set_defaults(func=_cmd_replay)
+    return d
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """A ``flyknot`` parser with only the ``demo`` command (for running this module alone)."""
+    p = argparse.ArgumentParser(prog="flyknot")
+    sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+    add_demo_parser(sub)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``flyknot demo ...`` (errors as ``flyknot`` prints them, exit status 2)."""
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except FlyknotError as e:
+        print(f"flyknot: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("flyknot: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
