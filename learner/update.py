@@ -447,7 +447,7 @@ def _fallback_critical_point(
     fit: MarkerFitParams,
     fallback_s: float,
 ) -> tuple[int, np.ndarray]:
-    """The latest model step k with t_c - fallback_s <= t_k < t_c where the record's and the
+    """The latest model step k with t_c - fallback_s <= t_k < t_c (default: any step) where the record's and the
     demonstration's marker states both exist, and the error there, x_meas(t_k) - x_demo(t_k).
 
     Raises:
@@ -491,7 +491,7 @@ def ilc_update(
     interpolation: str = "cubic",
     fit: MarkerFitParams | None = None,
     solver_settings: Mapping[str, object] | None = None,
-    fallback_s: float = 0.25,
+    fallback_s: float = 10.0,
 ) -> UpdateResult:
     """One ILC update: measured error -> linearised model -> inverse-model QP -> new knots.
 
