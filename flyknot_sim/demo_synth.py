@@ -32,12 +32,14 @@ Score of one trial (:func:`score`; ``docs/demo-synthesis.md`` has the reasoning)
 with f_settle the knotted fraction of the judged settling frames, Wr the writhe of the
 centreline (largest over judged frames), v_peak and e_max the target hand's peak speed and
 largest distance from its start, and g_variant a variant's own constraint violation (e.g.
-the Swipe's strike must be mostly horizontal). Motions that break the speed, excursion or
+the Swipe's strike must travel as far horizontally as it drops). Motions that break the
+speed, excursion or
 variant limits are not simulated; they score -10 minus the penalty.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -192,7 +194,7 @@ _TIE = _tie_matrix()
 # ----------------------------------------------------------------------------------------
 # the motion family
 # ----------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class KnotMotion:
     """One member of the flying-knot motion family (see the module docstring).
 
@@ -209,11 +211,13 @@ class KnotMotion:
         if not np.all(np.isfinite(x)):
             raise ConfigError("KnotMotion.x", "must be finite")
         if not 0.1 <= x[0] <= 5.0:
-            raise ConfigError("KnotMotion.T", f"must lie in [0.1, 5] s, got {x[0]!r}")
+            raise ConfigError("KnotMotion.T", f"must lie in [0.1, 5] s, got {float(x[0])!r}")
         if not 0.0 <= x[1] <= WINDUP_MAX:
-            raise ConfigError("KnotMotion.p", f"must lie in [0, {WINDUP_MAX}], got {x[1]!r}")
+            raise ConfigError("KnotMotion.p", f"must lie in [0, {WINDUP_MAX}], got {float(x[1])!r}")
         if not WINDUP_SPEED_MIN <= x[2] <= 1.0:
-            raise ConfigError("KnotMotion.r", f"must lie in [{WINDUP_SPEED_MIN}, 1], got {x[2]!r}")
+            raise ConfigError(
+                "KnotMotion.r", f"must lie in [{WINDUP_SPEED_MIN}, 1], got {float(x[2])!r}"
+            )
         x.setflags(write=False)
         object.__setattr__(self, "x", x)
 
@@ -319,7 +323,7 @@ class KnotMotion:
         return KnotMotion(np.concatenate([self.x[:N_HEAD], fp.T.ravel()]))
 
     def to_dict(self) -> dict[str, float]:
-        """The 21 numbers by name (for metadata)."""
+        """The 23 numbers by name (for metadata)."""
         return {n: float(v) for n, v in zip(PARAM_NAMES, self.x, strict=True)}
 
     @classmethod
@@ -402,6 +406,8 @@ def fit_motion(
         moving = np.nonzero(np.abs(np.diff(y, axis=0)).max(axis=1) > 1e-9)[0]
         t_move = t[moving[0]] if len(moving) else t[0]
         starts = np.arange(max(t[0], t_move - 0.02), t_move + 1e-9, 0.001)
+    if len(durations) == 0 or len(starts) == 0:
+        raise ConfigError("durations", "need at least one duration and one start")
     best: tuple[float, KnotMotion, float, float] | None = None
     for t0 in starts:
         for T in durations:
@@ -411,8 +417,7 @@ def fit_motion(
             if best is None or err.sum() < best[0]:
                 motion = KnotMotion(np.concatenate([[T, *IDENTITY_WARP], free.T.ravel()]))
                 best = (float(err.sum()), motion, float(t0), float(err.max()))
-    assert best is not None
-    return best[1], best[2], best[3]
+    return best[1], best[2], best[3]  # type: ignore[index]
 
 
 def load_reference_motion(path: str | Path = REFERENCE_MOTION) -> KnotMotion:
@@ -581,7 +586,7 @@ SEEDS = ("reference", "reference-mirrored")
 THROW_WINDOW = (0.66, 0.72)
 """Duration window of the throw (the first stage of every variant) [s]: the reference's
 0.70 s; scaling a knotting motion in time keeps the knot only within about +-3 %."""
-STAGE_KINDS = ("throw", "swipe", "windup")
+STAGE_KINDS = ("throw", "windup")
 
 
 @dataclass(frozen=True)
@@ -589,9 +594,9 @@ class Variant:
     """A kind of flying-knot demonstration (the paper's Fast, Slow, Swipe, Inverse).
 
     Every variant is searched in stages (:meth:`stages`, :func:`synthesize_motion`): a throw
-    in :data:`THROW_WINDOW` from the seed motion, then, for a Swipe, the strike turned more
-    horizontal step by step, then, for a longer ``duration``, a slow wind-up added before the
-    throw (:meth:`KnotMotion.with_windup`).
+    in :data:`THROW_WINDOW` from the seed motion (with the variant's own constraint), then,
+    for a longer ``duration``, a slow wind-up added before the throw
+    (:meth:`KnotMotion.with_windup`).
 
     Attributes:
         name: Name (lower case).
@@ -603,6 +608,8 @@ class Variant:
         swipe_ratio: If > 0, the strike (from the hand's highest point to its end) must
             travel at least this many times farther horizontally than it drops:
             violation g = max(0, dz - dh / swipe_ratio) [m].
+        throw_sigma: CMA-ES initial step of the throw stage [normalised units]; a
+            constrained throw needs a broader search (measured, see the docs).
     """
 
     name: str
@@ -610,6 +617,7 @@ class Variant:
     duration: tuple[float, float]
     seed: str = "reference"
     swipe_ratio: float = 0.0
+    throw_sigma: float = 0.3
 
     def __post_init__(self) -> None:
         lo, hi = (float(v) for v in self.duration)
@@ -621,6 +629,7 @@ class Variant:
         check_choice("Variant.seed", self.seed, SEEDS)
         if not (math.isfinite(self.swipe_ratio) and self.swipe_ratio >= 0):
             raise ConfigError("Variant.swipe_ratio", f"must be >= 0, got {self.swipe_ratio!r}")
+        check_positive("Variant.throw_sigma", self.throw_sigma)
 
     def strike(self, motion: KnotMotion) -> tuple[float, float]:
         """The strike's drop dz and horizontal travel dh [m], from the hand's highest point
@@ -646,42 +655,17 @@ class Variant:
         x[0] = float(np.clip(x[0], *self.duration))
         return KnotMotion(x)
 
-    def stages(self, ratio_step: float = 0.25) -> list[tuple[str, Variant]]:
+    def stages(self) -> list[tuple[str, Variant]]:
         """The search stages: (kind, stage variant) with kind in :data:`STAGE_KINDS`.
 
-        ``throw`` in :data:`THROW_WINDOW` (no swipe constraint); ``swipe`` stages raise the
-        strike ratio by ``ratio_step`` up to ``swipe_ratio``; a ``windup`` stage moves to
-        ``duration`` if it lies beyond the throw window. The last stage is the variant
+        ``throw`` in :data:`THROW_WINDOW` (with ``swipe_ratio``); a ``windup`` stage moves to
+        ``duration`` if that differs from the throw window. The last stage is the variant
         itself.
         """
-        check_positive("ratio_step", ratio_step)
-        out: list[tuple[str, Variant]] = []
-        same_window = self.duration == THROW_WINDOW
-        out.append(
-            (
-                "throw",
-                replace(self, name=f"{self.name}/throw", duration=THROW_WINDOW, swipe_ratio=0.0),
-            )
-        )
-        n = math.ceil(self.swipe_ratio / ratio_step - 1e-9)
-        for k in range(1, n + 1):
-            ratio = self.swipe_ratio * k / n
-            out.append(
-                (
-                    "swipe",
-                    replace(
-                        self,
-                        name=f"{self.name}/swipe{ratio:.2f}",
-                        duration=THROW_WINDOW,
-                        swipe_ratio=ratio,
-                    ),
-                )
-            )
-        if not same_window:
-            out.append(("windup", self))
-        else:
-            out[-1] = (out[-1][0], self)
-        return out
+        if self.duration == THROW_WINDOW:
+            return [("throw", self)]
+        throw = replace(self, name=f"{self.name}/throw", duration=THROW_WINDOW)
+        return [("throw", throw), ("windup", self)]
 
 
 VARIANTS: dict[str, Variant] = {
@@ -691,9 +675,10 @@ VARIANTS: dict[str, Variant] = {
         Variant("slow", "the same kind of throw after a long slow wind-up", (1.00, 1.08)),
         Variant(
             "swipe",
-            "the strike sweeps sideways: it travels farther horizontally than it drops",
+            "the strike sweeps sideways: it travels as far horizontally as it drops",
             (0.80, 0.86),
             swipe_ratio=1.0,
+            throw_sigma=0.6,
         ),
         Variant(
             "inverse",
@@ -846,7 +831,7 @@ class SearchConfig:
     budget: int = 900
     sigma0: float = 0.3
     popsize: int = 0
-    confirm_trials: int = 10
+    confirm_trials: int = 20
     target_rate: float = 0.8
     refine_after: int = 400
     refine_sigma: float = 0.1
@@ -923,9 +908,10 @@ class SearchResult:
     wall_s: float
     stopped: str
 
-    def to_dict(self) -> dict[str, Any]:
-        """Plain-data summary (for metadata and reports)."""
-        return {
+    def to_dict(self, timing: bool = True) -> dict[str, Any]:
+        """Plain-data summary (for metadata and reports); ``timing`` adds the wall time
+        (left out of saved demonstrations so that a rerun writes the same file)."""
+        out = {
             "variant": self.variant,
             "seed": self.seed,
             "trials": self.trials,
@@ -936,9 +922,11 @@ class SearchResult:
             "best_rate": None if self.best is None else self.best.rate,
             "best_nominal_tied": None if self.best is None else self.best.nominal_tied,
             "best_found_at": None if self.best is None else self.best.trial,
-            "wall_s": round(self.wall_s, 1),
             "stopped": self.stopped,
         }
+        if timing:
+            out["wall_s"] = round(self.wall_s, 1)
+        return out
 
 
 def variations(lab: HandLab, seed: Sequence[int], n: int, *, nominal_first: bool) -> list[dict]:
@@ -1116,7 +1104,8 @@ def rope_metadata(rope_id: int) -> dict[str, Any]:
     stale when these differ from ``assets/ropes.toml``)."""
     from flyknot_sim.rope import get_rope, load_sim_settings
 
-    return {"rope": asdict(get_rope(rope_id)), "simulation": asdict(load_sim_settings())}
+    data = {"rope": asdict(get_rope(rope_id)), "simulation": asdict(load_sim_settings())}
+    return json.loads(json.dumps(data))  # as stored: tuples become lists
 
 
 def make_demonstration(
@@ -1307,8 +1296,6 @@ def save_replay(
     Returns:
         The path written.
     """
-    import json
-
     from flyknot.demo import DEMO_FORMAT_VERSION
     from flyknot_sim.mocap import emulate, sample_times
 
@@ -1372,7 +1359,6 @@ class SynthConfig:
         stage_budget: Trial budget of every later stage.
         stage_sigma: CMA-ES step of every later stage [normalised units].
         stage_target: Confirmation rate that ends an intermediate stage.
-        ratio_step: Step of the Swipe's strike ratio between stages.
         windup_speeds: Wind-up speeds r tried as the wind-up stage's start (the one tying
             most often in ``windup_trials`` trials, nominal first, is taken).
         windup_trials: Trials per wind-up speed tried.
@@ -1383,7 +1369,6 @@ class SynthConfig:
     stage_budget: int = 500
     stage_sigma: float = 0.15
     stage_target: float = 0.5
-    ratio_step: float = 0.25
     windup_speeds: tuple[float, ...] = (0.1, 0.15, 0.2, 0.25)
     windup_trials: int = 3
     total_budget: int = 3000
@@ -1394,7 +1379,6 @@ class SynthConfig:
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ConfigError(f"SynthConfig.{f}", f"must be an integer >= 1, got {v!r}")
         check_positive("SynthConfig.stage_sigma", self.stage_sigma)
-        check_positive("SynthConfig.ratio_step", self.ratio_step)
         if not 0.0 < self.stage_target <= 1.0:
             raise ConfigError(
                 "SynthConfig.stage_target", f"must lie in (0, 1], got {self.stage_target!r}"
@@ -1428,15 +1412,17 @@ class StagedResult:
     trials: int
     wall_s: float
 
-    def to_dict(self) -> dict[str, Any]:
-        """Plain-data summary."""
-        return {
+    def to_dict(self, timing: bool = True) -> dict[str, Any]:
+        """Plain-data summary (``timing``: with wall times)."""
+        out = {
             "variant": self.variant,
             "seed": self.seed,
             "trials": self.trials,
-            "wall_s": round(self.wall_s, 1),
-            "stages": [{"kind": k, **r.to_dict()} for k, r in self.stages],
+            "stages": [{"kind": k, **r.to_dict(timing)} for k, r in self.stages],
         }
+        if timing:
+            out["wall_s"] = round(self.wall_s, 1)
+        return out
 
 
 def _pick_windup(
@@ -1476,9 +1462,9 @@ def synthesize_motion(
     """Search a robust flying-knot motion of ``variant`` in stages (:meth:`Variant.stages`).
 
     Each stage runs :func:`search` from the previous stage's best motion (the first from the
-    variant's seed motion) on its own sub-stream of ``seed``; a Swipe stage whose constraint
-    the motion already meets is skipped; a wind-up stage starts from the best of
-    :meth:`KnotMotion.with_windup` over ``config.windup_speeds``. Intermediate stages end at
+    variant's seed motion, with the variant's ``throw_sigma``) on its own sub-stream of
+    ``seed``; a wind-up stage starts from the best of :meth:`KnotMotion.with_windup` over
+    ``config.windup_speeds``. Intermediate stages end at
     ``config.stage_target``, the last at ``config.search.target_rate``. ``on_stage`` is
     called with each finished stage's kind and result.
 
@@ -1495,7 +1481,7 @@ def synthesize_motion(
         raise ConfigError("seed", f"must be an integer >= 0, got {seed!r}")
     tic = time.perf_counter()
     lab = HandLab(config.search.hand)
-    stages = v.stages(config.ratio_step)
+    stages = v.stages()
     motion = replace(v, duration=THROW_WINDOW).seed_motion()
     bar = tqdm(
         total=config.total_budget,
@@ -1508,13 +1494,11 @@ def synthesize_motion(
     try:
         for k, (kind, stage) in enumerate(stages):
             last = k == len(stages) - 1
-            if kind == "swipe" and not last and stage.violation(motion) == 0.0:
-                continue
             if kind == "windup":
                 motion, spent = _pick_windup(lab, motion, stage, seed, k, config)
                 used += spent
                 bar.update(spent)
-            cfg = config.search
+            cfg = replace(config.search, sigma0=v.throw_sigma)
             if k > 0:
                 cfg = replace(cfg, budget=config.stage_budget, sigma0=config.stage_sigma)
             if not last:
@@ -1592,7 +1576,7 @@ def synthesize(
         variant=v.name,
         seed=seed,
         hand=hand,
-        extra={"search": staged.to_dict(), "variant_description": v.description},
+        extra={"search": staged.to_dict(timing=False), "variant_description": v.description},
     )
     check = None
     if check_repeats > 0:
