@@ -447,8 +447,9 @@ def _fallback_critical_point(
     fit: MarkerFitParams,
     fallback_s: float,
 ) -> tuple[int, np.ndarray]:
-    """The latest model step k with t_c - fallback_s <= t_k < t_c (default: any step) where the record's and the
-    demonstration's marker states both exist, and the error there, x_meas(t_k) - x_demo(t_k).
+    """The latest model step k with t_c - fallback_s <= t_k < t_c (by default any step) where
+    the record's and the demonstration's marker states both exist, and the error there,
+    x_meas(t_k) - x_demo(t_k).
 
     Raises:
         RecordError: no such step (tracking lost before t_c - fallback_s).

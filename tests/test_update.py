@@ -300,7 +300,7 @@ def test_equal_objective_uses_every_tracked_pre_collision_sample(robot, problem)
     lost = _with_lost_markers(record, -1.0, 1.0)
     with pytest.raises(RecordError, match="no pre-collision model step has markers in both"):
         ilc_update(lost, command, target, robot, PARAMS, objective="equal")
-    with pytest.raises(RecordError, match="tracking lost before t_c = 0.450 s and no state"):
+    with pytest.raises(RecordError, match=r"tracking lost before t_c = 0\.450 s and no state"):
         ilc_update(lost, command, target, robot, PARAMS)
 
 
