@@ -100,57 +100,58 @@ def plot_transfer_grid(runs: list[dict[str, Any]], path: Path) -> Path:
 
 
 def plot_critical_overlays(run_dir: Path, run: dict[str, Any], path: Path) -> Path | None:
-    """Rope at t_c in each trial (measured, demo frame) against the demonstration's."""
+    """Rope at the critical point in each trial (measured, demo frame) against the demo's.
+
+    Each trial is drawn at the critical point its update used (t_c, or the last tracked
+    instant when the rope touched itself earlier); the demonstration's rope at that time is
+    x_meas - err from the update file.
+    """
     from flyknot.record import TrialRecord
     from learner.critical_state import critical_state_from_record
     from learner.ilc import RunDirectory
 
     rd = RunDirectory(run_dir / "learning")
-    ledger = rd.ledger()
-    if not ledger:
+    ups = sorted((run_dir / "learning").glob("update_*.json"))
+    if not ups:
         return None
-    upd = sorted((run_dir / "learning").glob("update_*.json"))
-    if not upd:
-        return None
-    first = json.loads(upd[0].read_text())
-    knots0 = rd.load_knots(0)
-    # x_demo = x_meas - err at trial 0
-    rec0 = TrialRecord.load(rd.record_stem(first["trial"], 0))
-    try:
-        x0 = critical_state_from_record(rec0, run["t_c"], knots0[7:, 0])
-    except Exception:
-        return None
-    x_demo = x0 - np.asarray(first["err"])
     fig = plt.figure(figsize=(10, 4.2), constrained_layout=True)
     axes = [fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)]
-    pd = x_demo[:33].reshape(11, 3)
-    for ax, (i, j) in zip(axes, [(0, 2), (1, 2)], strict=True):
-        ax.plot(pd[:, i], pd[:, j], "o-", color="#c0392b", lw=2.5, label="demonstration")
-    cmap = plt.cm.Greens
-    n = len(ledger)
-    for s in ledger:
-        if s.fault:
-            continue
+    n = len(ups)
+    drawn = 0
+    for u in ups:
+        up = json.loads(u.read_text())
+        k = int(up["trial"])
+        t_eff = float(up.get("t_eff", run["t_c"]))
+        stems = sorted((run_dir / "learning").glob(f"trial_{k:04d}_a*.json"))
         try:
-            rec = TrialRecord.load(rd.record_stem(s.trial, s.attempt))
-            x = critical_state_from_record(rec, run["t_c"], rd.load_knots(s.trial)[7:, 0])
+            rec = TrialRecord.load(stems[-1])
+            x = critical_state_from_record(rec, t_eff, rd.load_knots(k)[7:, 0])
         except Exception:
             continue
         p = x[:33].reshape(11, 3)
-        c = cmap(0.35 + 0.6 * (s.trial + 1) / max(1, n))
+        pd = (x - np.asarray(up["err"]))[:33].reshape(11, 3)
+        c = plt.cm.Greens(0.35 + 0.6 * (k + 1) / max(1, n))
         for ax, (i, j) in zip(axes, [(0, 2), (1, 2)], strict=True):
             ax.plot(
-                p[:, i],
-                p[:, j],
-                ".-",
-                color=c,
-                lw=1.2,
-                label=f"trial {s.trial + 1}" + (" (knot)" if s.success else ""),
+                pd[:, i],
+                pd[:, j],
+                "-",
+                color="#c0392b",
+                lw=1.0,
+                alpha=0.5,
+                label="demonstration" if drawn == 0 else None,
             )
+            ax.plot(
+                p[:, i], p[:, j], ".-", color=c, lw=1.2, label=f"trial {k + 1} (t = {t_eff:.3f} s)"
+            )
+        drawn += 1
+    if not drawn:
+        plt.close(fig)
+        return None
     for ax, lab in zip(axes, ["x [m]", "y [m]"], strict=True):
         ax.set(xlabel=lab, ylabel="z [m]", aspect="equal")
-    axes[0].set_title(f"rope at t_c = {run['t_c']:.3f} s, {run['name']}")
-    axes[1].legend(fontsize=7, loc="best")
+    axes[0].set_title(f"rope at the critical point, {run['name']} (t_c = {run['t_c']:.3f} s)")
+    axes[1].legend(fontsize=6, loc="best")
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
