@@ -244,7 +244,8 @@ def test_rollout_commutes_with_rotations_about_gravity(angle, seed):
     tr = rollout(p_tip, d_tip, params)
     tr_r = rollout(p_tip @ R.T, d_tip @ R.T, params)
     np.testing.assert_allclose(tr_r.p, tr.p @ R.T, atol=1e-9)
-    np.testing.assert_allclose(tr_r.lam, tr.lam, rtol=1e-7, atol=1e-6)
+    # multipliers converge to ~1e-6 with the 1e-10 m Newton tolerance on positions
+    np.testing.assert_allclose(tr_r.lam, tr.lam, rtol=1e-5, atol=1e-5)
 
 
 # --- errors ----------------------------------------------------------------------------
