@@ -170,8 +170,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``flyknot`` console script."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    return dispatch(build_parser().parse_args(argv))
+
+
+def dispatch(args: argparse.Namespace) -> int:
+    """Run a parsed command; errors of the FlyknotError family become one line, exit 2."""
     try:
         return int(args.func(args) or 0)
     except FlyknotError as e:

@@ -16,11 +16,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from flyknot.errors import ConfigError, FlyknotError
+from flyknot.errors import ConfigError
 
 
 def _positive_int(name: str, value: int, minimum: int = 1) -> int:
@@ -162,15 +161,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``flyknot demo ...`` (errors as ``flyknot`` prints them, exit status 2)."""
-    args = build_parser().parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except FlyknotError as e:
-        print(f"flyknot: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("flyknot: interrupted", file=sys.stderr)
-        return 130
+    from flyknot.cli import dispatch
+
+    return dispatch(build_parser().parse_args(argv))
 
 
 if __name__ == "__main__":

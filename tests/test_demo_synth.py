@@ -490,13 +490,10 @@ def test_cli_replay_json_and_saved_replays(tmp_path, capsys):
         assert z["centreline"].shape[1:] == (get_rope(1).segments + 1, 3)
 
 
-def test_cli_is_wired_into_flyknot_when_the_lead_adds_it(capsys):
+def test_cli_is_wired_into_flyknot(capsys):
     from flyknot import cli
 
-    try:
-        cli.build_parser().parse_args(["demo", "replay", "x.npz"])
-    except SystemExit:
-        pytest.skip("flyknot/cli.py does not add `demo` yet")
+    assert cli.build_parser().parse_args(["demo", "replay", "x.npz"]).file == "x.npz"
     code = cli.main(["demo", "synthesize", "--variant", "loop", "--out", "x.npz"])
     assert code == 2
     assert "valid choices: fast, slow, swipe, inverse" in capsys.readouterr().err
