@@ -31,19 +31,12 @@ from flyknot import __version__
 from flyknot.constants import DEMOS_DIR
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, FlyknotError
-from flyknot.scenario import RunSpec, Scenario
+from flyknot.scenario import RunSpec, Scenario, find_named_file
 
 
 def demo_path(demo: str) -> Path:
     """A demonstration by path or by name under ``assets/demos`` (error lists names)."""
-    p = Path(demo)
-    if p.is_file():
-        return p
-    cand = DEMOS_DIR / f"{demo}.npz"
-    if cand.is_file():
-        return cand
-    names = sorted(q.stem for q in DEMOS_DIR.glob("*.npz")) if DEMOS_DIR.is_dir() else []
-    raise ConfigError("demo", f"no demonstration file or name {demo!r}", names)
+    return find_named_file("demo", demo, DEMOS_DIR, ".npz")
 
 
 def prepare_target(demo_name: str, rope_dt: float):

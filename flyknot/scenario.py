@@ -283,16 +283,21 @@ def limit_runs(scen: Scenario, n: int) -> Scenario:
     return replace(scen, runs=runs)
 
 
-def find_scenario(name_or_path: str) -> Path:
-    """A scenario by path, or by name under ``scenarios/`` (error lists the names)."""
+def find_named_file(field_name: str, name_or_path: str, folder: Path, suffix: str) -> Path:
+    """A file by path, or by name (stem) in ``folder``; the error lists the names there."""
     p = Path(name_or_path)
     if p.is_file():
         return p
-    cand = SCENARIOS_DIR / f"{name_or_path}.toml"
+    cand = folder / f"{name_or_path}{suffix}"
     if cand.is_file():
         return cand
-    names = sorted(q.stem for q in SCENARIOS_DIR.glob("*.toml"))
-    raise ConfigError("scenario", f"no scenario file or name {name_or_path!r}", names)
+    names = sorted(q.stem for q in folder.glob(f"*{suffix}")) if folder.is_dir() else []
+    raise ConfigError(field_name, f"no {field_name} file or name {name_or_path!r}", names)
+
+
+def find_scenario(name_or_path: str) -> Path:
+    """A scenario by path, or by name under ``scenarios/`` (error lists the names)."""
+    return find_named_file("scenario", name_or_path, SCENARIOS_DIR, ".toml")
 
 
 def load_scenario(name_or_path: str, overrides: Mapping[str, Any] | None = None) -> Scenario:
