@@ -231,7 +231,7 @@ def hand_rotation(b: np.ndarray, a: np.ndarray, c: np.ndarray | None = None) -> 
 # ----------------------------------------------------------------------------------------
 # scene
 # ----------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class HandScene:
     """A compiled hand scene.
 
@@ -326,7 +326,7 @@ def build_hand_scene(params: HandParams) -> HandScene:
 # ----------------------------------------------------------------------------------------
 # trial
 # ----------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class HandTrial:
     """What one hand trial produced (sim-only data; a demonstration is made from it).
 
