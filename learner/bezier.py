@@ -115,7 +115,8 @@ def bernstein_basis(t: np.ndarray, T: float, derivative: int = 0) -> np.ndarray:
     return out * (factorial(n) / factorial(n - r)) / T**r
 
 
-def _knots(knots: object, field: str = "knots") -> np.ndarray:
+def check_knots(knots: object, field: str = "knots") -> np.ndarray:
+    """Knots as a float array (10, 8); ConfigError naming ``field`` if malformed."""
     k = np.asarray(knots, dtype=float)
     if k.shape != (N_ROWS, N_KNOTS):
         raise ConfigError(field, f"must have shape ({N_ROWS}, {N_KNOTS}), got {k.shape}")
@@ -139,7 +140,7 @@ def sample_command(knots: np.ndarray, T: float, t: np.ndarray, derivative: int =
     Returns:
         Samples, shape (m, 10) [rad / s^r for rows 0-6, m / s^r for rows 7-9].
     """
-    return bernstein_basis(t, T, derivative) @ _knots(knots).T
+    return bernstein_basis(t, T, derivative) @ check_knots(knots).T
 
 
 def _rows(rows: Iterable[int]) -> list[int]:
@@ -194,7 +195,7 @@ class BezierCommand:
     T: float
 
     def __post_init__(self) -> None:
-        k = _knots(self.knots).copy()
+        k = check_knots(self.knots).copy()
         T = _float_T(self.T)
         base = k[N_JOINTS:]
         spread = np.abs(base - base[:, :1])

@@ -44,7 +44,7 @@ import numpy as np
 
 from flyknot.constants import N_BASE_ROWS, N_JOINTS, N_KNOTS, N_ROWS
 from flyknot.errors import ConfigError, check_positive
-from learner.bezier import bernstein_basis
+from learner.bezier import bernstein_basis, check_knots
 from learner.inverse_qp import FollowThrough
 from learner.kinematics import RobotModel
 
@@ -254,15 +254,6 @@ def tip_angular_jacobian(robot: RobotModel, q: np.ndarray) -> np.ndarray:
     return np.asarray(_omega_map(robot, m)(q.T)).T.reshape(m, 3, n)
 
 
-def _knots(knots: object) -> np.ndarray:
-    k = np.asarray(knots, dtype=float)
-    if k.shape != (N_ROWS, N_KNOTS):
-        raise ConfigError("knots", f"must have shape ({N_ROWS}, {N_KNOTS}), got {k.shape}")
-    if not np.all(np.isfinite(k)):
-        raise ConfigError("knots", "must be finite")
-    return k
-
-
 def _fingertip(knots: np.ndarray, T: float, t: np.ndarray, robot: RobotModel):
     """Fingertip along the command: p = K_p(q) + b, R = K_R(q), v = J_p(q) qd + b' at t."""
     B0 = bernstein_basis(t, T, 0)
@@ -347,7 +338,7 @@ def fingertip_errors(
     Returns:
         Errors, shape (k, 9) [m, rad, m/s].
     """
-    knots = _knots(knots)
+    knots = check_knots(knots)
     p, R, v, *_ = _fingertip(knots, T, np.asarray(t, dtype=float), robot)
     e_R = so3_log(np.swapaxes(np.asarray(ref_R, dtype=float), -1, -2) @ R)
     return np.concatenate([p - ref_p, e_R, v - ref_v], axis=1)
@@ -390,7 +381,7 @@ def follow_through_terms(
     Raises:
         ConfigError: on malformed inputs.
     """
-    knots = _knots(knots)
+    knots = check_knots(knots)
     if isinstance(T, numbers.Real) and not isinstance(T, bool):
         T = float(T)
     check_positive("T", T)

@@ -40,7 +40,7 @@ from learner.rope_model import (
 N_INPUTS = 6  # d p_tip (3) [m], d d_tip (3) [unit]
 
 
-def _steps(steps: Iterable[int] | None, n_steps: int) -> list[int]:
+def check_steps(steps: Iterable[int] | None, n_steps: int) -> list[int]:
     """Validate requested step indices (0..K); None means all."""
     if steps is None:
         return list(range(n_steps + 1))
@@ -94,7 +94,7 @@ def state_sensitivity(
     params = traj.params
     K = traj.n_steps
     dU = _dU(dU, K)
-    steps = _steps(steps, K)
+    steps = check_steps(steps, K)
     n, ell, dt = params.n_links, params.link_length, params.dt
     nth = dU.shape[2]
     if dx0 is None:
@@ -176,7 +176,7 @@ def fd_sensitivity(
     d_tip = np.asarray(d_tip, dtype=float)
     K = p_tip.shape[0] - 1
     dU = _dU(dU, K)
-    steps = _steps(steps, K)
+    steps = check_steps(steps, K)
     if not (isinstance(eps, numbers.Real) and 0 < eps < np.inf):
         raise ConfigError("eps", f"must be a finite number > 0, got {eps!r}")
     if p0 is None:

@@ -57,7 +57,7 @@ from flyknot.constants import (
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, check_choice, check_positive
 from flyknot.record import TrialRecord
-from learner.bezier import BezierCommand, bernstein_basis
+from learner.bezier import BezierCommand, bernstein_basis, check_knots
 from learner.kinematics import RobotModel
 from learner.rope_model import (
     NEWTON_TOL,
@@ -68,7 +68,7 @@ from learner.rope_model import (
     link_vectors,
     rollout,
 )
-from learner.rope_sensitivity import state_sensitivity
+from learner.rope_sensitivity import check_steps, state_sensitivity
 
 N_VARS = N_ROWS * N_KNOTS  # 80
 INTERPOLATIONS = ("cubic", "linear")
@@ -328,15 +328,6 @@ def _n_steps(n_steps: int | None, K: int) -> int:
     return int(n_steps)
 
 
-def _knots(knots: object) -> np.ndarray:
-    k = np.asarray(knots, dtype=float)
-    if k.shape != (N_ROWS, N_KNOTS):
-        raise ConfigError("knots", f"must have shape ({N_ROWS}, {N_KNOTS}), got {k.shape}")
-    if not np.all(np.isfinite(k)):
-        raise ConfigError("knots", "must be finite")
-    return k
-
-
 def _check_params(params: object) -> RopeModelParams:
     if not isinstance(params, RopeModelParams):
         raise ConfigError("rope_params", f"must be a RopeModelParams, got {type(params).__name__}")
@@ -373,7 +364,7 @@ def simulate_command(
     t = model_times(T, params.dt)
     k = _n_steps(n_steps, len(t) - 1)
     t = t[: k + 1]
-    y = bernstein_basis(t, T) @ _knots(knots).T
+    y = bernstein_basis(t, T) @ check_knots(knots).T
     return _simulate(t, y[:, :N_JOINTS], y[:, N_JOINTS:], robot, params, newton_tol)
 
 
@@ -474,17 +465,6 @@ def rollout_from_joints(
 # --------------------------------------------------------------------------------------------
 
 
-def _steps(steps: Iterable[int], n_steps: int) -> list[int]:
-    out = []
-    for s in steps:
-        if isinstance(s, bool) or not isinstance(s, numbers.Integral) or not 0 <= s <= n_steps:
-            raise ConfigError("steps", f"must be integers in [0, {n_steps}], got {s!r}")
-        out.append(int(s))
-    if not out:
-        raise ConfigError("steps", "must not be empty")
-    return out
-
-
 def input_jacobian(rollout_: ModelRollout, T: float, upto: int | None = None) -> np.ndarray:
     """dU/dkappa: derivatives of the rope inputs (p_tip, d_tip) with respect to the knots.
 
@@ -540,7 +520,7 @@ def linearise(rollout: ModelRollout, T: float, steps: Iterable[int]) -> np.ndarr
     T = _float("T", T)
     if rollout.t[-1] > T * (1.0 + _GRID_SLACK):
         raise ConfigError("T", f"must be >= the rollout's last time {rollout.t[-1]:g} s")
-    steps = _steps(steps, rollout.n_steps)
+    steps = check_steps(steps, rollout.n_steps)
     params = rollout.params
     n = params.n_links
     dU = input_jacobian(rollout, T, upto=max(steps))
