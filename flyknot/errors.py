@@ -58,11 +58,13 @@ def check_choice(field: str, value: object, choices: Iterable[object]) -> None:
 
 def check_positive(field: str, value: float) -> None:
     """Raise :class:`ConfigError` unless ``value`` is a finite number > 0."""
-    if not (isinstance(value, (int, float)) and value == value and 0 < value < float("inf")):
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not (number and value == value and 0 < value < float("inf")):
         raise ConfigError(field, f"must be a finite number > 0, got {value!r}")
 
 
 def check_nonnegative(field: str, value: float) -> None:
     """Raise :class:`ConfigError` unless ``value`` is a finite number >= 0."""
-    if not (isinstance(value, (int, float)) and value == value and 0 <= value < float("inf")):
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not (number and value == value and 0 <= value < float("inf")):
         raise ConfigError(field, f"must be a finite number >= 0, got {value!r}")

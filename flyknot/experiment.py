@@ -128,6 +128,7 @@ def execute_run(
         rope_model=rope_model,
         gain=spec.gain,
         weights=InverseModelWeights(**spec.weights),
+        trust_region=spec.trust_region,
     )
     bar = tqdm(
         total=params.max_trials, desc=spec.name, unit="trial", disable=not progress, leave=False
@@ -171,6 +172,7 @@ def execute_run(
         "objective": spec.objective,
         "rope_model": asdict(rope_model),
         "gain": spec.gain,
+        "trust_region": spec.trust_region,
         "weights": dict(spec.weights),
         "start_from": spec.start_from,
         "costs": res.costs,

@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from flyknot.constants import SCENARIOS_DIR
-from flyknot.errors import ConfigError, check_choice, check_nonnegative
+from flyknot.errors import ConfigError, check_choice, check_nonnegative, check_positive
 
 KINDS = ("learn", "track", "transfer", "sensitivity", "objectives", "demos")
 OBJECTIVES = ("critical", "equal")
@@ -73,6 +73,8 @@ class RunSpec:
         rope_model: Overrides of the learner's rope model parameters.
         gain: ILC learning gain in (0, 1] (the paper: 1).
         weights: Overrides of the inverse-model weights (learner.inverse_qp).
+        trust_region: Largest change of any arm knot per update [rad], or None (the paper
+            has none).
         label: Free text for figures (e.g. "k=1e3, m_e=5").
     """
 
@@ -90,6 +92,7 @@ class RunSpec:
     rope_model: Mapping[str, float] = field(default_factory=dict)
     gain: float = 1.0
     weights: Mapping[str, float] = field(default_factory=dict)
+    trust_region: float | None = None
     label: str = ""
 
     def __post_init__(self) -> None:
@@ -119,6 +122,8 @@ class RunSpec:
         object.__setattr__(self, "weights", w)
         if not (isinstance(self.gain, (int, float)) and 0 < self.gain <= 1):
             raise ConfigError("gain", f"must lie in (0, 1], got {self.gain!r}")
+        if self.trust_region is not None:
+            check_positive("trust_region", self.trust_region)
 
 
 RUN_KEYS = tuple(f.name for f in fields(RunSpec))

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -34,6 +35,14 @@ def _cmd_synthesize(args: argparse.Namespace) -> int:
     from flyknot_sim import demo_synth as ds
 
     variant = ds.get_variant(args.variant)
+    pace = {}
+    for flag, f in (("max_speed", "speed_limit"), ("max_axis_rate", "axis_rate_limit")):
+        value = getattr(args, flag)
+        if value is not None:
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"--{flag.replace('_', '-')}", f"must be > 0, got {value!r}")
+            pace[f] = value
+    variant = replace(variant, **pace)
     _positive_int("--seed", args.seed, 0)
     _positive_int("--check-repeats", args.check_repeats, 0)
     from flyknot_sim.rope import get_rope
@@ -47,7 +56,7 @@ def _cmd_synthesize(args: argparse.Namespace) -> int:
         config = replace(config, total_budget=_positive_int("--budget", args.budget))
     config = replace(config, search=replace(config.search, hand=ds.HandParams(rope=args.rope)))
     result = ds.synthesize(
-        variant.name,
+        variant,
         args.seed,
         config,
         check_repeats=args.check_repeats,
@@ -125,6 +134,13 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
     s.add_argument("--out", required=True, help="output file (.npz)")
     s.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
     s.add_argument("--budget", type=int, default=None, help="most simulated trials in total")
+    s.add_argument("--max-speed", type=float, default=None, help="peak hand speed allowed [m/s]")
+    s.add_argument(
+        "--max-axis-rate",
+        type=float,
+        default=None,
+        help="peak turn rate of the rope's exit axis allowed [rad/s] (a robot-paced demo)",
+    )
     s.add_argument(
         "--check-repeats",
         type=int,

@@ -587,6 +587,9 @@ THROW_WINDOW = (0.66, 0.72)
 """Duration window of the throw (the first stage of every variant) [s]: the reference's
 0.70 s; scaling a knotting motion in time keeps the knot only within about +-3 %."""
 STAGE_KINDS = ("throw", "windup")
+PACE_WEIGHT = 0.1
+"""Violation per unit of relative excess over a variant's pace limits (10 % over a limit
+counts like a 1 cm swipe violation)."""
 
 
 @dataclass(frozen=True)
@@ -610,6 +613,11 @@ class Variant:
             violation g = max(0, dz - dh / swipe_ratio) [m].
         throw_sigma: CMA-ES initial step of the throw stage [normalised units]; a
             constrained throw needs a broader search (measured, see the docs).
+        speed_limit: Peak hand speed allowed by the variant [m/s] (inf: only the global
+            :data:`SPEED_LIMIT`); the excess counts in the violation (:meth:`violation`).
+        axis_rate_limit: Peak angular rate of the rope's exit axis allowed [rad/s] (inf: no
+            limit). A robot follows a hand only as fast as its wrist turns: a demonstration
+            for a robot is made with a limit near the robot's own (see :meth:`pace`).
     """
 
     name: str
@@ -618,6 +626,8 @@ class Variant:
     seed: str = "reference"
     swipe_ratio: float = 0.0
     throw_sigma: float = 0.3
+    speed_limit: float = math.inf
+    axis_rate_limit: float = math.inf
 
     def __post_init__(self) -> None:
         lo, hi = (float(v) for v in self.duration)
@@ -630,6 +640,22 @@ class Variant:
         if not (math.isfinite(self.swipe_ratio) and self.swipe_ratio >= 0):
             raise ConfigError("Variant.swipe_ratio", f"must be >= 0, got {self.swipe_ratio!r}")
         check_positive("Variant.throw_sigma", self.throw_sigma)
+        for f in ("speed_limit", "axis_rate_limit"):
+            v = getattr(self, f)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+                raise ConfigError(f"Variant.{f}", f"must be a number > 0 (inf: none), got {v!r}")
+
+    def pace(self, motion: KnotMotion, dt: float = 0.001) -> tuple[float, float]:
+        """Peak hand speed max |p'| [m/s] and peak exit-axis rate max |d'| [rad/s].
+
+        The rope leaves the hand along d = Ry(b) Rx(a) (0, 0, -1), so
+        |d'| = sqrt(a'^2 + cos(a)^2 b'^2); sampled every ``dt`` over [0, T].
+        """
+        t = np.linspace(0.0, motion.duration, max(3, math.ceil(motion.duration / dt) + 1))
+        y, yd = motion.curves(t), motion.curves(t, 1)
+        speed = np.linalg.norm(yd[:, :3], axis=1)
+        rate = np.sqrt(yd[:, 3] ** 2 + (np.cos(y[:, 3]) * yd[:, 4]) ** 2)
+        return float(speed.max()), float(rate.max())
 
     def strike(self, motion: KnotMotion) -> tuple[float, float]:
         """The strike's drop dz and horizontal travel dh [m], from the hand's highest point
@@ -640,11 +666,22 @@ class Variant:
         return float(p[k, 2] - p[-1, 2]), float(np.linalg.norm(p[-1, :2] - p[k, :2]))
 
     def violation(self, motion: KnotMotion) -> float:
-        """The variant's constraint violation g(motion) >= 0 [m] (0 when met)."""
-        if self.swipe_ratio <= 0:
-            return 0.0
-        dz, dh = self.strike(motion)
-        return max(0.0, dz - dh / self.swipe_ratio)
+        """The variant's constraint violation g(motion) >= 0 (0 when met).
+
+        g = max(0, dz - dh / swipe_ratio) [m] (swipe)
+            + PACE_WEIGHT (max(0, v_peak / speed_limit - 1) + max(0, w_peak / axis_rate_limit - 1))
+        """
+        g = 0.0
+        if self.swipe_ratio > 0:
+            dz, dh = self.strike(motion)
+            g += max(0.0, dz - dh / self.swipe_ratio)
+        if math.isfinite(self.speed_limit) or math.isfinite(self.axis_rate_limit):
+            speed, rate = self.pace(motion)
+            g += PACE_WEIGHT * (
+                max(0.0, speed / self.speed_limit - 1.0)
+                + max(0.0, rate / self.axis_rate_limit - 1.0)
+            )
+        return g
 
     def seed_motion(self) -> KnotMotion:
         """The search's start: the seed motion with T clipped into ``duration``."""
@@ -1557,6 +1594,16 @@ class SynthResult:
         }
 
 
+def pace_metadata(variant: Variant) -> dict[str, Any]:
+    """The variant's finite pace limits as plain data (empty if it has none)."""
+    out = {}
+    for f in ("speed_limit", "axis_rate_limit"):
+        v = getattr(variant, f)
+        if math.isfinite(v):
+            out[f] = float(v)
+    return {"pace": out} if out else {}
+
+
 def synthesize(
     variant: str | Variant,
     seed: int,
@@ -1576,7 +1623,11 @@ def synthesize(
         variant=v.name,
         seed=seed,
         hand=hand,
-        extra={"search": staged.to_dict(timing=False), "variant_description": v.description},
+        extra={
+            "search": staged.to_dict(timing=False),
+            "variant_description": v.description,
+            **pace_metadata(v),
+        },
     )
     check = None
     if check_repeats > 0:

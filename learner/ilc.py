@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from flyknot.errors import ConfigError, RecordError, check_choice
+from flyknot.errors import ConfigError, RecordError, check_choice, check_positive
 from flyknot.limits import JointLimits
 from flyknot.record import Cell, TrialRecord
 from learner.bezier import BezierCommand
@@ -59,6 +59,8 @@ class ILCParams:
             paper: 1).
         weights: Inverse-model weights (default: the paper's).
         rope_model: The learner's rope model (default: the paper's).
+        trust_region: Largest change of any arm knot per update [rad] (a box in the QP),
+            or None for none (the paper's).
     """
 
     max_trials: int = 10
@@ -70,6 +72,7 @@ class ILCParams:
     gain: float = 1.0
     weights: InverseModelWeights = field(default_factory=InverseModelWeights)
     rope_model: RopeModelParams = field(default_factory=RopeModelParams)
+    trust_region: float | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.max_trials, int) or self.max_trials < 1:
@@ -82,6 +85,8 @@ class ILCParams:
         check_choice("backend", self.backend, BACKENDS)
         if not (isinstance(self.gain, (int, float)) and 0 < self.gain <= 1):
             raise ConfigError("gain", f"must lie in (0, 1], got {self.gain!r}")
+        if self.trust_region is not None:
+            check_positive("trust_region", self.trust_region)
 
 
 @dataclass(frozen=True)
@@ -369,6 +374,7 @@ def _assess(
             backend=params.backend,
             limits=limits,
             follow_through=params.follow_through,
+            trust_region=params.trust_region,
         )
     except RecordError as e:
         return TrialSummary(

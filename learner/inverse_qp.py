@@ -62,7 +62,13 @@ from flyknot.constants import (
     N_KNOTS,
     N_ROWS,
 )
-from flyknot.errors import ConfigError, SolverError, check_choice, check_nonnegative
+from flyknot.errors import (
+    ConfigError,
+    SolverError,
+    check_choice,
+    check_nonnegative,
+    check_positive,
+)
 from flyknot.limits import JointLimits
 from learner.bezier import sample_command, sample_jacobian
 
@@ -443,6 +449,7 @@ def build_inverse_qp(
     equal: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
     base_update: str = "constant",
     keep_rest: bool = True,
+    trust_region: float | None = None,
 ) -> QPData:
     """Assemble the inverse-model QP (see the module docstring for every term).
 
@@ -461,6 +468,9 @@ def build_inverse_qp(
             pre-collision samples, used *instead of* ``M_crit``/``err_crit``.
         base_update: ``"constant"`` (one base update for all knots) or ``"zero"``.
         keep_rest: Add :func:`rest_equality_rows` (keep zero joint velocity at t = 0 and T).
+        trust_region: If given, the box ``-r <= dk_arm <= r`` on each of the 56 arm knot
+            entries [rad] (rows ``trust``): the linearised model is only trusted near the
+            command it was taken about. None: no box (the paper's).
 
     Returns:
         The QP.
@@ -508,8 +518,17 @@ def build_inverse_qp(
     A_blocks = [E]
     l_blocks = [np.zeros(E.shape[0])]
     u_blocks = [np.zeros(E.shape[0])]
+    if trust_region is not None:
+        check_positive("trust_region", trust_region)
+        off = sum(a.shape[0] for a in A_blocks)
+        box = np.zeros((ARM_COLUMNS.size, N_VARS))
+        box[np.arange(ARM_COLUMNS.size), ARM_COLUMNS] = 1.0
+        A_blocks.append(box)
+        l_blocks.append(np.full(ARM_COLUMNS.size, -float(trust_region)))
+        u_blocks.append(np.full(ARM_COLUMNS.size, float(trust_region)))
+        blocks["trust"] = (off, off + ARM_COLUMNS.size)
     if limits is not None:
-        off = E.shape[0]
+        off = sum(a.shape[0] for a in A_blocks)
         A_blocks.append(-limits.J)
         l_blocks.append(limits.lo - limits.b)
         u_blocks.append(limits.hi - limits.b)

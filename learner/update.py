@@ -493,6 +493,7 @@ def ilc_update(
     fit: MarkerFitParams | None = None,
     solver_settings: Mapping[str, object] | None = None,
     fallback_s: float = 10.0,
+    trust_region: float | None = None,
 ) -> UpdateResult:
     """One ILC update: measured error -> linearised model -> inverse-model QP -> new knots.
 
@@ -659,7 +660,12 @@ def ilc_update(
         t1 = time.perf_counter()
         lim = None if rows is None or idx is None or idx.size == 0 else subset_rows(rows, idx)
         qp = build_inverse_qp(
-            **qp_terms, weights=weights, follow=follow, limits=lim, base_update=base_update
+            **qp_terms,
+            weights=weights,
+            follow=follow,
+            limits=lim,
+            base_update=base_update,
+            trust_region=trust_region,
         )
         timings["qp_build"] += time.perf_counter() - t1
         t1 = time.perf_counter()

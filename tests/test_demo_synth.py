@@ -275,6 +275,37 @@ def test_variants_limits_and_stages():
     assert slow.hand_limits()[0] == pytest.approx(speed, rel=1e-3)
 
 
+def test_pace_matches_finite_differences_of_the_exit_axis():
+    ref = ds.load_reference_motion()
+    speed, rate = FAST.pace(ref, dt=1e-4)
+    t = np.arange(0.0, ref.duration, 1e-4)
+    y = ref.curves(t)
+    axis = -hand_rotation(y[:, 4], y[:, 3])[:, :, 2]  # the rope leaves along the hand's -z
+    fd_rate = np.linalg.norm(np.gradient(axis, t, axis=0), axis=1).max()
+    fd_speed = np.linalg.norm(np.gradient(y[:, :3], t, axis=0), axis=1).max()
+    assert rate == pytest.approx(fd_rate, rel=1e-3)
+    assert speed == pytest.approx(fd_speed, rel=1e-3)
+    assert rate > 20.0  # the hand-paced reference flicks its wrist
+
+
+def test_pace_limits_count_in_the_violation():
+    ref = ds.load_reference_motion()
+    speed, rate = FAST.pace(ref)
+    paced = replace(FAST, axis_rate_limit=rate / 2, speed_limit=speed * 2)
+    assert paced.violation(ref) == pytest.approx(ds.PACE_WEIGHT * 1.0)
+    both = replace(FAST, axis_rate_limit=rate / 2, speed_limit=speed / 4)
+    assert both.violation(ref) == pytest.approx(ds.PACE_WEIGHT * 4.0)
+    assert replace(FAST, axis_rate_limit=2 * rate).violation(ref) == 0.0
+    assert not ds.within_limits(ds.motion_summary(ref, paced))
+    assert ds.pace_metadata(paced) == {
+        "pace": {"speed_limit": speed * 2, "axis_rate_limit": rate / 2}
+    }
+    assert ds.pace_metadata(FAST) == {}
+    with pytest.raises(ConfigError) as e:
+        replace(FAST, axis_rate_limit=0.0)
+    assert str(e.value) == "Variant.axis_rate_limit: must be a number > 0 (inf: none), got 0.0"
+
+
 # ----------------------------------------------------------------------------------------
 # hand lab
 # ----------------------------------------------------------------------------------------
@@ -446,6 +477,13 @@ def test_cli_unknown_variant_lists_choices(tmp_path, capsys):
         "flyknot: error: variant: unknown value 'loop' "
         "(valid choices: fast, slow, swipe, inverse)\n"
     )
+
+
+def test_cli_bad_pace_limit(tmp_path, capsys):
+    out = str(tmp_path / "x.npz")
+    args = ["demo", "synthesize", "--variant", "fast", "--out", out, "--max-axis-rate", "-1"]
+    assert demo_cli.main(args) == 2
+    assert capsys.readouterr().err == "flyknot: error: --max-axis-rate: must be > 0, got -1.0\n"
 
 
 def test_cli_missing_file(tmp_path, capsys):

@@ -171,3 +171,18 @@ def test_gain_scales_the_step(robot, problem, monkeypatch):
     assert full.trials[0].cost is not None
     with pytest.raises(ConfigError, match=r"gain: must lie in \(0, 1\], got 0"):
         ILCParams(gain=0)
+
+
+def test_trust_region_caps_every_arm_knot_step(robot, problem, monkeypatch):
+    target, start = problem
+    cell, spy = _cell_for(robot, target, knot_cost=0.0)
+    monkeypatch.setattr(BezierCommand, "joint_command", spy)
+    learn(cell, target, start, robot, ILCParams(max_trials=2, rope_model=ROPE))
+    free = np.abs(cell.played[1] - cell.played[0])[:7].max()
+    radius = 0.3 * free
+    cell.played.clear()
+    learn(cell, target, start, robot, ILCParams(max_trials=2, rope_model=ROPE, trust_region=radius))
+    boxed = np.abs(cell.played[1] - cell.played[0])[:7].max()
+    assert boxed <= radius * (1 + 1e-4) and boxed >= radius * (1 - 1e-3)
+    with pytest.raises(ConfigError, match="trust_region: must be a finite number > 0, got 0"):
+        ILCParams(trust_region=0)

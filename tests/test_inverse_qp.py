@@ -331,3 +331,45 @@ def test_realistic_size_agrees_across_backends(robot: RobotModel):
     np.testing.assert_allclose(res["osqp"].dkappa, res["clarabel"].dkappa, atol=AGREE)
     for r in res.values():
         assert qp.violation(r.dkappa) <= 1e-7
+
+
+# ------------------------------------------------------------------------------ trust region
+
+
+def test_trust_region_rows_are_a_box_on_the_arm_knots():
+    M, err, follow = _problem(3)
+    plain = build_inverse_qp(M_crit=M, err_crit=err, follow=follow)
+    qp = build_inverse_qp(M_crit=M, err_crit=err, follow=follow, trust_region=0.02)
+    a, z = qp.blocks["trust"]
+    assert z - a == 56 and qp.A.shape[0] == plain.A.shape[0] + 56
+    box = qp.A.toarray()[a:z]
+    np.testing.assert_array_equal(box[:, :56], np.eye(56))
+    np.testing.assert_array_equal(box[:, 56:], 0.0)  # the base rows are not boxed
+    np.testing.assert_array_equal(qp.l[a:z], -0.02)
+    np.testing.assert_array_equal(qp.u[a:z], 0.02)
+    np.testing.assert_array_equal(qp.P.toarray(), plain.P.toarray())  # the cost is unchanged
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_trust_region_binds_and_caps_the_step(backend: str):
+    M, err, _ = _problem(4)
+    free = require_solved(solve_qp(build_inverse_qp(M_crit=M, err_crit=err * 50), backend))
+    radius = 0.25 * np.abs(free.dkappa[:7]).max()
+    qp = build_inverse_qp(M_crit=M, err_crit=err * 50, trust_region=radius)
+    boxed = require_solved(solve_qp(qp, backend))
+    assert np.abs(boxed.dkappa[:7]).max() <= radius * (1 + 1e-5)
+    assert np.abs(boxed.dkappa[:7]).max() >= radius * (1 - 1e-4)  # it binds
+    assert boxed.objective > free.objective
+    # a radius larger than the free step changes nothing
+    wide = build_inverse_qp(M_crit=M, err_crit=err * 50, trust_region=2 * np.abs(free.dkappa).max())
+    np.testing.assert_allclose(
+        require_solved(solve_qp(wide, backend)).dkappa, free.dkappa, atol=AGREE
+    )
+
+
+@pytest.mark.parametrize("bad", [0.0, -0.1, float("nan"), float("inf"), "0.1", True])
+def test_bad_trust_region_raises_exact_message(bad):
+    M, err, _ = _problem(0)
+    with pytest.raises(ConfigError) as e:
+        build_inverse_qp(M_crit=M, err_crit=err, trust_region=bad)
+    assert str(e.value) == f"trust_region: must be a finite number > 0, got {bad!r}"

@@ -87,7 +87,7 @@ def test_limit_runs_keeps_dependencies():
             {"run": [{"name": "a", "max_trial": 3}]},
             "run[0].max_trial: unknown field (valid choices: name, rope, demo, seed, max_trials, "
             "objective, stop_at_success, repeats, settle_s, backend, start_from, rope_model, "
-            "gain, weights, label)",
+            "gain, weights, trust_region, label)",
         ),
         ({"run": [{"name": "a"}, {"name": "a"}]}, "run.name: duplicate run names: a"),
         (
@@ -127,6 +127,18 @@ def test_gain_and_weight_overrides():
         load_scenario("quick", parse_overrides(["gain=2"]))
     with pytest.raises(ConfigError, match="weights key: unknown value 'w_x'"):
         parse_overrides(["weights.w_x=1"])
+
+
+def test_trust_region_override_and_bad_value():
+    assert load_scenario("quick").runs[0].trust_region is None
+    scen = load_scenario("quick", parse_overrides(["trust_region=0.1"]))
+    assert scen.runs[0].trust_region == 0.1
+    assert (
+        load_scenario("quick", parse_overrides(["trust_region=none"])).runs[0].trust_region is None
+    )
+    with pytest.raises(ConfigError) as e:
+        load_scenario("quick", parse_overrides(["trust_region=-1"]))
+    assert str(e.value) == "trust_region: must be a finite number > 0, got -1"
 
 
 def test_bad_override():
