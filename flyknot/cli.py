@@ -8,7 +8,9 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from flyknot.errors import FlyknotError
+import numpy as np
+
+from flyknot.errors import ConfigError, FlyknotError
 
 
 def _cmd_knot(args: argparse.Namespace) -> int:
@@ -109,6 +111,44 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return bench.main(args.what, as_json=args.json, ropes=args.ropes, repeats=args.repeats)
 
 
+DEFAULT_CHECK_MODELS = ("1e5,50", "1e3,50", "100,0.5")
+
+
+def _parse_model(text: str) -> tuple[float, float]:
+    parts = text.split(",")
+    try:
+        k, c = (float(v) for v in parts)
+    except ValueError:
+        raise ConfigError("--model", f"expected STIFFNESS,DAMPING, got {text!r}") from None
+    return k, c
+
+
+def _cmd_model_check(args: argparse.Namespace) -> int:
+    from flyknot.model_check import check_models, format_table
+
+    knots = None
+    if args.knots is not None:
+        path = Path(args.knots)
+        if not path.is_file():
+            raise ConfigError("--knots", f"no file {str(path)!r}")
+        knots = np.load(path)
+        if hasattr(knots, "files"):
+            knots = knots["knots"]
+    models = [_parse_model(m) for m in (args.model or DEFAULT_CHECK_MODELS)]
+    res = check_models(
+        args.demo,
+        args.rope,
+        models,
+        knots=knots,
+        n_directions=args.directions,
+        step=args.step,
+        seed=args.seed,
+        progress=not args.json,
+    )
+    print(json.dumps(res) if args.json else format_table(res))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``flyknot`` (exposed for tests and docs)."""
     p = argparse.ArgumentParser(
@@ -158,6 +198,29 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--host", default="127.0.0.1", help="address to serve on")
     v.add_argument("--port", type=int, default=8080, help="port to serve on")
     v.set_defaults(func=_cmd_view)
+
+    m = sub.add_parser(
+        "model-check",
+        help="compare the learner's rope-model Jacobian with the lab's measured response",
+    )
+    m.add_argument("--demo", default="fast", help="demonstration name or file (default fast)")
+    m.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
+    m.add_argument(
+        "--knots", default=None, help="command knots (.npy/.npz; default: initial guess)"
+    )
+    m.add_argument("--directions", type=int, default=8, help="random directions (default 8)")
+    m.add_argument("--step", type=float, default=0.01, help="direction size [rad] (default 0.01)")
+    m.add_argument("--seed", type=int, default=1, help="seed of the directions (default 1)")
+    m.add_argument(
+        "--model",
+        action="append",
+        default=None,
+        help="STIFFNESS,DAMPING of a rope model to score (repeatable; default: "
+        + " ".join(DEFAULT_CHECK_MODELS)
+        + ")",
+    )
+    m.add_argument("--json", action="store_true", help="print one JSON object")
+    m.set_defaults(func=_cmd_model_check)
 
     b = sub.add_parser("bench", help="benchmarks: sim (lab speed per rope), learner")
     b.add_argument("what", choices=["sim", "learner"])
