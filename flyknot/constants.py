@@ -56,6 +56,7 @@ GRAVITY = 9.81  # [m/s^2]
 # --- task ----------------------------------------------------------------------------
 Z_MIN_TIP = 1.2  # [m] fingertip height above the floor at the start (initial guess)
 FOLLOW_THROUGH_S = 0.035  # [s] t_f = t_c + 35 ms (demo timing selection)
+PATH_FRAC = 0.05  # t_0 where 5 % of the hand path is travelled (demo timing selection)
 SETTLE_S = 1.5  # [s] default settling time after a command before judging the knot
 
 KNOT_OUTCOMES = ("unknot", "trefoil", "other")

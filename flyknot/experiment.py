@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from flyknot import __version__
-from flyknot.constants import DEMOS_DIR
+from flyknot.constants import DEMOS_DIR, FOLLOW_THROUGH_S, PATH_FRAC
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, FlyknotError
 from flyknot.scenario import RunSpec, Scenario, find_named_file
@@ -39,34 +39,57 @@ def demo_path(demo: str) -> Path:
     return find_named_file("demo", demo, DEMOS_DIR, ".npz")
 
 
-def prepare_target(demo_name: str, rope_dt: float):
-    """Trim the demonstration (paper's timing selection) and build the learner's target."""
+def prepare_target(
+    demo_name: str,
+    rope_dt: float,
+    window: tuple[float, float] = (FOLLOW_THROUGH_S, PATH_FRAC),
+):
+    """Trim the demonstration (paper's timing selection with ``window`` =
+    (follow-through t_f - t_c [s], path fraction at t_0)) and build the learner's target."""
     from learner.demo_timing import select_demo_window, trim_demonstration
     from learner.update import DemoTarget
 
     demo = Demonstration.load(demo_path(demo_name))
-    window = select_demo_window(demo.t, demo.hand_pos, demo.t_c)
+    follow_through, path_frac = window
+    window = select_demo_window(
+        demo.t, demo.hand_pos, demo.t_c, follow_through=follow_through, path_frac=path_frac
+    )
     trimmed = trim_demonstration(demo, window)
     return trimmed, DemoTarget.from_demonstration(trimmed, dt=rope_dt)
 
 
+def guess_cache_name(demo_name: str, window: tuple[float, float]) -> str:
+    """File name of a cached initial guess: the demo's stem, plus the window when it is not
+    the paper's."""
+    stem = Path(demo_name).stem
+    if tuple(window) == (FOLLOW_THROUGH_S, PATH_FRAC):
+        return f"{stem}.npz"
+    return f"{stem}_ft{window[0]:g}_p{window[1]:g}.npz"
+
+
 def initial_knots(
-    demo_name: str, out_dir: Path, robot, rope_dt: float, base_height: float
+    demo_name: str,
+    out_dir: Path,
+    robot,
+    rope_dt: float,
+    base_height: float,
+    window: tuple[float, float] = (FOLLOW_THROUGH_S, PATH_FRAC),
 ) -> tuple[np.ndarray, dict]:
     """kappa_0 for a demonstration, computed once per run directory and cached there.
 
     ``base_height`` is the lab's robot base height above its floor, so that the fingertip
-    starts at least z_min above the real floor (the rope hangs clear).
+    starts at least z_min above the real floor (the rope hangs clear); ``window`` as in
+    :func:`prepare_target`.
     """
     from scipy.spatial.transform import Rotation
 
     from learner.initial_guess import InitialGuessParams, initial_guess
 
-    cache = out_dir / "initial_guess" / f"{Path(demo_name).stem}.npz"
+    cache = out_dir / "initial_guess" / guess_cache_name(demo_name, window)
     if cache.is_file():
         with np.load(cache, allow_pickle=False) as z:
             return z["knots"], json.loads(str(z["info"]))
-    trimmed, target = prepare_target(demo_name, rope_dt)
+    trimmed, target = prepare_target(demo_name, rope_dt, window)
     t = trimmed.t - trimmed.t[0]
     R = Rotation.from_quat(trimmed.hand_quat, scalar_first=True).as_matrix()
     params = InitialGuessParams(base_height=base_height)
@@ -113,12 +136,12 @@ def execute_run(
     t_start = time.perf_counter()
     robot = RobotModel.from_mjcf()
     rope_model = _rope_model(spec)
-    _, target = prepare_target(spec.demo, rope_model.dt)
+    _, target = prepare_target(spec.demo, rope_model.dt, spec.window)
     ig_info: dict[str, Any] = {}
     lab = SimLab(LabParams(rope=spec.rope, seed=spec.seed, settle_s=spec.settle_s))
     if knots0 is None:
         knots0, ig_info = initial_knots(
-            spec.demo, out_dir, robot, rope_model.dt, float(lab.base_pose[2])
+            spec.demo, out_dir, robot, rope_model.dt, float(lab.base_pose[2]), spec.window
         )
     params = ILCParams(
         max_trials=max(1, spec.max_trials),
@@ -173,6 +196,8 @@ def execute_run(
         "rope_model": asdict(rope_model),
         "gain": spec.gain,
         "trust_region": spec.trust_region,
+        "follow_through_s": spec.follow_through_s,
+        "path_frac": spec.path_frac,
         "weights": dict(spec.weights),
         "start_from": spec.start_from,
         "costs": res.costs,
@@ -243,11 +268,11 @@ def run_scenario(
     from learner.kinematics import RobotModel
 
     robot = RobotModel.from_mjcf()
-    for demo in sorted({r.demo for r in scen.runs if r.start_from is None}):
+    for demo, window in sorted({(r.demo, r.window) for r in scen.runs if r.start_from is None}):
         dt = next(_rope_model(r).dt for r in scen.runs if r.demo == demo)
         if progress:
             print(f"initial guess for demo {demo!r} (trajectory optimisation)...", flush=True)
-        initial_knots(demo, out_dir, robot, dt, float(robot_base_pose(SceneParams())[2]))
+        initial_knots(demo, out_dir, robot, dt, float(robot_base_pose(SceneParams())[2]), window)
 
     results: dict[str, dict[str, Any]] = {}
     overall = tqdm(total=len(scen.runs), desc=scen.name, unit="run", disable=not progress)

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
-from flyknot.constants import SCENARIOS_DIR
+from flyknot.constants import FOLLOW_THROUGH_S, PATH_FRAC, SCENARIOS_DIR
 from flyknot.errors import ConfigError, check_choice, check_nonnegative, check_positive
 
 KINDS = ("learn", "track", "transfer", "sensitivity", "objectives", "demos")
@@ -75,6 +75,9 @@ class RunSpec:
         weights: Overrides of the inverse-model weights (learner.inverse_qp).
         trust_region: Largest change of any arm knot per update [rad], or None (the paper
             has none).
+        follow_through_s: Demonstration window end t_f - t_c [s] (the paper: 0.035).
+        path_frac: Demonstration window start: the fraction of the hand path travelled at
+            t_0, in [0, 1) (the paper: 0.05).
         label: Free text for figures (e.g. "k=1e3, m_e=5").
     """
 
@@ -93,6 +96,8 @@ class RunSpec:
     gain: float = 1.0
     weights: Mapping[str, float] = field(default_factory=dict)
     trust_region: float | None = None
+    follow_through_s: float = FOLLOW_THROUGH_S
+    path_frac: float = PATH_FRAC
     label: str = ""
 
     def __post_init__(self) -> None:
@@ -124,6 +129,14 @@ class RunSpec:
             raise ConfigError("gain", f"must lie in (0, 1], got {self.gain!r}")
         if self.trust_region is not None:
             check_positive("trust_region", self.trust_region)
+        check_nonnegative("follow_through_s", self.follow_through_s)
+        if not (isinstance(self.path_frac, (int, float)) and 0.0 <= self.path_frac < 1.0):
+            raise ConfigError("path_frac", f"must lie in [0, 1), got {self.path_frac!r}")
+
+    @property
+    def window(self) -> tuple[float, float]:
+        """(follow_through_s, path_frac): what selects the demonstration window."""
+        return (float(self.follow_through_s), float(self.path_frac))
 
 
 RUN_KEYS = tuple(f.name for f in fields(RunSpec))

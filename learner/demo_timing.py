@@ -32,12 +32,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import uniform_filter1d
 
-from flyknot.constants import FOLLOW_THROUGH_S
+from flyknot.constants import FOLLOW_THROUGH_S, PATH_FRAC  # paper: "5% of the total path length"
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, RecordError, check_nonnegative, check_positive
 
 NEAR_ZERO_FRAC = 0.03  # paper: "near-zero (3% of velocity at t_peak)"
-PATH_FRAC = 0.05  # paper: "5% of the total path length"
 MIN_PEAK_SPEED = 1e-6  # [m/s] below this the hand counts as never moving (rounding noise)
 
 

@@ -87,7 +87,7 @@ def test_limit_runs_keeps_dependencies():
             {"run": [{"name": "a", "max_trial": 3}]},
             "run[0].max_trial: unknown field (valid choices: name, rope, demo, seed, max_trials, "
             "objective, stop_at_success, repeats, settle_s, backend, start_from, rope_model, "
-            "gain, weights, trust_region, label)",
+            "gain, weights, trust_region, follow_through_s, path_frac, label)",
         ),
         ({"run": [{"name": "a"}, {"name": "a"}]}, "run.name: duplicate run names: a"),
         (
@@ -141,8 +141,38 @@ def test_trust_region_override_and_bad_value():
     assert str(e.value) == "trust_region: must be a finite number > 0, got -1"
 
 
+def test_demo_window_fields():
+    run = load_scenario("quick").runs[0]
+    assert run.window == (0.035, 0.05)  # the paper's timing selection
+    scen = load_scenario("quick", parse_overrides(["follow_through_s=0.25", "path_frac=0"]))
+    assert scen.runs[0].window == (0.25, 0.0)
+    with pytest.raises(ConfigError) as e:
+        load_scenario("quick", parse_overrides(["path_frac=1"]))
+    assert str(e.value) == "path_frac: must lie in [0, 1), got 1"
+    with pytest.raises(ConfigError) as e:
+        load_scenario("quick", parse_overrides(["follow_through_s=-0.1"]))
+    assert str(e.value) == "follow_through_s: must be a finite number >= 0, got -0.1"
+
+
+def test_guess_cache_name_separates_windows():
+    from flyknot.experiment import guess_cache_name
+
+    assert guess_cache_name("fast", (0.035, 0.05)) == "fast.npz"
+    assert guess_cache_name("/x/robot.npz", (0.25, 0.0)) == "robot_ft0.25_p0.npz"
+
+
 def test_bad_override():
     with pytest.raises(ConfigError, match="--set: expected key=value, got 'max_trials'"):
         parse_overrides(["max_trials"])
     with pytest.raises(ConfigError, match="--set key: unknown value 'trials'"):
         parse_overrides(["trials=3"])
+
+
+def test_window_changes_the_target():
+    from flyknot.experiment import prepare_target
+
+    _, paper = prepare_target("fast", 0.005)
+    _, longer = prepare_target("fast", 0.005, (0.25, 0.0))
+    assert paper.T - paper.t_c == pytest.approx(0.035, abs=0.005)
+    assert longer.T - longer.t_c == pytest.approx(0.25, abs=0.005)
+    assert longer.t_c > paper.t_c  # t_0 moved back to the start of the hand motion
