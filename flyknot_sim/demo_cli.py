@@ -112,6 +112,71 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _load_command(path: str) -> tuple[object, float]:
+    import numpy as np
+
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError("--command", f"no file {str(p)!r}")
+    with np.load(p) as z:
+        if "knots" not in z.files or "T" not in z.files:
+            raise ConfigError("--command", f"{str(p)!r} needs arrays 'knots' and 'T'")
+        return np.array(z["knots"]), float(z["T"])
+
+
+def _save_robot_demo(args: argparse.Namespace, knots, T: float, extra: dict) -> dict:
+    from flyknot.robot_demo import record_demonstration
+
+    out = Path(args.out)
+    if out.suffix != ".npz":
+        raise ConfigError("--out", f"must be a .npz file, got {str(out)!r}")
+    demo = record_demonstration(knots, T, rope=args.rope, metadata=extra)
+    demo.save(out)
+    return {"file": str(out), "t_c": round(demo.t_c, 4), "knot": demo.metadata["knot"], **extra}
+
+
+def _cmd_robot(args: argparse.Namespace) -> int:
+    import tempfile
+
+    from flyknot.experiment import initial_knots, prepare_target
+    from flyknot.robot_demo import CommandSearchConfig, search_command
+    from flyknot_sim.scene import SceneParams, robot_base_pose
+    from learner.kinematics import RobotModel
+    from learner.rope_model import RopeModelParams
+
+    _positive_int("--seed", args.seed, 0)
+    config = CommandSearchConfig(rope=args.rope, evaluations=args.evaluations)
+    if args.start is not None:
+        knots0, T0 = _load_command(args.start)
+    else:
+        dt = RopeModelParams().dt
+        _, target = prepare_target(args.demo, dt)
+        with tempfile.TemporaryDirectory() as tmp:
+            z = float(robot_base_pose(SceneParams())[2])
+            knots0, _ = initial_knots(args.demo, Path(tmp), RobotModel.from_mjcf(), dt, z)
+        T0 = target.T
+    res = search_command(knots0, T0, config, seed=args.seed, progress=not args.quiet)
+    if not res.tied:
+        raise ConfigError(
+            "search",
+            f"no command tied the knot in {res.evaluations} evaluations; try another "
+            "--seed or more --evaluations",
+        )
+    start = args.start if args.start is not None else f"initial guess of demo {args.demo!r}"
+    summary = _save_robot_demo(
+        args, res.knots, res.T, {"search": {"seed": args.seed, "start": start, **res.summary()}}
+    )
+    print(json.dumps(summary) if args.json else "\n".join(f"{k}: {v}" for k, v in summary.items()))
+    return 0
+
+
+def _cmd_record(args: argparse.Namespace) -> int:
+    knots, T = _load_command(args.command)
+    summary = _save_robot_demo(args, knots, T, {"command_file": str(args.command)})
+    print(json.dumps(summary) if args.json else "\n".join(f"{k}: {v}" for k, v in summary.items()))
+    return 0
+
+
 def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add ``demo synthesize`` and ``demo replay`` to a ``flyknot`` subparser set.
 
@@ -150,6 +215,29 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
     s.add_argument("--json", action="store_true", help="print a JSON summary")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=_cmd_synthesize)
+
+    rb = dsub.add_parser(
+        "robot",
+        help="search a command the simulated arm ties the knot with; save its trial as a demo",
+    )
+    rb.add_argument(
+        "--out", required=True, help="output file (.npz; the command is in its metadata)"
+    )
+    rb.add_argument("--demo", default="fast", help="start from this demo's initial guess")
+    rb.add_argument("--start", default=None, help="start command (.npz with knots, T) instead")
+    rb.add_argument("--seed", type=int, default=0, help="search seed (default 0)")
+    rb.add_argument("--evaluations", type=int, default=1500, help="most candidates (default 1500)")
+    rb.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
+    rb.add_argument("--json", action="store_true", help="print a JSON summary")
+    rb.add_argument("--quiet", action="store_true", help="no progress bar")
+    rb.set_defaults(func=_cmd_robot)
+
+    rc = dsub.add_parser("record", help="record a robot command's nominal trial as a demo")
+    rc.add_argument("--command", required=True, help="command file (.npz with knots, T)")
+    rc.add_argument("--out", required=True, help="output file (.npz)")
+    rc.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
+    rc.add_argument("--json", action="store_true", help="print a JSON summary")
+    rc.set_defaults(func=_cmd_record)
 
     r = dsub.add_parser("replay", help="replay a synthesized demo's hand motion")
     r.add_argument("file", help="demonstration file (.npz) made by `demo synthesize`")

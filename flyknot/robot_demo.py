@@ -1,0 +1,331 @@
+"""Robot demonstrations: a command the simulated arm ties the knot with, recorded as a demo.
+
+The hand demonstrations (``flyknot_sim.demo_synth``) flick the wrist far faster than the arm
+can turn (``docs/learning.md``), so the learner's target lies out of the arm's reach. A robot
+demonstration is what a person would record by guiding the arm (kinesthetic teaching): a
+motion the arm can make. It is made in two steps:
+
+1. :func:`search_command`: CMA-ES (package ``cma``) over Bezier commands near a start command
+   (usually the initial guess of a hand demonstration), in the lab without trial-to-trial
+   variation. Decision: 37 numbers, y in normalised units. For joints 1-6 the 6 free knots
+   (knot 1 copies knot 0 and knot 6 copies knot 7: rest at both ends) are offset by
+   ``knot_scale`` y [rad]; joint 7 (it only twists the rope, which has no torsion) and the
+   base rows stay; T = T0 + ``duration_scale`` y_37, kept in ``duration``. A command that
+   breaks a limit on its 250 Hz samples scores -30 - 20 min(v, 5) without being simulated
+   (v: largest violation as a fraction of the half range). Otherwise
+   :func:`command_score`. The search stops at the first command whose trial ends tied.
+2. :func:`record_demonstration`: that command's nominal trial as the motion capture sees it:
+   the fingertip pose (hand frame = fingertip frame), the 11 markers at 200 Hz (noise, loss
+   after contact), t_c = the first rope self-contact.
+
+Score of a trial (higher is better), on truth centrelines every ``frame_s`` from 0.3 T on:
+100 [tied at the end] + 30 (knotted fraction of the settling frames) + 10 [a knot in any
+frame] + 5 (largest trefoil share of the ray closures) + 2 (mean share while settling)
++ 3 [self-contact] + 3 (1 - min(d_min / 0.3 m, 1)), with d_min the closest approach of rope
+points at least 8 vertices apart; a faulted trial scores -20 (+3 if the rope touched itself).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from flyknot.demo import Demonstration
+from flyknot.errors import ConfigError, FlyknotError, check_positive
+from flyknot.limits import JointLimits
+from flyknot.record import TrialRecord
+
+__all__ = [
+    "CommandSearchConfig",
+    "CommandSearchResult",
+    "command_score",
+    "free_from_knots",
+    "knots_from_free",
+    "record_demonstration",
+    "search_command",
+]
+
+FREE = (0, 2, 3, 4, 5, 7)  # free knots of an arm row; knot 1 = knot 0, knot 6 = knot 7
+N_SEARCHED_JOINTS = 6  # joints 1-6; joint 7 only twists the rope
+N_DECISION = N_SEARCHED_JOINTS * len(FREE) + 1  # 37
+HIT_SCORE = 100.0
+
+
+def free_from_knots(knots: np.ndarray) -> np.ndarray:
+    """The free arm knots of a command, shape (7, 6) [rad] (knots 0, 2, 3, 4, 5, 7)."""
+    k = np.asarray(knots, dtype=float)
+    if k.shape != (10, 8):
+        raise ConfigError("knots", f"must have shape (10, 8), got {k.shape}")
+    return k[:7, list(FREE)].copy()
+
+
+def knots_from_free(free: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """Knots (10, 8) from free arm knots (7, 6) [rad] and the base rows (3, 8) [m]; knot 1 =
+    knot 0 and knot 6 = knot 7, so the command starts and ends at rest."""
+    free = np.asarray(free, dtype=float)
+    base = np.asarray(base, dtype=float)
+    if free.shape != (7, len(FREE)) or base.shape != (3, 8):
+        raise ConfigError(
+            "free", f"need free (7, 6) and base (3, 8), got {free.shape} and {base.shape}"
+        )
+    k = np.empty((10, 8))
+    k[:7, list(FREE)] = free
+    k[:7, 1] = free[:, 0]
+    k[:7, 6] = free[:, -1]
+    k[7:] = base
+    return k
+
+
+@dataclass(frozen=True)
+class CommandSearchConfig:
+    """Settings of :func:`search_command`.
+
+    Attributes:
+        rope: Rope id of the lab.
+        evaluations: Most candidate commands evaluated.
+        sigma0: CMA-ES initial step [normalised units].
+        knot_scale: Knot offset per normalised unit [rad].
+        duration_scale: Duration change per normalised unit [s].
+        duration: Allowed command duration (lo, hi) [s].
+        frame_s: Spacing of the judged truth frames [s].
+        confirm: Varied trials (seeds 0..confirm-1) played with the found command.
+    """
+
+    rope: int = 1
+    evaluations: int = 1500
+    sigma0: float = 1.0
+    knot_scale: float = 0.12
+    duration_scale: float = 0.036
+    duration: tuple[float, float] = (0.6, 1.1)
+    frame_s: float = 0.05
+    confirm: int = 10
+
+    def __post_init__(self) -> None:
+        for f in ("evaluations",):
+            v = getattr(self, f)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ConfigError(f, f"must be an integer >= 1, got {v!r}")
+        if isinstance(self.confirm, bool) or not isinstance(self.confirm, int) or self.confirm < 0:
+            raise ConfigError("confirm", f"must be an integer >= 0, got {self.confirm!r}")
+        for f in ("sigma0", "knot_scale", "duration_scale", "frame_s"):
+            check_positive(f, getattr(self, f))
+        lo, hi = (float(v) for v in self.duration)
+        if not 0.1 <= lo < hi <= 5.0:
+            raise ConfigError("duration", f"need 0.1 <= lo < hi <= 5 s, got {self.duration}")
+        object.__setattr__(self, "duration", (lo, hi))
+
+
+@dataclass(frozen=True)
+class CommandSearchResult:
+    """Outcome of :func:`search_command`.
+
+    Attributes:
+        knots: Best command's knots (10, 8).
+        T: Its duration [s].
+        score: Its score.
+        tied: Its nominal trial ended with a knot.
+        evaluations: Candidates evaluated.
+        simulated: Candidates simulated (the others broke a limit).
+        first_hit: Evaluation count at the first tied trial, or None.
+        confirm_knots: Knots in the varied confirmation trials.
+        wall_s: Wall time [s].
+        history: Best score so far per evaluation, shape (evaluations,).
+    """
+
+    knots: np.ndarray
+    T: float
+    score: float
+    tied: bool
+    evaluations: int
+    simulated: int
+    first_hit: int | None
+    confirm_knots: int
+    wall_s: float
+    history: np.ndarray = field(repr=False)
+
+    def summary(self) -> dict[str, Any]:
+        """Plain data (without the knots)."""
+        return {
+            "T": round(self.T, 4),
+            "score": round(self.score, 2),
+            "tied": self.tied,
+            "evaluations": self.evaluations,
+            "simulated": self.simulated,
+            "first_hit": self.first_hit,
+            "confirm_knots": self.confirm_knots,
+            "wall_s": round(self.wall_s, 1),
+        }
+
+
+def command_score(record: TrialRecord, T: float, frame_s: float = 0.05) -> float:
+    """Shaped score of one trial (module docstring); needs the record's simulator truth."""
+    from flyknot_sim.knot import TREFOIL, closure_votes, plurality
+
+    contact = 3.0 if record.first_contact_time is not None else 0.0
+    if record.fault is not None:
+        return -20.0 + contact
+    if record.truth is None:
+        raise ConfigError("record", "needs the simulator's truth (a simulated trial)")
+    tt = np.asarray(record.truth["t_truth"])
+    C = np.asarray(record.truth["centreline"])
+    stride = max(1, round(frame_s / float(tt[1] - tt[0])))
+    idx = np.arange(0, len(tt), stride)
+    idx = idx[tt[idx] >= 0.3 * T]
+    shares, knotted = [], []
+    for i in idx:
+        votes = closure_votes(C[i], n_directions=11)
+        shares.append(votes.get(TREFOIL, 0) / 11.0)
+        knotted.append(plurality(votes) == TREFOIL)
+    shares_a, knotted_a = np.array(shares), np.array(knotted)
+    settle = tt[idx] >= T
+    s = HIT_SCORE * (record.knot == TREFOIL)
+    if settle.any():
+        s += 30.0 * knotted_a[settle].mean() + 2.0 * shares_a[settle].mean()
+    if idx.size:
+        s += 10.0 * knotted_a.any() + 5.0 * shares_a.max()
+    n = C.shape[1]
+    far = np.abs(np.arange(n)[:, None] - np.arange(n)[None, :]) >= 8
+    D = np.linalg.norm(C[::2, :, None] - C[::2, None, :], axis=-1)
+    d_min = float(D[:, far].min())
+    return float(s + contact + 3.0 * (1.0 - min(d_min / 0.3, 1.0)))
+
+
+def search_command(
+    start_knots: np.ndarray,
+    T0: float,
+    config: CommandSearchConfig = CommandSearchConfig(),
+    *,
+    seed: int = 0,
+    progress: bool = False,
+) -> CommandSearchResult:
+    """CMA-ES for a command whose nominal trial ties the knot (module docstring)."""
+    import cma
+    from tqdm import tqdm
+
+    from flyknot_sim.lab import LabParams, SimLab, VariationParams
+    from learner.bezier import BezierCommand
+    from learner.kinematics import RobotModel
+    from learner.update import sampled_violation
+
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ConfigError("seed", f"must be an integer >= 0, got {seed!r}")
+    tic = time.perf_counter()
+    x0 = free_from_knots(start_knots)
+    base = np.asarray(start_knots, dtype=float)[7:]
+    robot, limits = RobotModel.from_mjcf(), JointLimits()
+    lab = SimLab(LabParams(rope=config.rope, variation=VariationParams.none()))
+    lo, hi = config.duration
+
+    def decode(y: np.ndarray) -> tuple[np.ndarray, float]:
+        free = x0.copy()
+        free[:N_SEARCHED_JOINTS] += config.knot_scale * y[:-1].reshape(N_SEARCHED_JOINTS, -1)
+        return knots_from_free(free, base), float(T0 + config.duration_scale * y[-1])
+
+    es = cma.CMAEvolutionStrategy(
+        np.zeros(N_DECISION), config.sigma0, {"seed": seed + 1, "verbose": -9}
+    )
+    best: tuple[float, np.ndarray, float] = (-math.inf, np.asarray(start_knots), T0)
+    history: list[float] = []
+    simulated, first_hit, evals = 0, None, 0
+    bar = tqdm(total=config.evaluations, desc="robot demo search", disable=not progress)
+    while evals < config.evaluations and first_hit is None:
+        ys = es.ask()
+        scores = []
+        for y in ys:
+            knots, T = decode(np.asarray(y))
+            if not lo <= T <= hi:
+                s = -30.0 - 100.0 * abs(T - min(max(T, lo), hi))
+            else:
+                v = sampled_violation(
+                    knots, T, BezierCommand(knots, T).sample_times(), robot, limits
+                )
+                if v > 0:
+                    s = -30.0 - 20.0 * min(v, 5.0)
+                else:
+                    rec = lab.run(BezierCommand(knots, T).joint_command())
+                    simulated += 1
+                    s = command_score(rec, T, config.frame_s)
+            evals += 1
+            scores.append(s)
+            if s > best[0]:
+                best = (s, knots, T)
+            history.append(best[0])
+            bar.update(1)
+            bar.set_postfix(best=f"{best[0]:.1f}", simulated=simulated)
+            if s >= HIT_SCORE and first_hit is None:
+                first_hit = evals
+                break
+            if evals >= config.evaluations:
+                break
+        if len(scores) == len(ys):
+            es.tell(ys, [-s for s in scores])
+    bar.close()
+    score, knots, T = best
+    confirm = 0
+    if best[0] >= HIT_SCORE:
+        for s in range(config.confirm):
+            rec = SimLab(LabParams(rope=config.rope, seed=s)).run(
+                BezierCommand(knots, T).joint_command()
+            )
+            confirm += rec.fault is None and rec.knot == "trefoil"
+    return CommandSearchResult(
+        knots=np.asarray(knots),
+        T=T,
+        score=score,
+        tied=score >= HIT_SCORE,
+        evaluations=evals,
+        simulated=simulated,
+        first_hit=first_hit,
+        confirm_knots=confirm,
+        wall_s=time.perf_counter() - tic,
+        history=np.array(history),
+    )
+
+
+def record_demonstration(
+    knots: np.ndarray, T: float, *, rope: int = 1, metadata: dict[str, Any] | None = None
+) -> Demonstration:
+    """The nominal trial of a command as a demonstration (module docstring).
+
+    Raises:
+        FlyknotError: The trial faulted or the rope never touched itself (no t_c).
+    """
+    from scipy.spatial.transform import Rotation, Slerp
+
+    from flyknot_sim.lab import LabParams, SimLab, VariationParams
+    from learner.bezier import BezierCommand
+
+    lab = SimLab(LabParams(rope=rope, variation=VariationParams.none()))
+    rec = lab.run(BezierCommand(np.asarray(knots, dtype=float), float(T)).joint_command())
+    if rec.fault is not None:
+        raise FlyknotError(f"the command faulted: {rec.fault}")
+    if rec.first_contact_time is None:
+        raise FlyknotError("the rope never touched itself, so there is no t_c")
+    t = rec.t_marker
+    t_pose = np.clip(t, rec.t_joint[0], rec.t_joint[-1])
+    pos = np.column_stack(
+        [np.interp(t_pose, rec.t_joint, rec.fingertip_pos[:, i]) for i in range(3)]
+    )
+    rot = Rotation.from_quat(rec.fingertip_quat, scalar_first=True)
+    quat = Slerp(rec.t_joint, rot)(t_pose).as_quat(scalar_first=True)
+    meta = {
+        "generator": "flyknot.robot_demo",
+        "source": "robot lab, nominal trial (kinesthetic demonstration)",
+        "command_T": float(T),
+        "command_knots": np.asarray(knots, dtype=float).tolist(),
+        "knot": rec.knot,
+        **(metadata or {}),
+    }
+    return Demonstration(
+        t=t,
+        hand_pos=pos,
+        hand_quat=quat,
+        markers=rec.markers,
+        t_c=float(rec.first_contact_time),
+        rope=rope,
+        metadata=meta,
+    )
