@@ -23,6 +23,9 @@ Score of a trial (higher is better), on truth centrelines every ``frame_s`` from
 frame] + 5 (largest trefoil share of the ray closures) + 2 (mean share while settling)
 + 3 [self-contact] + 3 (1 - min(d_min / 0.3 m, 1)), with d_min the closest approach of rope
 points at least 8 vertices apart; a faulted trial scores -20 (+3 if the rope touched itself).
+Only a first self-contact during the motion (t <= T) counts, for the contact and the knot
+terms: a demonstration's critical point is where the motion makes the rope cross itself, not
+where a rope swinging after the motion happens to.
 """
 
 from __future__ import annotations
@@ -165,7 +168,8 @@ def command_score(record: TrialRecord, T: float, frame_s: float = 0.05) -> float
     """Shaped score of one trial (module docstring); needs the record's simulator truth."""
     from flyknot_sim.knot import TREFOIL, closure_votes, plurality
 
-    contact = 3.0 if record.first_contact_time is not None else 0.0
+    during = record.first_contact_time is not None and record.first_contact_time <= T
+    contact = 3.0 if during else 0.0
     if record.fault is not None:
         return -20.0 + contact
     if record.truth is None:
@@ -182,16 +186,23 @@ def command_score(record: TrialRecord, T: float, frame_s: float = 0.05) -> float
         knotted.append(plurality(votes) == TREFOIL)
     shares_a, knotted_a = np.array(shares), np.array(knotted)
     settle = tt[idx] >= T
+    if not during:  # no credit for knots of a rope swinging after the motion
+        return float(3.0 * (1.0 - min(_closest_approach(C) / 0.3, 1.0)))
     s = HIT_SCORE * (record.knot == TREFOIL)
     if settle.any():
         s += 30.0 * knotted_a[settle].mean() + 2.0 * shares_a[settle].mean()
     if idx.size:
         s += 10.0 * knotted_a.any() + 5.0 * shares_a.max()
+    return float(s + contact + 3.0 * (1.0 - min(_closest_approach(C) / 0.3, 1.0)))
+
+
+def _closest_approach(C: np.ndarray) -> float:
+    """Closest distance between rope points at least 8 vertices apart over the frames
+    (every second frame) of centrelines C (frames, vertices, 3) [m]."""
     n = C.shape[1]
     far = np.abs(np.arange(n)[:, None] - np.arange(n)[None, :]) >= 8
     D = np.linalg.norm(C[::2, :, None] - C[::2, None, :], axis=-1)
-    d_min = float(D[:, far].min())
-    return float(s + contact + 3.0 * (1.0 - min(d_min / 0.3, 1.0)))
+    return float(D[:, far].min())
 
 
 def search_command(
@@ -292,7 +303,7 @@ def record_demonstration(
     """The nominal trial of a command as a demonstration (module docstring).
 
     Raises:
-        FlyknotError: The trial faulted or the rope never touched itself (no t_c).
+        FlyknotError: The trial faulted, or the rope did not touch itself during the motion.
     """
     from scipy.spatial.transform import Rotation, Slerp
 
@@ -305,6 +316,11 @@ def record_demonstration(
         raise FlyknotError(f"the command faulted: {rec.fault}")
     if rec.first_contact_time is None:
         raise FlyknotError("the rope never touched itself, so there is no t_c")
+    if rec.first_contact_time > T:
+        raise FlyknotError(
+            f"the rope first touched itself at {rec.first_contact_time:.3f} s, after the "
+            f"motion ended at {T:.3f} s; a demonstration needs t_c during the motion"
+        )
     t = rec.t_marker
     t_pose = np.clip(t, rec.t_joint[0], rec.t_joint[-1])
     pos = np.column_stack(

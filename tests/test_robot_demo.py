@@ -1,0 +1,109 @@
+"""Tests of flyknot/robot_demo.py (robot demonstrations) and ``flyknot demo robot|record``."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from flyknot.constants import DEMOS_DIR
+from flyknot.demo import Demonstration
+from flyknot.errors import ConfigError
+from flyknot.robot_demo import (
+    CommandSearchConfig,
+    command_score,
+    free_from_knots,
+    knots_from_free,
+    record_demonstration,
+    search_command,
+)
+from flyknot_sim import demo_cli
+
+ROBOT_DEMO = DEMOS_DIR / "robot.npz"
+
+
+@given(st.integers(0, 10_000))
+@settings(max_examples=20)
+def test_free_knots_round_trip_and_rest(seed: int):
+    rng = np.random.default_rng(seed)
+    free, base = rng.normal(size=(7, 6)), rng.normal(size=(3, 8))
+    k = knots_from_free(free, base)
+    np.testing.assert_array_equal(free_from_knots(k), free)
+    np.testing.assert_array_equal(k[:7, 1], k[:7, 0])  # zero start velocity
+    np.testing.assert_array_equal(k[:7, 6], k[:7, 7])  # zero end velocity
+    np.testing.assert_array_equal(k[7:], base)
+
+
+def test_bad_shapes_and_config_messages():
+    with pytest.raises(ConfigError) as e:
+        free_from_knots(np.zeros((7, 8)))
+    assert str(e.value) == "knots: must have shape (10, 8), got (7, 8)"
+    with pytest.raises(ConfigError) as e:
+        CommandSearchConfig(duration=(1.0, 0.5))
+    assert str(e.value) == "duration: need 0.1 <= lo < hi <= 5 s, got (1.0, 0.5)"
+    with pytest.raises(ConfigError, match="evaluations: must be an integer >= 1, got 0"):
+        CommandSearchConfig(evaluations=0)
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    demo = Demonstration.load(ROBOT_DEMO)
+    return demo, np.array(demo.metadata["command_knots"]), float(demo.metadata["command_T"])
+
+
+def test_shipped_robot_demo_is_its_commands_nominal_trial(shipped):
+    demo, knots, T = shipped
+    again = record_demonstration(knots, T, rope=demo.rope)
+    assert again.t_c == pytest.approx(demo.t_c, abs=1e-9)
+    np.testing.assert_allclose(again.hand_pos, demo.hand_pos, atol=1e-9)
+    np.testing.assert_array_equal(np.isnan(again.markers), np.isnan(demo.markers))
+    assert demo.metadata["knot"] == "trefoil"
+    assert 0.3 < demo.t_c < T  # the rope touches itself during the motion
+
+
+def test_score_of_a_tie_and_of_a_fault(shipped):
+    from flyknot_sim.lab import LabParams, SimLab, VariationParams
+    from learner.bezier import BezierCommand
+
+    _, knots, T = shipped
+    lab = SimLab(LabParams(rope=1, variation=VariationParams.none()))
+    rec = lab.run(BezierCommand(knots, T).joint_command())
+    assert rec.knot == "trefoil"
+    assert 100.0 <= command_score(rec, T) <= 153.0
+    faulted = dataclasses.replace(rec, fault="joint 2 velocity exceeds limit")
+    assert command_score(faulted, T) == pytest.approx(-17.0)  # -20 + 3 for the contact
+    with pytest.raises(ConfigError, match="record: needs the simulator's truth"):
+        command_score(dataclasses.replace(rec, truth=None), T)
+
+
+def test_search_spends_its_budget_and_keeps_the_best(shipped):
+    _, knots, T = shipped
+    res = search_command(knots, T, CommandSearchConfig(evaluations=4, confirm=0), seed=3)
+    assert res.evaluations <= 4 and res.simulated <= res.evaluations
+    assert np.all(np.diff(res.history) >= 0) and res.history[-1] == res.score
+    assert res.tied == (res.score >= 100.0)
+    assert res.first_hit is None or res.first_hit <= res.evaluations
+
+
+def test_cli_record_round_trip_and_errors(shipped, tmp_path, capsys):
+    _, knots, T = shipped
+    cmd = tmp_path / "cmd.npz"
+    np.savez(cmd, knots=knots, T=T)
+    out = tmp_path / "demo.npz"
+    assert demo_cli.main(["demo", "record", "--command", str(cmd), "--out", str(out)]) == 0
+    assert Demonstration.load(out).metadata["knot"] == "trefoil"
+    capsys.readouterr()
+    assert (
+        demo_cli.main(["demo", "record", "--command", str(tmp_path / "no.npz"), "--out", str(out)])
+        == 2
+    )
+    assert capsys.readouterr().err == (
+        f"flyknot: error: --command: no file {str(tmp_path / 'no.npz')!r}\n"
+    )
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, q=np.zeros(3))
+    assert demo_cli.main(["demo", "record", "--command", str(bad), "--out", str(out)]) == 2
+    assert "needs arrays 'knots' and 'T'" in capsys.readouterr().err
