@@ -140,6 +140,7 @@ def _cmd_model_check(args: argparse.Namespace) -> int:
         args.rope,
         models,
         knots=knots,
+        window=(args.follow_through, args.path_frac),
         n_directions=args.directions,
         step=args.step,
         seed=args.seed,
@@ -203,12 +204,18 @@ def build_parser() -> argparse.ArgumentParser:
         "model-check",
         help="compare the learner's rope-model Jacobian with the lab's measured response",
     )
-    m.add_argument("--demo", default="fast", help="demonstration name or file (default fast)")
+    m.add_argument("--demo", default="robot", help="demonstration name or file (default robot)")
     m.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
     m.add_argument(
         "--knots", default=None, help="command knots (.npy/.npz; default: initial guess)"
     )
     m.add_argument("--directions", type=int, default=8, help="random directions (default 8)")
+    m.add_argument(
+        "--follow-through", type=float, default=0.25, help="window t_f - t_c [s] (default 0.25)"
+    )
+    m.add_argument(
+        "--path-frac", type=float, default=0.0, help="window start path fraction (default 0)"
+    )
     m.add_argument("--step", type=float, default=0.01, help="direction size [rad] (default 0.01)")
     m.add_argument("--seed", type=int, default=1, help="seed of the directions (default 1)")
     m.add_argument(

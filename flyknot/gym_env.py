@@ -19,6 +19,9 @@ state error at the critical time, from the motion-capture markers) plus the knot
 * The episode terminates at the first knot and is truncated after ``max_trials`` trials.
 
 The initial command is the paper's initial guess for the demonstration (cached per env).
+Defaults as the scenario files: the robot demonstration with the window (follow-through
+t_f - t_c = 0.25 s, t_0 at the start of the hand motion); ``window=(0.035, 0.05)`` is the
+paper's.
 """
 
 from __future__ import annotations
@@ -40,8 +43,9 @@ class FlyknotEnv(gym.Env):
     def __init__(
         self,
         rope: int = 1,
-        demo: str = "fast",
+        demo: str = "robot",
         *,
+        window: tuple[float, float] = (0.25, 0.0),
         max_trials: int = 10,
         action_scale: float = 0.05,
         knot_bonus: float = 100.0,
@@ -66,7 +70,8 @@ class FlyknotEnv(gym.Env):
         self._lab = SimLab(LabParams(rope=rope, seed=seed, settle_s=settle_s))
         self._robot = RobotModel.from_mjcf()
         self._weights = InverseModelWeights()
-        _, self.target = prepare_target(demo, RopeModelParams().dt)
+        self._window = (float(window[0]), float(window[1]))
+        _, self.target = prepare_target(demo, RopeModelParams().dt, self._window)
         self._demo = demo
         self._knots0: np.ndarray | None = None
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (66 + N_ROWS * N_KNOTS,), float)
@@ -90,6 +95,7 @@ class FlyknotEnv(gym.Env):
                     self._robot,
                     self.target.dt,
                     float(self._lab.base_pose[2]),
+                    self._window,
                 )
             self._knots0 = np.asarray(k0)
         return self._knots0.copy()

@@ -142,6 +142,7 @@ def check_models(
     models: Sequence[tuple[float, float]],
     *,
     knots: np.ndarray | None = None,
+    window: tuple[float, float] = (0.035, 0.05),
     n_directions: int = 8,
     step: float = 0.01,
     seed: int = 1,
@@ -154,6 +155,7 @@ def check_models(
         rope: Rope id of the lab.
         models: (stiffness, damping) pairs to score (other model parameters: defaults).
         knots: Command to linearise about (default: the demonstration's initial guess).
+        window: Demonstration window (follow-through [s], path fraction at t_0).
         n_directions: Random directions.
         step: Std of each direction entry [rad].
         seed: Seed of the directions.
@@ -179,14 +181,14 @@ def check_models(
         raise ConfigError("models", "give at least one (stiffness, damping) pair")
     rope_models = [RopeModelParams(stiffness=float(k), damping=float(c)) for k, c in models]
     dt = rope_models[0].dt
-    _, target = prepare_target(demo, dt)
+    _, target = prepare_target(demo, dt, window)
     robot = RobotModel.from_mjcf()
     lab = SimLab(LabParams(rope=rope, variation=VariationParams.none()))
     if knots is None:
         with TemporaryDirectory() as tmp:
             from pathlib import Path
 
-            knots, _ = initial_knots(demo, Path(tmp), robot, dt, float(lab.base_pose[2]))
+            knots, _ = initial_knots(demo, Path(tmp), robot, dt, float(lab.base_pose[2]), window)
     knots = np.asarray(knots, dtype=float)
     T = target.T
     dirs = random_directions(n_directions, seed, step)

@@ -95,7 +95,11 @@ class CommandSearchConfig:
         duration_scale: Duration change per normalised unit [s].
         duration: Allowed command duration (lo, hi) [s].
         frame_s: Spacing of the judged truth frames [s].
-        confirm: Varied trials (seeds 0..confirm-1) played with the found command.
+        confirm: Varied trials (seeds 0..confirm-1) that confirm a tying command.
+        local_evaluations: Most candidates of the local phase (0: stop at the first knot).
+        local_sigma: CMA-ES step of the local phase [normalised units].
+        target_rate: The local phase stops at a command tying in this fraction of the
+            confirmation trials.
     """
 
     rope: int = 1
@@ -106,15 +110,22 @@ class CommandSearchConfig:
     duration: tuple[float, float] = (0.6, 1.1)
     frame_s: float = 0.05
     confirm: int = 10
+    local_evaluations: int = 300
+    local_sigma: float = 0.25
+    target_rate: float = 0.6
 
     def __post_init__(self) -> None:
         for f in ("evaluations",):
             v = getattr(self, f)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ConfigError(f, f"must be an integer >= 1, got {v!r}")
-        if isinstance(self.confirm, bool) or not isinstance(self.confirm, int) or self.confirm < 0:
-            raise ConfigError("confirm", f"must be an integer >= 0, got {self.confirm!r}")
-        for f in ("sigma0", "knot_scale", "duration_scale", "frame_s"):
+        for f in ("confirm", "local_evaluations"):
+            v = getattr(self, f)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise ConfigError(f, f"must be an integer >= 0, got {v!r}")
+        if not (isinstance(self.target_rate, (int, float)) and 0 < self.target_rate <= 1):
+            raise ConfigError("target_rate", f"must lie in (0, 1], got {self.target_rate!r}")
+        for f in ("sigma0", "knot_scale", "duration_scale", "frame_s", "local_sigma"):
             check_positive(f, getattr(self, f))
         lo, hi = (float(v) for v in self.duration)
         if not 0.1 <= lo < hi <= 5.0:
@@ -134,7 +145,8 @@ class CommandSearchResult:
         evaluations: Candidates evaluated.
         simulated: Candidates simulated (the others broke a limit).
         first_hit: Evaluation count at the first tied trial, or None.
-        confirm_knots: Knots in the varied confirmation trials.
+        confirm_knots: Knots of the chosen command in the varied confirmation trials.
+        confirmed_candidates: Tying candidates that were confirmed.
         wall_s: Wall time [s].
         history: Best score so far per evaluation, shape (evaluations,).
     """
@@ -147,12 +159,14 @@ class CommandSearchResult:
     simulated: int
     first_hit: int | None
     confirm_knots: int
+    confirmed_candidates: int
     wall_s: float
     history: np.ndarray = field(repr=False)
 
-    def summary(self) -> dict[str, Any]:
-        """Plain data (without the knots)."""
-        return {
+    def summary(self, timing: bool = True) -> dict[str, Any]:
+        """Plain data (without the knots); ``timing`` adds the wall time (left out of saved
+        demonstrations so that a rerun writes the same file)."""
+        out = {
             "T": round(self.T, 4),
             "score": round(self.score, 2),
             "tied": self.tied,
@@ -160,8 +174,11 @@ class CommandSearchResult:
             "simulated": self.simulated,
             "first_hit": self.first_hit,
             "confirm_knots": self.confirm_knots,
-            "wall_s": round(self.wall_s, 1),
+            "confirmed_candidates": self.confirmed_candidates,
         }
+        if timing:
+            out["wall_s"] = round(self.wall_s, 1)
+        return out
 
 
 def command_score(record: TrialRecord, T: float, frame_s: float = 0.05) -> float:
@@ -172,7 +189,7 @@ def command_score(record: TrialRecord, T: float, frame_s: float = 0.05) -> float
     contact = 3.0 if during else 0.0
     if record.fault is not None:
         return -20.0 + contact
-    if record.truth is None:
+    if "centreline" not in record.truth:
         raise ConfigError("record", "needs the simulator's truth (a simulated trial)")
     tt = np.asarray(record.truth["t_truth"])
     C = np.asarray(record.truth["centreline"])
@@ -213,7 +230,14 @@ def search_command(
     seed: int = 0,
     progress: bool = False,
 ) -> CommandSearchResult:
-    """CMA-ES for a command whose nominal trial ties the knot (module docstring)."""
+    """CMA-ES for a command whose trial ties the knot (module docstring).
+
+    Phase 1 (global) runs until the first nominal trial that ties. Phase 2 (local, up to
+    ``local_evaluations`` candidates) restarts CMA-ES at that command with step
+    ``local_sigma``; every candidate whose nominal trial ties is confirmed on ``confirm``
+    varied trials (seeds 0..confirm-1), and the search keeps the one that ties most often,
+    stopping early once it ties in ``target_rate`` of them.
+    """
     import cma
     from tqdm import tqdm
 
@@ -236,62 +260,102 @@ def search_command(
         free[:N_SEARCHED_JOINTS] += config.knot_scale * y[:-1].reshape(N_SEARCHED_JOINTS, -1)
         return knots_from_free(free, base), float(T0 + config.duration_scale * y[-1])
 
+    state = {"evals": 0, "simulated": 0}
+
+    def evaluate(y: np.ndarray) -> tuple[float, np.ndarray, float]:
+        knots, T = decode(y)
+        state["evals"] += 1
+        if not lo <= T <= hi:
+            return -30.0 - 100.0 * abs(T - min(max(T, lo), hi)), knots, T
+        v = sampled_violation(knots, T, BezierCommand(knots, T).sample_times(), robot, limits)
+        if v > 0:
+            return -30.0 - 20.0 * min(v, 5.0), knots, T
+        state["simulated"] += 1
+        rec = lab.run(BezierCommand(knots, T).joint_command())
+        return command_score(rec, T, config.frame_s), knots, T
+
+    def confirm_rate(knots: np.ndarray, T: float) -> int:
+        ties = 0
+        for s in range(config.confirm):
+            rec = SimLab(LabParams(rope=config.rope, seed=s)).run(
+                BezierCommand(knots, T).joint_command()
+            )
+            ties += rec.fault is None and rec.knot == "trefoil"
+        return ties
+
+    total = config.evaluations + config.local_evaluations
+    bar = tqdm(total=total, desc="robot demo search", disable=not progress)
+    history: list[float] = []
+    best: tuple[float, np.ndarray, float] = (-math.inf, np.asarray(start_knots), T0)
+    first_hit: int | None = None
+    hit_y: np.ndarray | None = None
+
+    # phase 1: global, until the first knot
     es = cma.CMAEvolutionStrategy(
         np.zeros(N_DECISION), config.sigma0, {"seed": seed + 1, "verbose": -9}
     )
-    best: tuple[float, np.ndarray, float] = (-math.inf, np.asarray(start_knots), T0)
-    history: list[float] = []
-    simulated, first_hit, evals = 0, None, 0
-    bar = tqdm(total=config.evaluations, desc="robot demo search", disable=not progress)
-    while evals < config.evaluations and first_hit is None:
+    while state["evals"] < config.evaluations and first_hit is None:
         ys = es.ask()
         scores = []
         for y in ys:
-            knots, T = decode(np.asarray(y))
-            if not lo <= T <= hi:
-                s = -30.0 - 100.0 * abs(T - min(max(T, lo), hi))
-            else:
-                v = sampled_violation(
-                    knots, T, BezierCommand(knots, T).sample_times(), robot, limits
-                )
-                if v > 0:
-                    s = -30.0 - 20.0 * min(v, 5.0)
-                else:
-                    rec = lab.run(BezierCommand(knots, T).joint_command())
-                    simulated += 1
-                    s = command_score(rec, T, config.frame_s)
-            evals += 1
+            s, knots, T = evaluate(np.asarray(y))
             scores.append(s)
             if s > best[0]:
                 best = (s, knots, T)
             history.append(best[0])
             bar.update(1)
-            bar.set_postfix(best=f"{best[0]:.1f}", simulated=simulated)
-            if s >= HIT_SCORE and first_hit is None:
-                first_hit = evals
+            bar.set_postfix(best=f"{best[0]:.1f}", simulated=state["simulated"])
+            if s >= HIT_SCORE:
+                first_hit, hit_y = state["evals"], np.asarray(y)
                 break
-            if evals >= config.evaluations:
+            if state["evals"] >= config.evaluations:
                 break
         if len(scores) == len(ys):
             es.tell(ys, [-s for s in scores])
+
+    # phase 2: local, for a knot that survives the trial-to-trial variation
+    chosen: tuple[int, float, np.ndarray, float] | None = None  # (ties, score, knots, T)
+    confirmed = 0
+    if hit_y is not None:
+        chosen = (confirm_rate(best[1], best[2]), best[0], best[1], best[2])
+        confirmed = 1
+        target = math.ceil(config.target_rate * config.confirm)
+        es = cma.CMAEvolutionStrategy(hit_y, config.local_sigma, {"seed": seed + 2, "verbose": -9})
+        start = state["evals"]
+        while state["evals"] - start < config.local_evaluations and chosen[0] < target:
+            ys = es.ask()
+            scores = []
+            for y in ys:
+                s, knots, T = evaluate(np.asarray(y))
+                scores.append(s)
+                if s >= HIT_SCORE:
+                    ties = confirm_rate(knots, T)
+                    confirmed += 1
+                    if (ties, s) > chosen[:2]:
+                        chosen = (ties, s, knots, T)
+                history.append(max(history[-1], s))
+                bar.update(1)
+                bar.set_postfix(best_ties=f"{chosen[0]}/{config.confirm}", confirmed=confirmed)
+                if chosen[0] >= target or state["evals"] - start >= config.local_evaluations:
+                    break
+            if len(scores) == len(ys):
+                es.tell(ys, [-s for s in scores])
     bar.close()
-    score, knots, T = best
-    confirm = 0
-    if best[0] >= HIT_SCORE:
-        for s in range(config.confirm):
-            rec = SimLab(LabParams(rope=config.rope, seed=s)).run(
-                BezierCommand(knots, T).joint_command()
-            )
-            confirm += rec.fault is None and rec.knot == "trefoil"
+    if chosen is None:
+        score, knots, T = best
+        ties = 0
+    else:
+        ties, score, knots, T = chosen
     return CommandSearchResult(
         knots=np.asarray(knots),
         T=T,
         score=score,
         tied=score >= HIT_SCORE,
-        evaluations=evals,
-        simulated=simulated,
+        evaluations=state["evals"],
+        simulated=state["simulated"],
         first_hit=first_hit,
-        confirm_knots=confirm,
+        confirm_knots=ties,
+        confirmed_candidates=confirmed,
         wall_s=time.perf_counter() - tic,
         history=np.array(history),
     )

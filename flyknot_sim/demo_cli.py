@@ -145,7 +145,9 @@ def _cmd_robot(args: argparse.Namespace) -> int:
     from learner.rope_model import RopeModelParams
 
     _positive_int("--seed", args.seed, 0)
-    config = CommandSearchConfig(rope=args.rope, evaluations=args.evaluations)
+    config = CommandSearchConfig(
+        rope=args.rope, evaluations=args.evaluations, local_evaluations=args.local_evaluations
+    )
     if args.start is not None:
         knots0, T0 = _load_command(args.start)
     else:
@@ -164,7 +166,10 @@ def _cmd_robot(args: argparse.Namespace) -> int:
         )
     start = args.start if args.start is not None else f"initial guess of demo {args.demo!r}"
     summary = _save_robot_demo(
-        args, res.knots, res.T, {"search": {"seed": args.seed, "start": start, **res.summary()}}
+        args,
+        res.knots,
+        res.T,
+        {"search": {"seed": args.seed, "start": start, **res.summary(timing=False)}},
     )
     print(json.dumps(summary) if args.json else "\n".join(f"{k}: {v}" for k, v in summary.items()))
     return 0
@@ -227,6 +232,12 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
     rb.add_argument("--start", default=None, help="start command (.npz with knots, T) instead")
     rb.add_argument("--seed", type=int, default=0, help="search seed (default 0)")
     rb.add_argument("--evaluations", type=int, default=1500, help="most candidates (default 1500)")
+    rb.add_argument(
+        "--local-evaluations",
+        type=int,
+        default=300,
+        help="candidates of the robustness phase after the first knot (default 300)",
+    )
     rb.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
     rb.add_argument("--json", action="store_true", help="print a JSON summary")
     rb.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -46,6 +46,11 @@ def test_bad_shapes_and_config_messages():
     assert str(e.value) == "duration: need 0.1 <= lo < hi <= 5 s, got (1.0, 0.5)"
     with pytest.raises(ConfigError, match="evaluations: must be an integer >= 1, got 0"):
         CommandSearchConfig(evaluations=0)
+    with pytest.raises(ConfigError) as e:
+        CommandSearchConfig(target_rate=0)
+    assert str(e.value) == "target_rate: must lie in (0, 1], got 0"
+    with pytest.raises(ConfigError, match="local_evaluations: must be an integer >= 0, got -1"):
+        CommandSearchConfig(local_evaluations=-1)
 
 
 @pytest.fixture(scope="module")
@@ -76,14 +81,19 @@ def test_score_of_a_tie_and_of_a_fault(shipped):
     faulted = dataclasses.replace(rec, fault="joint 2 velocity exceeds limit")
     assert command_score(faulted, T) == pytest.approx(-17.0)  # -20 + 3 for the contact
     with pytest.raises(ConfigError, match="record: needs the simulator's truth"):
-        command_score(dataclasses.replace(rec, truth=None), T)
+        command_score(dataclasses.replace(rec, truth={}), T)
 
 
 def test_search_spends_its_budget_and_keeps_the_best(shipped):
     _, knots, T = shipped
-    res = search_command(knots, T, CommandSearchConfig(evaluations=4, confirm=0), seed=3)
-    assert res.evaluations <= 4 and res.simulated <= res.evaluations
-    assert np.all(np.diff(res.history) >= 0) and res.history[-1] == res.score
+    config = CommandSearchConfig(evaluations=4, local_evaluations=3, confirm=2)
+    res = search_command(knots, T, config, seed=3)
+    assert res.evaluations <= 4 + 3 and res.simulated <= res.evaluations
+    assert len(res.history) == res.evaluations
+    assert 0 <= res.confirm_knots <= 2
+    if res.first_hit is None:  # no knot: no local phase, nothing confirmed
+        assert res.evaluations == 4 and res.confirmed_candidates == 0
+    assert np.all(np.diff(res.history) >= 0) and res.history[-1] >= res.score
     assert res.tied == (res.score >= 100.0)
     assert res.first_hit is None or res.first_hit <= res.evaluations
 

@@ -142,10 +142,10 @@ def test_trust_region_override_and_bad_value():
 
 
 def test_demo_window_fields():
-    run = load_scenario("quick").runs[0]
-    assert run.window == (0.035, 0.05)  # the paper's timing selection
-    scen = load_scenario("quick", parse_overrides(["follow_through_s=0.25", "path_frac=0"]))
-    assert scen.runs[0].window == (0.25, 0.0)
+    assert load_scenario("05-demos").runs[0].window == (0.035, 0.05)  # the paper's
+    assert load_scenario("quick").runs[0].window == (0.25, 0.0)  # the robot demonstration's
+    scen = load_scenario("05-demos", parse_overrides(["follow_through_s=0.1", "path_frac=0"]))
+    assert all(r.window == (0.1, 0.0) for r in scen.runs)
     with pytest.raises(ConfigError) as e:
         load_scenario("quick", parse_overrides(["path_frac=1"]))
     assert str(e.value) == "path_frac: must lie in [0, 1), got 1"

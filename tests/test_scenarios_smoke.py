@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from flyknot.constants import DEMOS_DIR, SCENARIOS_DIR
+from flyknot.constants import SCENARIOS_DIR
 from flyknot.experiment import initial_knots, run_scenario
 from flyknot.scenario import load_scenario, parse_overrides
 from flyknot_sim.scene import SceneParams, robot_base_pose
@@ -19,14 +19,16 @@ TINY = ["max_trials=1", "settle_s=0.2", "max_runs=2"]
 
 @pytest.fixture(scope="session")
 def guess_cache(tmp_path_factory):
-    """Initial guesses of the shipped demos, computed once for all smoke runs."""
+    """Initial guesses of every (demonstration, window) the scenario files use, computed
+    once for all smoke runs."""
     from learner.kinematics import RobotModel
 
     root = tmp_path_factory.mktemp("ig")
     robot = RobotModel.from_mjcf()
     z = float(robot_base_pose(SceneParams())[2])
-    for demo in sorted(DEMOS_DIR.glob("*.npz")):
-        initial_knots(demo.stem, root, robot, 0.005, z)
+    used = {(r.demo, r.window) for f in FILES for r in load_scenario(str(f)).runs}
+    for demo, window in sorted(used):
+        initial_knots(demo, root, robot, 0.005, z, window)
     return root / "initial_guess"
 
 
