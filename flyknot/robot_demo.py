@@ -100,6 +100,8 @@ class CommandSearchConfig:
         local_sigma: CMA-ES step of the local phase [normalised units].
         target_rate: The local phase stops at a command tying in this fraction of the
             confirmation trials.
+        check: Fresh varied trials (seeds confirm..confirm+check-1) that measure the chosen
+            command's rate.
     """
 
     rope: int = 1
@@ -113,13 +115,14 @@ class CommandSearchConfig:
     local_evaluations: int = 300
     local_sigma: float = 0.25
     target_rate: float = 0.6
+    check: int = 20
 
     def __post_init__(self) -> None:
         for f in ("evaluations",):
             v = getattr(self, f)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ConfigError(f, f"must be an integer >= 1, got {v!r}")
-        for f in ("confirm", "local_evaluations"):
+        for f in ("confirm", "local_evaluations", "check"):
             v = getattr(self, f)
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
                 raise ConfigError(f, f"must be an integer >= 0, got {v!r}")
@@ -147,6 +150,8 @@ class CommandSearchResult:
         first_hit: Evaluation count at the first tied trial, or None.
         confirm_knots: Knots of the chosen command in the varied confirmation trials.
         confirmed_candidates: Tying candidates that were confirmed.
+        check_knots: Knots of the chosen command in ``check`` fresh varied trials (seeds
+            after the confirmation seeds): its rate without the selection's bias.
         wall_s: Wall time [s].
         history: Best score so far per evaluation, shape (evaluations,).
     """
@@ -160,6 +165,7 @@ class CommandSearchResult:
     first_hit: int | None
     confirm_knots: int
     confirmed_candidates: int
+    check_knots: int
     wall_s: float
     history: np.ndarray = field(repr=False)
 
@@ -175,6 +181,7 @@ class CommandSearchResult:
             "first_hit": self.first_hit,
             "confirm_knots": self.confirm_knots,
             "confirmed_candidates": self.confirmed_candidates,
+            "check_knots": self.check_knots,
         }
         if timing:
             out["wall_s"] = round(self.wall_s, 1)
@@ -274,9 +281,9 @@ def search_command(
         rec = lab.run(BezierCommand(knots, T).joint_command())
         return command_score(rec, T, config.frame_s), knots, T
 
-    def confirm_rate(knots: np.ndarray, T: float) -> int:
+    def confirm_rate(knots: np.ndarray, T: float, seeds: range | None = None) -> int:
         ties = 0
-        for s in range(config.confirm):
+        for s in range(config.confirm) if seeds is None else seeds:
             rec = SimLab(LabParams(rope=config.rope, seed=s)).run(
                 BezierCommand(knots, T).joint_command()
             )
@@ -343,9 +350,10 @@ def search_command(
     bar.close()
     if chosen is None:
         score, knots, T = best
-        ties = 0
+        ties = check = 0
     else:
         ties, score, knots, T = chosen
+        check = confirm_rate(knots, T, range(config.confirm, config.confirm + config.check))
     return CommandSearchResult(
         knots=np.asarray(knots),
         T=T,
@@ -356,6 +364,7 @@ def search_command(
         first_hit=first_hit,
         confirm_knots=ties,
         confirmed_candidates=confirmed,
+        check_knots=check,
         wall_s=time.perf_counter() - tic,
         history=np.array(history),
     )

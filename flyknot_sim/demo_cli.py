@@ -146,7 +146,10 @@ def _cmd_robot(args: argparse.Namespace) -> int:
 
     _positive_int("--seed", args.seed, 0)
     config = CommandSearchConfig(
-        rope=args.rope, evaluations=args.evaluations, local_evaluations=args.local_evaluations
+        rope=args.rope,
+        evaluations=args.evaluations,
+        local_evaluations=args.local_evaluations,
+        target_rate=args.target_rate,
     )
     if args.start is not None:
         knots0, T0 = _load_command(args.start)
@@ -237,6 +240,12 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
         type=int,
         default=300,
         help="candidates of the robustness phase after the first knot (default 300)",
+    )
+    rb.add_argument(
+        "--target-rate",
+        type=float,
+        default=0.6,
+        help="stop the robustness phase at a command tying this fraction of 10 varied trials",
     )
     rb.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
     rb.add_argument("--json", action="store_true", help="print a JSON summary")

@@ -86,11 +86,11 @@ def test_score_of_a_tie_and_of_a_fault(shipped):
 
 def test_search_spends_its_budget_and_keeps_the_best(shipped):
     _, knots, T = shipped
-    config = CommandSearchConfig(evaluations=4, local_evaluations=3, confirm=2)
+    config = CommandSearchConfig(evaluations=4, local_evaluations=3, confirm=2, check=2)
     res = search_command(knots, T, config, seed=3)
     assert res.evaluations <= 4 + 3 and res.simulated <= res.evaluations
     assert len(res.history) == res.evaluations
-    assert 0 <= res.confirm_knots <= 2
+    assert 0 <= res.confirm_knots <= 2 and 0 <= res.check_knots <= 2
     if res.first_hit is None:  # no knot: no local phase, nothing confirmed
         assert res.evaluations == 4 and res.confirmed_candidates == 0
     assert np.all(np.diff(res.history) >= 0) and res.history[-1] >= res.score
