@@ -176,10 +176,13 @@ def execute_run(
         on_trial=on_trial,
     )
     bar.close()
-    np.save(run_dir / "final_knots.npy", res.final_knots)
+    # max_trials = 0: tracking alone; the initial command is the run's command (its one
+    # trial's update is never played).
+    final = np.asarray(knots0) if spec.max_trials == 0 else res.final_knots
+    np.save(run_dir / "final_knots.npy", final)
     repeats: list[str | None] = []
     if spec.repeats:
-        command = BezierCommand(res.final_knots, target.T).joint_command()
+        command = BezierCommand(final, target.T).joint_command()
         for i in tqdm(
             range(spec.repeats), desc=f"{spec.name} repeats", disable=not progress, leave=False
         ):

@@ -6,10 +6,11 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from flyknot.constants import SCENARIOS_DIR
-from flyknot.experiment import initial_knots, run_scenario
+from flyknot.experiment import guess_cache_name, initial_knots, run_scenario
 from flyknot.scenario import load_scenario, parse_overrides
 from flyknot_sim.scene import SceneParams, robot_base_pose
 
@@ -67,3 +68,19 @@ def test_resume_after_an_interrupted_run_repeats_nothing(tmp_path, guess_cache):
     again = run_scenario(scen, out, resume=True, progress=False)
     assert (out / "runs" / "rope1" / "learning" / "ledger.jsonl").read_text() == ledger
     assert again["runs"][0]["costs"] == first["runs"][0]["costs"]
+
+
+def test_tracking_repeats_play_the_initial_command(tmp_path, guess_cache):
+    scen = load_scenario(
+        "01-tracking", parse_overrides(["max_trials=0", "repeats=1", "settle_s=0.2", "max_runs=1"])
+    )
+    out = tmp_path / scen.name
+    shutil.copytree(guess_cache, out / "initial_guess")
+    run_scenario(scen, out, progress=False)
+    spec = scen.runs[0]
+    cache = out / "initial_guess" / guess_cache_name(spec.demo, spec.window)
+    with np.load(cache) as z:
+        k0 = z["knots"]
+    np.testing.assert_array_equal(np.load(out / "runs" / spec.name / "final_knots.npy"), k0)
+    summary = json.loads((out / "summary.json").read_text())
+    assert len(summary["runs"][0]["costs"]) == 1 and len(summary["runs"][0]["repeats"]) == 1
