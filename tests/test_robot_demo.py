@@ -117,3 +117,17 @@ def test_cli_record_round_trip_and_errors(shipped, tmp_path, capsys):
     np.savez(bad, q=np.zeros(3))
     assert demo_cli.main(["demo", "record", "--command", str(bad), "--out", str(out)]) == 2
     assert "needs arrays 'knots' and 'T'" in capsys.readouterr().err
+
+
+def test_cli_robot_reports_a_search_without_a_knot(shipped, tmp_path, capsys):
+    _, knots, T = shipped
+    start = tmp_path / "start.npz"
+    np.savez(start, knots=knots, T=T)
+    args = ["demo", "robot", "--start", str(start), "--evaluations", "1", "--local-evaluations"]
+    args += ["0", "--seed", "1", "--quiet", "--out", str(tmp_path / "d.npz")]
+    assert demo_cli.main(args) == 2  # seed 1's single candidate does not tie (measured)
+    assert capsys.readouterr().err == (
+        "flyknot: error: search: no command tied the knot in 1 evaluations; try another "
+        "--seed or more --evaluations\n"
+    )
+    assert not (tmp_path / "d.npz").exists()
