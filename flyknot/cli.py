@@ -93,8 +93,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else _default_run_dir(scen.name, args.resume)
     print(f"scenario {scen.name!r} ({scen.kind}, {len(scen.runs)} runs) -> {out}")
     summary = run_scenario(scen, out, workers=args.workers, resume=args.resume, overrides=overrides)
-    ok = sum(r["first_success_trial"] is not None for r in summary["runs"])
-    print(f"knot learned in {ok} of {len(summary['runs'])} runs; report: {out / 'report.md'}")
+    from flyknot.report import outcome_line
+
+    print(f"{outcome_line(scen.kind, summary['runs'])} Report: {out / 'report.md'}")
     return 0
 
 

@@ -42,6 +42,19 @@ def _trials_text(run: dict[str, Any]) -> str:
     return str(n) if n is not None else f">{len(run['costs'])}"
 
 
+def outcome_line(kind: str, runs: list[dict[str, Any]]) -> str:
+    """One sentence on a scenario's outcome: knots learned, or (``track``) how often tracking
+    alone tied, in the first trial and in the repeats."""
+    n_ok = sum(r["first_success_trial"] is not None for r in runs)
+    if kind != "track":
+        return f"Knot learned in {n_ok} of {len(runs)} runs."
+    reps = [x for r in runs for x in (r.get("repeats") or [])]
+    text = f"Tracking alone (no learning): the first trial tied in {n_ok} of {len(runs)} runs"
+    if reps:
+        text += f"; the repeats tied in {sum(x == 'trefoil' for x in reps)} of {len(reps)}"
+    return text + "."
+
+
 def plot_costs(runs: list[dict[str, Any]], path: Path, title: str) -> Path:
     """Critical-point cost over trials; squares: first knot, dots: later knots."""
     fig, ax = plt.subplots(figsize=(7, 4.2), constrained_layout=True)
@@ -199,8 +212,7 @@ def write_report(out_dir: str | Path, summary: dict[str, Any]) -> Path:
                 f"| {r['name']} | {r['rope']} | {r['demo']} | {r['objective']} | "
                 f"{r.get('start_from') or '-'} | {_trials_text(r)} | {costs} | {rep} |"
             )
-    n_ok = sum(r["first_success_trial"] is not None for r in runs)
-    lines += ["", f"Knot learned in {n_ok} of {len(runs)} runs.", "", "## Figures", ""]
+    lines += ["", outcome_line(kind, runs), "", "## Figures", ""]
     lines += [f"![{p.stem}]({p.name})" for p in figs]
     path = out_dir / "report.md"
     path.write_text("\n".join(lines) + "\n")

@@ -176,3 +176,21 @@ def test_window_changes_the_target():
     assert paper.T - paper.t_c == pytest.approx(0.035, abs=0.005)
     assert longer.T - longer.t_c == pytest.approx(0.25, abs=0.005)
     assert longer.t_c > paper.t_c  # t_0 moved back to the start of the hand motion
+
+
+def test_outcome_line_for_learning_and_tracking():
+    from flyknot.report import outcome_line
+
+    runs = [
+        {"first_success_trial": 2, "repeats": ["trefoil", "unknot"]},
+        {"first_success_trial": None, "repeats": ["unknot", "trefoil"]},
+        {"first_success_trial": None},
+    ]
+    assert outcome_line("learn", runs) == "Knot learned in 1 of 3 runs."
+    assert outcome_line("track", runs) == (
+        "Tracking alone (no learning): the first trial tied in 1 of 3 runs; "
+        "the repeats tied in 2 of 4."
+    )
+    assert outcome_line("track", runs[2:]) == (
+        "Tracking alone (no learning): the first trial tied in 0 of 1 runs."
+    )
