@@ -76,6 +76,39 @@ def plot_costs(runs: list[dict[str, Any]], path: Path, title: str) -> Path:
     return path
 
 
+def wilson_interval(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score interval (95 % for z = 1.96) of a success rate k / n, n >= 1."""
+    if n < 1 or not 0 <= k <= n:
+        raise ValueError(f"need 0 <= k <= n and n >= 1, got k={k}, n={n}")
+    p = k / n
+    den = 1.0 + z**2 / n
+    mid = (p + z**2 / (2 * n)) / den
+    half = z * np.sqrt(p * (1 - p) / n + z**2 / (4 * n**2)) / den
+    return float(max(0.0, mid - half)), float(min(1.0, mid + half))
+
+
+def plot_success_rates(runs: list[dict[str, Any]], path: Path, title: str) -> Path | None:
+    """Knots in each run's repeats (bars) with 95 % Wilson intervals; None without repeats."""
+    rows = [r for r in runs if r.get("repeats")]
+    if not rows:
+        return None
+    k = np.array([sum(x == "trefoil" for x in r["repeats"]) for r in rows])
+    n = np.array([len(r["repeats"]) for r in rows])
+    lo_hi = np.array([wilson_interval(int(a), int(b)) for a, b in zip(k, n, strict=True)])
+    rate = k / n
+    fig, ax = plt.subplots(figsize=(max(4.0, 0.6 * len(rows) + 2), 3.6), constrained_layout=True)
+    x = np.arange(len(rows))
+    ax.bar(x, rate, color="tab:blue", alpha=0.7)
+    ax.errorbar(x, rate, yerr=[rate - lo_hi[:, 0], lo_hi[:, 1] - rate], fmt="none", ecolor="k")
+    for xi, a, b in zip(x, k, n, strict=True):
+        ax.text(xi, 1.02, f"{a}/{b}", ha="center", va="bottom", fontsize=7)
+    ax.set_xticks(x, [r.get("label") or r["name"] for r in rows], rotation=45, ha="right")
+    ax.set(ylim=(0, 1.12), ylabel="knots in repeats (95 % interval)", title=title)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def plot_transfer_grid(runs: list[dict[str, Any]], path: Path) -> Path:
     """7x7 grid of trials needed to transfer rope A's command to rope B (red: failed)."""
     grid = np.full((7, 7), np.nan)
@@ -176,6 +209,9 @@ def write_report(out_dir: str | Path, summary: dict[str, Any]) -> Path:
     runs = summary["runs"]
     kind = summary["kind"]
     figs = [plot_costs(runs, out_dir / "costs.png", summary["scenario"])]
+    rates = plot_success_rates(runs, out_dir / "success_rates.png", summary["scenario"])
+    if rates is not None:
+        figs.append(rates)
     if kind == "transfer":
         figs.append(plot_transfer_grid(runs, out_dir / "transfer_grid.png"))
     for r in runs[:8]:

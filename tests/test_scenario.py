@@ -194,3 +194,18 @@ def test_outcome_line_for_learning_and_tracking():
     assert outcome_line("track", runs[2:]) == (
         "Tracking alone (no learning): the first trial tied in 0 of 1 runs."
     )
+
+
+def test_wilson_interval_known_values():
+    from flyknot.report import wilson_interval
+
+    # the bounds solve |p - k/n| = z sqrt(p (1 - p) / n) (z = 1.96)
+    for k, n in [(15, 40), (1, 10), (7, 20), (39, 40)]:
+        for p in wilson_interval(k, n):
+            assert abs(p - k / n) == pytest.approx(1.96 * (p * (1 - p) / n) ** 0.5, rel=1e-9)
+    lo, hi = wilson_interval(15, 40)
+    assert (round(lo, 3), round(hi, 3)) == (0.242, 0.530)
+    assert wilson_interval(0, 20)[0] == 0.0 and 0.15 < wilson_interval(0, 20)[1] < 0.17
+    assert wilson_interval(40, 40)[1] == 1.0
+    with pytest.raises(ValueError):
+        wilson_interval(3, 2)
