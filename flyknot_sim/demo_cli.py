@@ -20,7 +20,7 @@ import math
 from collections.abc import Sequence
 from pathlib import Path
 
-from flyknot.errors import ConfigError
+from flyknot.errors import ConfigError, SolverError
 
 
 def _positive_int(name: str, value: int, minimum: int = 1) -> int:
@@ -162,10 +162,11 @@ def _cmd_robot(args: argparse.Namespace) -> int:
         T0 = target.T
     res = search_command(knots0, T0, config, seed=args.seed, progress=not args.quiet)
     if not res.tied:
-        raise ConfigError(
-            "search",
-            f"no command tied the knot in {res.evaluations} evaluations; try another "
-            "--seed or more --evaluations",
+        raise SolverError(
+            "robot demo search",
+            "no knot",
+            f"no command tied the knot in {res.evaluations} evaluations; try another --seed "
+            "or more --evaluations",
         )
     start = args.start if args.start is not None else f"initial guess of demo {args.demo!r}"
     summary = _save_robot_demo(

@@ -127,7 +127,7 @@ def test_cli_robot_reports_a_search_without_a_knot(shipped, tmp_path, capsys):
     args += ["0", "--seed", "1", "--quiet", "--out", str(tmp_path / "d.npz")]
     assert demo_cli.main(args) == 2  # seed 1's single candidate does not tie (measured)
     assert capsys.readouterr().err == (
-        "flyknot: error: search: no command tied the knot in 1 evaluations; try another "
-        "--seed or more --evaluations\n"
+        "flyknot: error: robot demo search failed with status 'no knot': no command tied the "
+        "knot in 1 evaluations; try another --seed or more --evaluations\n"
     )
     assert not (tmp_path / "d.npz").exists()
