@@ -68,3 +68,9 @@ def check_nonnegative(field: str, value: float) -> None:
     number = isinstance(value, (int, float)) and not isinstance(value, bool)
     if not (number and value == value and 0 <= value < float("inf")):
         raise ConfigError(field, f"must be a finite number >= 0, got {value!r}")
+
+
+def check_int(field: str, value: object, minimum: int = 0) -> None:
+    """Raise :class:`ConfigError` unless ``value`` is an integer (not a bool) >= ``minimum``."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ConfigError(field, f"must be an integer >= {minimum}, got {value!r}")

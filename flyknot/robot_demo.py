@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from flyknot.demo import Demonstration
-from flyknot.errors import ConfigError, FlyknotError, check_positive
+from flyknot.errors import ConfigError, FlyknotError, check_int, check_positive
 from flyknot.limits import JointLimits
 from flyknot.record import TrialRecord
 
@@ -118,14 +118,9 @@ class CommandSearchConfig:
     check: int = 20
 
     def __post_init__(self) -> None:
-        for f in ("evaluations",):
-            v = getattr(self, f)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ConfigError(f, f"must be an integer >= 1, got {v!r}")
+        check_int("evaluations", self.evaluations, 1)
         for f in ("confirm", "local_evaluations", "check"):
-            v = getattr(self, f)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-                raise ConfigError(f, f"must be an integer >= 0, got {v!r}")
+            check_int(f, getattr(self, f), 0)
         if not (isinstance(self.target_rate, (int, float)) and 0 < self.target_rate <= 1):
             raise ConfigError("target_rate", f"must lie in (0, 1], got {self.target_rate!r}")
         for f in ("sigma0", "knot_scale", "duration_scale", "frame_s", "local_sigma"):
@@ -200,6 +195,8 @@ def command_score(record: TrialRecord, T: float, frame_s: float = 0.05) -> float
         raise ConfigError("record", "needs the simulator's truth (a simulated trial)")
     tt = np.asarray(record.truth["t_truth"])
     C = np.asarray(record.truth["centreline"])
+    if not during:  # no credit for knots of a rope swinging after the motion
+        return float(3.0 * (1.0 - min(_closest_approach(C) / 0.3, 1.0)))
     stride = max(1, round(frame_s / float(tt[1] - tt[0])))
     idx = np.arange(0, len(tt), stride)
     idx = idx[tt[idx] >= 0.3 * T]
@@ -210,8 +207,6 @@ def command_score(record: TrialRecord, T: float, frame_s: float = 0.05) -> float
         knotted.append(plurality(votes) == TREFOIL)
     shares_a, knotted_a = np.array(shares), np.array(knotted)
     settle = tt[idx] >= T
-    if not during:  # no credit for knots of a rope swinging after the motion
-        return float(3.0 * (1.0 - min(_closest_approach(C) / 0.3, 1.0)))
     s = HIT_SCORE * (record.knot == TREFOIL)
     if settle.any():
         s += 30.0 * knotted_a[settle].mean() + 2.0 * shares_a[settle].mean()
@@ -253,8 +248,7 @@ def search_command(
     from learner.kinematics import RobotModel
     from learner.update import sampled_violation
 
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise ConfigError("seed", f"must be an integer >= 0, got {seed!r}")
+    check_int("seed", seed, 0)
     tic = time.perf_counter()
     x0 = free_from_knots(start_knots)
     base = np.asarray(start_knots, dtype=float)[7:]
