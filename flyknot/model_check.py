@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -186,8 +187,6 @@ def check_models(
     lab = SimLab(LabParams(rope=rope, variation=VariationParams.none()))
     if knots is None:
         with TemporaryDirectory() as tmp:
-            from pathlib import Path
-
             knots, _ = initial_knots(demo, Path(tmp), robot, dt, float(lab.base_pose[2]), window)
     knots = np.asarray(knots, dtype=float)
     T = target.T

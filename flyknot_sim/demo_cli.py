@@ -124,6 +124,10 @@ def _load_command(path: str) -> tuple[object, float]:
         return np.array(z["knots"]), float(z["T"])
 
 
+def _print_summary(summary: dict, as_json: bool) -> None:
+    print(json.dumps(summary) if as_json else "\n".join(f"{k}: {v}" for k, v in summary.items()))
+
+
 def _save_robot_demo(args: argparse.Namespace, knots, T: float, extra: dict) -> dict:
     from flyknot.robot_demo import record_demonstration
 
@@ -175,14 +179,14 @@ def _cmd_robot(args: argparse.Namespace) -> int:
         res.T,
         {"search": {"seed": args.seed, "start": start, **res.summary(timing=False)}},
     )
-    print(json.dumps(summary) if args.json else "\n".join(f"{k}: {v}" for k, v in summary.items()))
+    _print_summary(summary, args.json)
     return 0
 
 
 def _cmd_record(args: argparse.Namespace) -> int:
     knots, T = _load_command(args.command)
     summary = _save_robot_demo(args, knots, T, {"command_file": str(args.command)})
-    print(json.dumps(summary) if args.json else "\n".join(f"{k}: {v}" for k, v in summary.items()))
+    _print_summary(summary, args.json)
     return 0
 
 
