@@ -181,7 +181,12 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--command", required=True, help="command file (.csv or .npy, see README)")
     t.add_argument("--out", required=True, help="directory for the trial record")
     t.add_argument("--seed", type=int, default=0, help="trial-to-trial variation seed")
-    t.add_argument("--settle", type=float, default=1.5, help="settling time after the command [s]")
+    t.add_argument(
+        "--settle",
+        type=float,
+        default=None,
+        help="fixed settling time after the command [s] (default: until the rope is at rest)",
+    )
     t.add_argument("--json", action="store_true", help="print a JSON summary")
     t.set_defaults(func=_cmd_trial)
 

@@ -50,7 +50,7 @@ class FlyknotEnv(gym.Env):
         action_scale: float = 0.05,
         knot_bonus: float = 100.0,
         fault_penalty: float = 100.0,
-        settle_s: float = 1.5,
+        settle_s: float | None = None,
         seed: int = 0,
     ):
         super().__init__()

@@ -365,9 +365,17 @@ def search_command(
 
 
 def record_demonstration(
-    knots: np.ndarray, T: float, *, rope: int = 1, metadata: dict[str, Any] | None = None
+    knots: np.ndarray,
+    T: float,
+    *,
+    rope: int = 1,
+    metadata: dict[str, Any] | None = None,
+    lab_params=None,
 ) -> Demonstration:
     """The nominal trial of a command as a demonstration (module docstring).
+
+    ``lab_params`` (a :class:`flyknot_sim.lab.LabParams`; default: the lab's defaults without
+    variation) selects the lab it is recorded in; its rope is ``rope``.
 
     Raises:
         FlyknotError: The trial faulted, or the rope did not touch itself during the motion.
@@ -377,7 +385,11 @@ def record_demonstration(
     from flyknot_sim.lab import LabParams, SimLab, VariationParams
     from learner.bezier import BezierCommand
 
-    lab = SimLab(LabParams(rope=rope, variation=VariationParams.none()))
+    import dataclasses
+
+    if lab_params is None:
+        lab_params = LabParams(rope=rope, variation=VariationParams.none())
+    lab = SimLab(dataclasses.replace(lab_params, rope=rope))
     rec = lab.run(BezierCommand(np.asarray(knots, dtype=float), float(T)).joint_command())
     if rec.fault is not None:
         raise FlyknotError(f"the command faulted: {rec.fault}")

@@ -67,7 +67,8 @@ class RunSpec:
         objective: ``"critical"`` or ``"equal"``.
         stop_at_success: Stop at the first knot.
         repeats: After learning, play the final command this many more times (success rate).
-        settle_s: Settling time before the knot is judged [s].
+        settle_s: A fixed settling time before the knot is judged [s]; None (default): the
+            lab waits until the rope is at rest (``flyknot.rest.SettleParams``).
         backend: QP solver (``"clarabel"`` or ``"osqp"``).
         start_from: Name of the run whose final command starts this one (transfer), or None.
         rope_model: Overrides of the learner's rope model parameters.
@@ -89,7 +90,7 @@ class RunSpec:
     objective: str = "critical"
     stop_at_success: bool = True
     repeats: int = 0
-    settle_s: float = 1.5
+    settle_s: float | None = None
     backend: str = "clarabel"
     start_from: str | None = None
     rope_model: Mapping[str, float] = field(default_factory=dict)
@@ -116,7 +117,8 @@ class RunSpec:
             raise ConfigError(
                 "stop_at_success", f"must be true or false, got {self.stop_at_success!r}"
             )
-        check_nonnegative("settle_s", self.settle_s)
+        if self.settle_s is not None:
+            check_nonnegative("settle_s", self.settle_s)
         rm = dict(self.rope_model)
         for k in rm:
             check_choice("rope_model key", k, ROPE_MODEL_KEYS)

@@ -1218,7 +1218,9 @@ def motion_from_demo(demo: Demonstration, source: str = "demonstration") -> Knot
 def hand_from_demo(demo: Demonstration, rope: int, *, vary: bool = True) -> HandParams:
     """The hand lab a demonstration was made in, holding rope ``rope``."""
     stored = demo.metadata.get("hand", {})
-    kwargs = {f: stored[f] for f in HAND_META_FIELDS if f in stored}
+    # The settle is the lab's own rule (judged at rest, issue 10), not the fixed wait a
+    # demonstration made before it stored.
+    kwargs = {f: stored[f] for f in HAND_META_FIELDS if f in stored and f != "settle_s"}
     if "home" in kwargs:
         kwargs["home"] = tuple(kwargs["home"])
     variation = HandVariation() if vary else HandVariation.none()
@@ -1364,6 +1366,7 @@ def save_replay(
             "index": index,
             "seed": seed,
             "outcome": trial.knot,
+            "settle": None if trial.settle is None else dict(trial.settle),
             "variation": dict(trial.variation),
             "motion_start": trial.motion_start,
         },

@@ -40,10 +40,11 @@ from typing import Any, Protocol
 import mujoco
 import numpy as np
 
-from flyknot.constants import SETTLE_S
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, check_nonnegative, check_positive
+from flyknot.rest import SettleMonitor, SettleParams, settled_start
 from flyknot_sim import mocap
+from flyknot_sim.aero import AeroParams, RopeDrag
 from flyknot_sim.knot import TREFOIL, classify_centreline
 from flyknot_sim.rope import (
     BoundRope,
@@ -86,28 +87,36 @@ class HandVariation:
     """Seeded trial-to-trial variation of a hand trial (the robot lab's, plus tempo).
 
     Attributes:
-        sway_deg: Std of the rope's initial tilt from vertical [deg].
+        sway_deg: Std of an extra initial tilt of the rope from vertical [deg] (robustness
+            studies; 1 deg before issue 10).
         servo_gain_rel: Relative std of each servo's stiffness and damping gain [-].
         start_delay_max_s: The motion starts after a uniform delay in [0, this) [s].
         tempo_rel: Relative std of the motion's duration (a person never repeats a tempo
             exactly) [-].
+        rest_start: Draw the rope's start uniformly within the rest criterion (as the robot
+            lab does; :func:`flyknot.rest.settled_start`).
     """
 
-    sway_deg: float = 1.0
+    sway_deg: float = 0.0
     servo_gain_rel: float = 0.03
     start_delay_max_s: float = 0.004
     tempo_rel: float = 0.005
+    rest_start: bool = True
 
     def __post_init__(self) -> None:
         for f in ("sway_deg", "servo_gain_rel", "start_delay_max_s", "tempo_rel"):
             check_nonnegative(f"HandVariation.{f}", getattr(self, f))
         if self.tempo_rel >= 0.2:
             raise ConfigError("HandVariation.tempo_rel", f"must be < 0.2, got {self.tempo_rel!r}")
+        if not isinstance(self.rest_start, bool):
+            raise ConfigError(
+                "HandVariation.rest_start", f"must be true or false, got {self.rest_start!r}"
+            )
 
     @classmethod
     def none(cls) -> HandVariation:
         """No variation: every trial of a motion is the same."""
-        return cls(0.0, 0.0, 0.0, 0.0)
+        return cls(0.0, 0.0, 0.0, 0.0, False)
 
 
 @dataclass(frozen=True)
@@ -124,7 +133,10 @@ class HandParams:
         slide_bandwidth: Natural frequency w of the slide servos [rad/s].
         hinge_bandwidth: Natural frequency w of the hinge servos [rad/s].
         hang_s: Time the hand holds still before the motion [s].
-        settle_s: Time the hand holds its last pose before the knot is judged [s].
+        settle: When the knot is judged after the motion (:class:`flyknot.rest.SettleParams`):
+            at rest, capped, as in the robot lab.
+        settle_s: A fixed wait instead [s]; None: ``settle``.
+        aero: Air drag on the rope.
         judge_rate_hz: Rate of the frames judged for ``knot_any`` and the settling
             fraction [Hz].
         variation: Trial-to-trial variation.
@@ -140,7 +152,9 @@ class HandParams:
     slide_bandwidth: float = 200.0
     hinge_bandwidth: float = 200.0
     hang_s: float = 0.05
-    settle_s: float = SETTLE_S
+    settle: SettleParams = field(default_factory=SettleParams)
+    settle_s: float | None = None
+    aero: AeroParams = field(default_factory=AeroParams)
     judge_rate_hz: float = 10.0
     variation: HandVariation = field(default_factory=HandVariation)
     settings: SimSettings | None = None
@@ -161,12 +175,18 @@ class HandParams:
         ):
             check_positive(f"HandParams.{f}", getattr(self, f))
         check_nonnegative("HandParams.hang_s", self.hang_s)
-        check_nonnegative("HandParams.settle_s", self.settle_s)
+        if self.settle_s is not None:
+            check_nonnegative("HandParams.settle_s", self.settle_s)
         if not isinstance(self.variation, HandVariation):
             raise ConfigError(
                 "HandParams.variation",
                 f"must be a HandVariation, got {type(self.variation).__name__}",
             )
+
+    @property
+    def settle_rule(self) -> SettleParams:
+        """The settle in force: ``settle``, or a fixed wait of ``settle_s``."""
+        return self.settle if self.settle_s is None else SettleParams.fixed(self.settle_s)
 
     @property
     def rope_params(self) -> RopeParams:
@@ -349,6 +369,8 @@ class HandTrial:
         diverged: MuJoCo reset the state (NaN) during the trial.
         variation: The drawn variation (gain factors, sway, azimuth, delay, tempo).
         wall_s: Wall time of the trial [s].
+        settle: How the settle ended (:meth:`flyknot.rest.SettleOutcome.as_metadata`), None
+            when not judged.
     """
 
     t: np.ndarray
@@ -367,6 +389,7 @@ class HandTrial:
     diverged: bool
     variation: Mapping[str, Any]
     wall_s: float
+    settle: Mapping[str, Any] | None = None
 
     @property
     def tied(self) -> bool:
@@ -393,6 +416,7 @@ class HandLab:
         self._kv0 = self.model.actuator_gainprm[self.scene.act_vel, 0].copy()
         self._vbias0 = self.model.actuator_biasprm[self.scene.act_vel, :3].copy()
         self._inertia = self.params.joint_inertia()
+        self._drag = RopeDrag(self.scene.rope, self.params.aero)
 
     @staticmethod
     def nominal_variation() -> dict[str, Any]:
@@ -410,7 +434,7 @@ class HandLab:
 
         Returns:
             ``kp_factor`` (6,), ``kv_factor`` (6,), ``sway`` [rad], ``azimuth`` [rad],
-            ``delay`` [s], ``tempo`` [-].
+            ``sway_rate`` [rad/s], ``delay`` [s], ``tempo`` [-].
         """
         if not isinstance(rng, np.random.Generator):
             raise ConfigError("rng", f"must be a numpy.random.Generator, got {type(rng).__name__}")
@@ -421,11 +445,20 @@ class HandLab:
         azimuth = float(rng.uniform(0.0, 2.0 * math.pi))
         delay = float(rng.uniform(0.0, v.start_delay_max_s)) if v.start_delay_max_s else 0.0
         tempo = 1.0 + v.tempo_rel * float(rng.standard_normal())
+        rate = 0.0
+        if v.rest_start:
+            p = self.params
+            tilt, rate, psi = settled_start(rng, p.settle.rest, p.rope_params.length)
+            tx = sway * math.cos(azimuth) + tilt * math.cos(psi)
+            ty = sway * math.sin(azimuth) + tilt * math.sin(psi)
+            sway, azimuth = math.hypot(tx, ty), math.atan2(ty, tx)
+            rate *= math.cos(psi - azimuth)
         return {
             "kp_factor": np.clip(kp, 0.5, 1.5).tolist(),
             "kv_factor": np.clip(kv, 0.5, 1.5).tolist(),
             "sway": min(sway, math.radians(30.0)),
             "azimuth": azimuth,
+            "sway_rate": rate,
             "delay": delay,
             "tempo": tempo,
         }
@@ -465,7 +498,9 @@ class HandLab:
         tempo = float(variation["tempo"])
         motion_start = p.hang_s + float(variation["delay"])
         motion_len = float(motion.duration) * tempo
-        n_steps = math.ceil((motion_start + motion_len + p.settle_s) / dt - 1e-9)
+        rule = p.settle_rule
+        wait = rule.max_s if judge else rule.min_s  # unjudged trials need no rest
+        n_steps = math.ceil((motion_start + motion_len + wait) / dt - 1e-9)
         t = dt * np.arange(n_steps + 1)
         tau = (t - motion_start) / tempo
         q_t, qd_t, qdd_t = motion.joint_targets(tau)
@@ -476,7 +511,19 @@ class HandLab:
         self._apply_gains(np.asarray(variation["kp_factor"]), np.asarray(variation["kv_factor"]))
         d.qpos[s.qpos] = q_t[0]
         mujoco.mj_kinematics(m, d)
-        s.rope.set_hanging(m, d, float(variation["sway"]), float(variation["azimuth"]))
+        s.rope.set_hanging(
+            m,
+            d,
+            float(variation["sway"]),
+            float(variation["azimuth"]),
+            float(variation.get("sway_rate", 0.0)),
+        )
+        rope = s.rope
+        monitor = SettleMonitor(rule, t_end=motion_start + motion_len)
+        end_dof = rope.vert_dof[-1]
+
+        def verdict() -> str:
+            return classify_centreline(d.qpos[rope.vert_qpos] + rope.body_pos0)
 
         nv = s.rope.n_vert
         verts = np.empty((n_steps + 1, nv, 3))
@@ -499,6 +546,7 @@ class HandLab:
             d.ctrl[s.act_vel] = qd_t[k + 1]
             d.ctrl[s.act_ff] = ff[k + 1]
             before = d.time
+            self._drag.apply(d)
             mujoco.mj_step(m, d)
             if d.time < before:  # MuJoCo reset a diverged state
                 diverged = True
@@ -507,14 +555,31 @@ class HandLab:
                 pos[k + 1 :] = np.nan
                 quat[k + 1 :] = np.nan
                 break
+            if judge and t[k + 1] >= monitor.t_end - 1e-9:
+                speed = float(np.linalg.norm(d.qvel[end_dof]))
+                if monitor.observe(float(t[k + 1]), speed, verdict, rope.self_contact(m, d)):
+                    n_steps = k + 1
+                    # The state after this step is the last sample.
+                    verts[n_steps] = d.qpos[rope.vert_qpos] + rope.body_pos0
+                    q[n_steps] = d.qpos[s.qpos]
+                    mujoco.mj_kinematics(m, d)
+                    pos[n_steps] = d.site_xpos[s.fingertip]
+                    mujoco.mju_mat2Quat(quat[n_steps], d.site_xmat[s.fingertip])
+                    break
+        t, verts, q, pos, quat = (a[: n_steps + 1] for a in (t, verts, q, pos, quat))
+        q_t = q_t[: n_steps + 1]
         quat = _sign_continuous(quat)
         knot: str | None = None
         knot_any = False
         settle_fraction = 0.0
         judged = np.zeros(0, dtype=int)
+        settle_meta = None
         if judge and not diverged:
             judged = judged_frames(t, motion_start, p.judge_rate_hz)
             knot, knot_any, settle_fraction = _judge(t, verts, judged, motion_start + motion_len)
+            if monitor.observe(float(t[-1]), float("nan"), verdict):  # cap reached in the loop
+                knot = monitor.outcome.verdict
+                settle_meta = monitor.outcome.as_metadata(rule)
         return HandTrial(
             t=t,
             hand_pos=pos,
@@ -532,6 +597,7 @@ class HandLab:
             diverged=diverged,
             variation=dict(variation),
             wall_s=time.perf_counter() - tic,
+            settle=settle_meta,
         )
 
 
@@ -542,6 +608,7 @@ def _nominal_variation() -> dict[str, Any]:
         "kv_factor": [1.0] * N_HAND_DOF,
         "sway": 0.0,
         "azimuth": 0.0,
+        "sway_rate": 0.0,
         "delay": 0.0,
         "tempo": 1.0,
     }

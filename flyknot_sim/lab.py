@@ -2,16 +2,20 @@
 
 :class:`SimLab` is a :class:`flyknot.record.Cell`. A trial:
 
-1. puts the arm at the command's first sample and the rope hanging at rest from the
-   fingertip (with a small seeded sway), servo gains perturbed by a seeded few percent;
+1. puts the arm at the command's first sample and the rope hanging from the fingertip in a
+   state drawn uniformly within the rest criterion a lab checks before a throw
+   (:func:`flyknot.rest.settled_start`; an extra seeded sway for robustness studies), servo
+   gains perturbed by a seeded few percent;
 2. streams the command to the joint servos at 250 Hz (zero-order hold, like the xArm's
    ``set_servo_angle_j`` stream), after a seeded start delay of less than one tick that
    shifts the robot's clock against the motion-capture clock;
 3. faults like the real controller when the command breaks the paper's position, velocity,
    acceleration or torque limits: the arm brakes to a hold at that instant and the trial
    is aborted;
-4. holds the last sample while the rope settles, then judges the knot from the rope's
-   centreline;
+4. holds the last sample until the rope's free end is at rest and the knot verdict has held
+   over the rest window (:class:`flyknot.rest.SettleMonitor`, capped), then judges the knot
+   from the rope's centreline; air drag acts on the rope throughout
+   (:mod:`flyknot_sim.aero`);
 5. returns what the real lab would measure: commanded and measured joints at 250 Hz,
    fingertip pose, 11 rope markers at 200 Hz through the motion-capture emulation (noise,
    tracking lost shortly after the first self-contact), plus sim-only ``truth``.
@@ -28,11 +32,13 @@ import numpy as np
 from tqdm import tqdm
 
 from flyknot import __version__
-from flyknot.constants import N_JOINTS, SETTLE_S
-from flyknot.errors import check_nonnegative, check_positive
+from flyknot.constants import N_JOINTS
+from flyknot.errors import ConfigError, check_nonnegative, check_positive
 from flyknot.record import JointCommand, TrialRecord
+from flyknot.rest import SettleMonitor, SettleParams, settled_start
 from flyknot_sim import faults as faults_mod
 from flyknot_sim import mocap, robot
+from flyknot_sim.aero import AeroParams, RopeDrag
 from flyknot_sim.knot import classify_centreline
 from flyknot_sim.rope import RopeParams, add_rope, configure_options, get_rope
 from flyknot_sim.scene import ROBOT_PREFIX, SceneParams, robot_base_pose, scene_spec
@@ -45,24 +51,32 @@ class VariationParams:
     """Seeded trial-to-trial variation, as in a real lab.
 
     Attributes:
-        sway_deg: Std of the rope's initial tilt from vertical [deg].
+        sway_deg: Std of an extra initial tilt of the rope from vertical [deg], |N(0, s^2)|
+            toward a uniform azimuth, for robustness studies (0: the settled start alone;
+            before issue 10 the lab used 1 deg).
         servo_gain_rel: Relative std of each servo's stiffness and damping gains [-].
         start_delay_max_s: The command starts after a uniform delay in [0, this) [s].
+        rest_start: Draw the rope's start state uniformly within the lab's rest criterion
+            (a rope that a lab would call static; :func:`flyknot.rest.settled_start`); False
+            starts it hanging straight and still.
     """
 
-    sway_deg: float = 1.0
+    sway_deg: float = 0.0
     servo_gain_rel: float = 0.03
     start_delay_max_s: float = 0.004
+    rest_start: bool = True
 
     def __post_init__(self) -> None:
         check_nonnegative("sway_deg", self.sway_deg)
         check_nonnegative("servo_gain_rel", self.servo_gain_rel)
         check_nonnegative("start_delay_max_s", self.start_delay_max_s)
+        if not isinstance(self.rest_start, bool):
+            raise ConfigError("rest_start", f"must be true or false, got {self.rest_start!r}")
 
     @classmethod
     def none(cls) -> VariationParams:
         """No variation: every trial of a command is the same."""
-        return cls(0.0, 0.0, 0.0)
+        return cls(0.0, 0.0, 0.0, False)
 
 
 @dataclass(frozen=True)
@@ -73,7 +87,10 @@ class LabParams:
         rope: Rope id (1..7, see ``assets/ropes.toml``).
         seed: Seed of the trial-to-trial variation and the mocap noise; trial ``i`` of a
             lab uses ``(seed, i)``.
-        settle_s: Time the last command sample is held before the knot is judged [s].
+        settle: When the knot is judged after the command: until the rope is at rest, capped
+            (:class:`flyknot.rest.SettleParams`).
+        settle_s: A fixed wait instead [s] (judged then, at rest or not); None: ``settle``.
+        aero: Air drag on the rope.
         brake_s: After a fault, how long the arm is simulated braking [s].
         truth_rate_hz: Rate of the ground-truth centreline stored in ``truth`` [Hz].
         variation: Trial-to-trial variation.
@@ -83,7 +100,9 @@ class LabParams:
 
     rope: int = 1
     seed: int = 0
-    settle_s: float = SETTLE_S
+    settle: SettleParams = field(default_factory=SettleParams)
+    settle_s: float | None = None
+    aero: AeroParams = field(default_factory=AeroParams)
     brake_s: float = 0.3
     truth_rate_hz: float = 100.0
     variation: VariationParams = field(default_factory=VariationParams)
@@ -92,7 +111,17 @@ class LabParams:
 
     def __post_init__(self) -> None:
         get_rope(self.rope)  # validates the id, listing valid choices
-        check_nonnegative("settle_s", self.settle_s)
+        if self.settle_s is not None:
+            check_nonnegative("settle_s", self.settle_s)
+        if not isinstance(self.settle, SettleParams):
+            raise ConfigError("settle", f"must be SettleParams, got {type(self.settle).__name__}")
+        if not isinstance(self.aero, AeroParams):
+            raise ConfigError("aero", f"must be AeroParams, got {type(self.aero).__name__}")
+
+    @property
+    def settle_rule(self) -> SettleParams:
+        """The settle in force: ``settle``, or a fixed wait of ``settle_s``."""
+        return self.settle if self.settle_s is None else SettleParams.fixed(self.settle_s)
         check_nonnegative("brake_s", self.brake_s)
         check_positive("truth_rate_hz", self.truth_rate_hz)
 
@@ -130,13 +159,15 @@ class SimLab:
         self._robot_only = robot.load_robot_model()
         self._trial_index = 0
         self.base_pose = robot_base_pose(params.scene)
+        self._bound = self.rope.bind(self.model) if hasattr(self.rope, "bind") else self.rope
+        self._drag = RopeDrag(self._bound, params.aero)
 
     # --------------------------------------------------------------------------------
     def _rng(self, trial_index: int) -> np.random.Generator:
         return np.random.default_rng([self.params.seed, trial_index])
 
     def reset(self, q0: np.ndarray, rng: np.random.Generator) -> float:
-        """Arm at ``q0`` at rest, rope hanging at rest with a seeded sway; return delay."""
+        """Arm at ``q0`` at rest, rope hanging in a seeded settled start; return the delay."""
         m, d = self.model, self.data
         mujoco.mj_resetData(m, d)
         var = self.params.variation
@@ -147,7 +178,17 @@ class SimLab:
         mujoco.mj_kinematics(m, d)
         sway = math.radians(var.sway_deg) * abs(rng.standard_normal())
         azimuth = rng.uniform(0, 2 * math.pi)
-        self.rope.set_hanging(m, d, sway_angle=sway, sway_azimuth=azimuth)
+        rate = 0.0
+        if var.rest_start:
+            tilt, rate, psi = settled_start(rng, self.params.settle.rest, self.rope_params.length)
+            # Compose the settled start with the extra sway (small angles add as vectors).
+            tx = sway * math.cos(azimuth) + tilt * math.cos(psi)
+            ty = sway * math.sin(azimuth) + tilt * math.sin(psi)
+            sway, azimuth = math.hypot(tx, ty), math.atan2(ty, tx)
+            # The rate acts along psi; project it on the composed tilt direction (the part
+            # across it is dropped: below 0.01 rad/s at the default criterion).
+            rate *= math.cos(psi - azimuth)
+        self.rope.set_hanging(m, d, sway_angle=sway, sway_azimuth=azimuth, sway_rate=rate)
         mujoco.mj_forward(m, d)
         return float(rng.uniform(0.0, var.start_delay_max_s)) if var.start_delay_max_s else 0.0
 
@@ -176,33 +217,37 @@ class SimLab:
 
         delay = self.reset(q_cmd[0], rng)
         n_cmd = command.n
-        n_settle = round(self.params.settle_s / tick)
-        n_ticks = n_cmd + n_settle
+        rule = self.params.settle_rule
+        # Room for the longest trial: the command, then the settle cap (or the brake).
+        n_ticks = n_cmd + math.ceil(rule.max_s / tick - 1e-9)
         if fault is not None:
             n_ticks = fault.tick + round(self.params.brake_s / tick) + 1
 
         # Ticks run on the robot clock: tick i starts at sim time delay + i * tick.
-        # Simulate the delay first (arm holding q0).
         # The arm holds q0 during the delay; the trial's clock starts before it.
         # Timing: after mj_step number j, body positions and contacts in MjData are those of
         # the state *before* that step (MuJoCo computes them in the step's forward pass), so
         # the reading after step j is stored as sample j - 1 (time (j - 1) * sim_dt); the last
         # sample comes from one mj_kinematics at the end.
         pre_steps = round(delay / sim_dt)
-        n_steps = pre_steps + n_ticks * substeps
-        n_vert = self.rope.vertex_positions(m, d).shape
-        vert_hist = np.empty((n_steps + 1, *n_vert))
-        t_hist = sim_dt * np.arange(n_steps + 1)
+        n_steps_max = pre_steps + n_ticks * substeps
+        bound, drag = self._bound, self._drag
+        n_vert = bound.n_vert
+        vert_hist = np.empty((n_steps_max + 1, n_vert, 3))
         j = 0  # steps taken
         first_contact: float | None = None
 
         def step() -> None:
             nonlocal j, first_contact
+            drag.apply(d)
             mujoco.mj_step(m, d)
             j += 1
-            vert_hist[j - 1] = self.rope.vertex_positions(m, d)
-            if first_contact is None and self.rope.self_contact(m, d):
-                first_contact = float(t_hist[j - 1])
+            vert_hist[j - 1] = d.flexvert_xpos[bound.vert_adr : bound.vert_adr + n_vert]
+            if first_contact is None and bound.self_contact(m, d):
+                first_contact = (j - 1) * sim_dt
+
+        def verdict() -> str:
+            return classify_centreline(d.qpos[bound.vert_qpos] + bound.body_pos0)
 
         for _ in range(pre_steps):
             step()
@@ -211,16 +256,20 @@ class SimLab:
         tip_quat = np.empty((n_ticks, 4))
         q_sent = np.empty((n_ticks, N_JOINTS))
         hold = None
+        # The settle starts when the last command sample has been sent and held one tick.
+        monitor = SettleMonitor(rule, t_end=pre_steps * sim_dt + n_cmd * tick)
+        end_dof = bound.vert_dof[-1]
         bar = tqdm(
-            total=round(n_ticks * tick, 2),
+            total=round((n_cmd * tick + rule.min_s) if fault is None else n_ticks * tick, 2),
             unit="sim s",
             disable=not progress,
             desc=f"trial (rope {self.params.rope})",
             bar_format=_BAR,
         )
+        n_done = n_ticks
         for i in range(n_ticks):
             if i % 25 == 0:
-                bar.n = round(i * tick, 2)
+                bar.n = min(round(i * tick, 2), bar.total)
                 bar.refresh()
             mujoco.mj_kinematics(m, d)  # fingertip pose of the current joint angles
             q_meas[i] = d.qpos[self._qadr]
@@ -233,28 +282,40 @@ class SimLab:
             d.ctrl[self._act] = target
             for _ in range(substeps):
                 step()
+            if fault is None and i + 1 >= n_cmd:
+                speed = float(np.linalg.norm(d.qvel[end_dof]))
+                touching = bound.self_contact(m, d)
+                if monitor.observe(j * sim_dt, speed, verdict, touching):
+                    n_done = i + 1
+                    break
+        n_ticks = n_done
+        n_steps = pre_steps + n_ticks * substeps
+        q_meas, tip_pos, tip_quat, q_sent = (
+            a[:n_ticks] for a in (q_meas, tip_pos, tip_quat, q_sent)
+        )
+        vert_hist = vert_hist[: n_steps + 1]
+        t_hist = sim_dt * np.arange(n_steps + 1)
         mujoco.mj_kinematics(m, d)
-        vert_hist[n_steps] = self.rope.vertex_positions(m, d)
+        vert_hist[n_steps] = bound.vertex_positions(m, d)
         bar.n = bar.total
         bar.close()
         # Joints are stamped on the robot's clock (0 at the first command sample); markers
         # and contact times on the motion-capture clock (0 at the nominal start). The two
         # differ by the unknown start delay, as unsynchronised lab clocks do.
         t_joint = np.arange(n_ticks) * tick
-        markers_true = self.rope.markers_from_vertices(vert_hist)
+        markers_true = bound.markers_from_vertices(vert_hist)
         t_mocap = mocap.sample_times(t_hist[-1], self.params.mocap.rate_hz)
         markers = mocap.emulate(
             t_hist, markers_true, t_mocap, first_contact, self.params.mocap, rng
         )
         knot = None
+        settle_meta = None
         if fault is None:
-            knot = classify_centreline(self.rope.centreline(m, d))
-        stride = max(1, round(1.0 / (self.params.truth_rate_hz * sim_dt)))
-        truth = {
-            "t_truth": t_hist[::stride],
-            "centreline": self.rope.centrelines_from_vertices(vert_hist[::stride]),
-            "markers": markers_true[::stride],
-        }
+            outcome = monitor.outcome
+            knot = outcome.verdict
+            settle_meta = outcome.as_metadata(rule)
+        truth = _truth(t_hist, vert_hist, bound, self.params.truth_rate_hz, sim_dt,
+                       t_full=monitor.t_end + rule.min_s)
         return TrialRecord(
             t_joint=t_joint,
             q_cmd=q_sent,
@@ -278,6 +339,8 @@ class SimLab:
                 "command_duration_s": command.duration,
                 "sim_duration_s": float(t_hist[-1]),
                 "sim_timestep_s": sim_dt,
+                "settle": settle_meta,
+                "aero": self.params.aero.enabled,
                 "versions": {
                     "flyknot": __version__,
                     "mujoco": mujoco.__version__,
@@ -286,3 +349,33 @@ class SimLab:
             },
             truth=truth,
         )
+
+
+# Truth frames after this long past the command's end are kept at this interval only (the
+# rope hangs still; a long settle would otherwise fill the record) [s].
+_TRUTH_TAIL_INTERVAL_S = 0.1
+
+
+def _truth(
+    t_hist: np.ndarray,
+    vert_hist: np.ndarray,
+    rope,
+    rate_hz: float,
+    sim_dt: float,
+    *,
+    t_full: float,
+) -> dict[str, np.ndarray]:
+    """Sim-only truth: centreline and markers at ``rate_hz`` until ``t_full`` [s], then every
+    :data:`_TRUTH_TAIL_INTERVAL_S`, always with the last sample."""
+    stride = max(1, round(1.0 / (rate_hz * sim_dt)))
+    tail = max(stride, round(_TRUTH_TAIL_INTERVAL_S / sim_dt))
+    k_full = int(np.searchsorted(t_hist, t_full))
+    idx = np.r_[np.arange(0, min(k_full, len(t_hist)), stride)]
+    start = idx[-1] + tail if len(idx) else 0
+    idx = np.unique(np.r_[idx, np.arange(start, len(t_hist), tail), len(t_hist) - 1])
+    verts = vert_hist[idx]
+    return {
+        "t_truth": t_hist[idx],
+        "centreline": rope.centrelines_from_vertices(verts),
+        "markers": rope.markers_from_vertices(verts),
+    }

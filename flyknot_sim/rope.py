@@ -784,9 +784,10 @@ class RopeHandle:
         data: mujoco.MjData,
         sway_angle: float = 0.0,
         sway_azimuth: float = 0.0,
+        sway_rate: float = 0.0,
     ) -> None:
         """See :meth:`BoundRope.set_hanging`."""
-        self.bind(model).set_hanging(model, data, sway_angle, sway_azimuth)
+        self.bind(model).set_hanging(model, data, sway_angle, sway_azimuth, sway_rate)
 
 
 def _ids(model: mujoco.MjModel, obj: mujoco.mjtObj, names: Iterable[str], what: str) -> np.ndarray:
@@ -924,13 +925,15 @@ class BoundRope:
         data: mujoco.MjData,
         sway_angle: float = 0.0,
         sway_azimuth: float = 0.0,
+        sway_rate: float = 0.0,
     ) -> None:
-        """Place the rope at rest, hanging from the anchor's current pose.
+        """Place the rope hanging from the anchor's current pose, at rest or swinging.
 
         Reads the hold sites' world positions from ``data`` (call ``mj_kinematics`` after
         moving the anchor first). Vertices 0 and 1 go to the hold sites; the rest continue
         straight, tilted by ``sway_angle`` from straight down toward ``sway_azimuth`` (see
-        :func:`sway_direction`). Rope velocities, twist angles, the rod's transported
+        :func:`sway_direction`), and turn about vertex 1 at ``sway_rate``: vertex k >= 2 moves
+        at v_k = (k - 1) l sway_rate dd/d(angle) [m/s]. Twist angles, the rod's transported
         reference frames (``mjData.plastic``) and the rope's warm start are zeroed; then
         ``mj_forward`` runs.
 
@@ -939,16 +942,31 @@ class BoundRope:
             data: Its data.
             sway_angle: Tilt from vertical [rad], in [0, pi/2).
             sway_azimuth: Direction of the tilt about world z [rad].
+            sway_rate: Rate of change of the tilt [rad/s] (0: at rest).
 
         Raises:
-            ConfigError: ``sway_angle`` outside [0, pi/2).
+            ConfigError: ``sway_angle`` outside [0, pi/2) or a non-finite ``sway_rate``.
         """
         if not (0.0 <= sway_angle < math.pi / 2):
             raise ConfigError("sway_angle", f"must lie in [0, pi/2) rad, got {sway_angle!r}")
+        if not math.isfinite(sway_rate):
+            raise ConfigError("sway_rate", f"must be a finite number, got {sway_rate!r}")
         p0 = data.site_xpos[self.hold_sites[0]]
         p1 = data.site_xpos[self.hold_sites[1]]
         x = hanging_vertices(p0, p1, sway_direction(sway_angle, sway_azimuth), self.n_segments)
         self.set_vertices(model, data, x)
+        if sway_rate:
+            ca, sa = math.cos(sway_angle), math.sin(sway_angle)
+            dd = np.array([ca * math.cos(sway_azimuth), ca * math.sin(sway_azimuth), sa])
+            arm = np.linalg.norm(x[2:] - x[1], axis=1)
+            v = np.zeros_like(x)
+            v[2:] = sway_rate * arm[:, None] * dd
+            data.qvel[self.vert_dof] = v
+            mujoco.mj_forward(model, data)
+
+    def vertex_velocities(self, model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
+        """Vertex world velocities, held end first, shape (n + 1, 3) [m/s] (a copy)."""
+        return data.qvel[self.vert_dof].copy()
 
     def set_vertices(self, model: mujoco.MjModel, data: mujoco.MjData, x: np.ndarray) -> None:
         """Put the rope's vertices at ``x`` at rest, then run ``mj_forward``.

@@ -18,6 +18,7 @@ from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, RecordError
 from flyknot_sim import demo_cli
 from flyknot_sim import demo_synth as ds
+from flyknot_sim.aero import AeroParams
 from flyknot_sim.hand import (
     HandLab,
     HandParams,
@@ -370,7 +371,7 @@ def test_judged_frames_and_variation(lab):
     idx = judged_frames(t, 0.05, 10.0)
     assert idx[0] == 50 and idx[-1] == 1000 and np.all(np.diff(idx)[:-1] == 100)
     v = HandLab(HandParams(settle_s=0.0)).draw_variation(np.random.default_rng(3))
-    assert set(v) == {"kp_factor", "kv_factor", "sway", "azimuth", "delay", "tempo"}
+    assert set(v) == {"kp_factor", "kv_factor", "sway", "azimuth", "sway_rate", "delay", "tempo"}
     assert 0.0 <= v["delay"] < 0.004 and len(v["kp_factor"]) == 6
     with pytest.raises(ConfigError, match=r"^rng: must be a numpy.random.Generator, got int$"):
         lab.draw_variation(3)
@@ -409,12 +410,16 @@ def test_shipped_demo_is_current_and_described(name):
 
 
 def test_replaying_stored_parameters_reproduces_the_demo_exactly():
+    # The shipped demos were made before the lab had air drag and the settle-until-rest
+    # rule (issue 10): under those conditions the replay is the demonstration, bit for bit.
     demo = _shipped("fast")
-    res = ds.replay(demo, repeats=1, vary=False, keep_trials=True)
-    trial = res.trials[0]
-    assert res.t_c[0] == demo.t_c
-    assert res.outcomes[0] == "trefoil"
-    lab = HandLab(ds.hand_from_demo(demo, 1, vary=False))
+    made_in = replace(
+        ds.hand_from_demo(demo, 1, vary=False), aero=AeroParams(enabled=False), settle_s=1.5
+    )
+    lab = HandLab(made_in)
+    trial = lab.run(ds.motion_from_demo(demo))
+    assert trial.first_contact == demo.t_c
+    assert trial.knot == "trefoil"
     again = trial_demonstration(
         trial,
         lab.rope,
@@ -422,9 +427,9 @@ def test_replaying_stored_parameters_reproduces_the_demo_exactly():
         np.random.default_rng([demo.metadata["seed"], 3]),
         rope_id=1,
     )
-    np.testing.assert_array_equal(again.hand_pos, demo.hand_pos)
-    np.testing.assert_array_equal(again.hand_quat, demo.hand_quat)
-    np.testing.assert_array_equal(again.markers, demo.markers)
+    np.testing.assert_allclose(again.hand_pos, demo.hand_pos, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(again.hand_quat, demo.hand_quat, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(again.markers, demo.markers, rtol=0, atol=1e-12)
 
 
 def test_a_shipped_demo_ties_under_variation_with_a_short_settle():
@@ -521,7 +526,8 @@ def test_cli_replay_json_and_saved_replays(tmp_path, capsys):
     assert code == 0
     result = json.loads(capsys.readouterr().out)
     assert result["repeats"] == 1 and len(result["outcomes"]) == 1
-    assert result["t_c"][0] == _shipped("fast").t_c
+    # Air drag (issue 10) moves the nominal replay's first contact by a few ms.
+    assert result["t_c"][0] == pytest.approx(_shipped("fast").t_c, abs=0.01)
     saved = Demonstration.load(out / "replay_000.npz")
     assert saved.t_c == result["t_c"][0]
     with np.load(out / "replay_000.npz") as z:

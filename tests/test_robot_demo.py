@@ -60,8 +60,15 @@ def shipped():
 
 
 def test_shipped_robot_demo_is_its_commands_nominal_trial(shipped):
+    from flyknot_sim.aero import AeroParams
+    from flyknot_sim.lab import LabParams, VariationParams
+
     demo, knots, T = shipped
-    again = record_demonstration(knots, T, rope=demo.rope)
+    # Recorded before the lab had air drag and the settle-until-rest rule (issue 10).
+    made_in = LabParams(
+        variation=VariationParams.none(), aero=AeroParams(enabled=False), settle_s=1.5
+    )
+    again = record_demonstration(knots, T, rope=demo.rope, lab_params=made_in)
     assert again.t_c == pytest.approx(demo.t_c, abs=1e-9)
     np.testing.assert_allclose(again.hand_pos, demo.hand_pos, atol=1e-9)
     np.testing.assert_array_equal(np.isnan(again.markers), np.isnan(demo.markers))

@@ -1,0 +1,335 @@
+"""When a hanging rope is "at rest": the criterion a lab checks before a throw and before a verdict.
+
+The paper's trials start "in a static state hanging down from the fingertip" and succeed with
+"a topological overhand knot in a rope hanging down at the end of motion". Both need one
+definition of rest that a real lab can check with its motion capture and a simulated lab can
+apply to its state. Here it is, for the free end of the rope:
+
+* speed: the free end moves slower than ``speed_m_s`` throughout a window of ``window_s``;
+* displacement: the free end lies within ``displacement_m`` of its hanging position.
+
+Defaults and why:
+
+* ``speed_m_s = 0.03`` [m/s]: a pendulum swinging at this peak speed has an amplitude of
+  v / omega_1 ~ 1 cm at the free end (omega_1 = sqrt(g / L) = 2.99 rad/s for L = 1.1 m, the
+  lowest swing frequency of a hanging rope: the end-mass-dominated limit), the rope's own
+  diameter: still to the eye. A motion-capture system sees it: with 1 mm marker noise at
+  200 Hz, a least-squares speed over 0.1 s has a noise of about
+  sqrt(12) * 1 mm / (0.1 s * sqrt(20)) ~ 8 mm/s, a quarter of the threshold.
+* ``window_s = 1.0`` [s]: longer than half the swing period (pi / omega_1 = 1.05 s, the time
+  between the speed peaks of a swing) rounded to a tick: a swing's peak speed always falls in
+  the window, so a rope passing slowly through a turning point is not taken for a rope at rest.
+* ``displacement_m = speed_m_s / omega_1`` (1.0 cm): the amplitude of a swing at the speed
+  threshold, so the two conditions describe the same rest.
+
+:func:`settled_start` draws a start state uniformly within this criterion (the state of a
+rope a lab waits for before it throws); :func:`free_end_at_rest` checks it on measurements.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from flyknot.constants import GRAVITY, ROPE_LENGTH
+
+UNKNOT = "unknot"
+from flyknot.errors import ConfigError, check_nonnegative, check_positive
+
+__all__ = [
+    "RestCriterion",
+    "SettleMonitor",
+    "SettleOutcome",
+    "SettleParams",
+    "free_end_at_rest",
+    "pendulum_omega",
+    "settled_start",
+]
+
+
+def pendulum_omega(length: float = ROPE_LENGTH) -> float:
+    """Lowest swing frequency bound of a hanging rope, omega_1 = sqrt(g / L) [rad/s].
+
+    A uniform chain has omega_1 = 1.2024 sqrt(g / L) (first zero of J_0, halved); an end mass
+    lowers it towards the simple pendulum's sqrt(g / L), the value used here.
+
+    Args:
+        length: Rope length L [m].
+    """
+    check_positive("length", length)
+    return math.sqrt(GRAVITY / length)
+
+
+@dataclass(frozen=True)
+class RestCriterion:
+    """Rest of the rope's free end (module docstring for the numbers and why).
+
+    Attributes:
+        speed_m_s: Largest free-end speed of a rope at rest [m/s].
+        window_s: The speed must stay below ``speed_m_s`` for this long [s].
+        displacement_m: Largest distance of the free end from its hanging position [m];
+            None: ``speed_m_s / pendulum_omega()``.
+    """
+
+    speed_m_s: float = 0.03
+    window_s: float = 1.0
+    displacement_m: float | None = None
+
+    def __post_init__(self) -> None:
+        check_positive("speed_m_s", self.speed_m_s)
+        check_positive("window_s", self.window_s)
+        if self.displacement_m is not None:
+            check_positive("displacement_m", self.displacement_m)
+
+    def max_displacement(self, length: float = ROPE_LENGTH) -> float:
+        """The displacement bound [m] (explicit, or the swing amplitude at the speed bound)."""
+        if self.displacement_m is not None:
+            return self.displacement_m
+        return self.speed_m_s / pendulum_omega(length)
+
+
+@dataclass(frozen=True)
+class SettleParams:
+    """How long a lab waits after the motion before it judges the knot.
+
+    The lab holds the last command and runs until the free end has been at rest
+    (:class:`RestCriterion`) for ``rest.window_s`` and the knot verdict, sampled every
+    ``verdict_interval_s``, has not changed over that window; at least ``min_s``, at most
+    ``max_s`` after the end of the command (then the trial is marked unsettled and judged as it
+    hangs).
+
+    Attributes:
+        rest: The rest criterion.
+        min_s: Shortest wait [s] (the old fixed settling time).
+        max_s: Longest wait [s] (cap).
+        verdict_interval_s: Interval of the knot verdicts of the history [s].
+        contact_free_unknot: Judge a rope early that has been unknotted and free of
+            self-contact over a whole window: a knot forms only where the rope's end passes
+            through a loop of itself, and a hanging rope that does not touch itself is not
+            doing that (measured in ``docs/rope-model.md``: such verdicts did not change when
+            the same trials ran on to the cap). Without it, an unknotted rope that swings on
+            (air drag damps a large swing over minutes) runs to the cap.
+    """
+
+    rest: RestCriterion = RestCriterion()
+    min_s: float = 1.5
+    max_s: float = 15.0
+    verdict_interval_s: float = 0.25
+    contact_free_unknot: bool = True
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.rest, RestCriterion):
+            raise ConfigError("rest", f"must be a RestCriterion, got {type(self.rest).__name__}")
+        check_nonnegative("min_s", self.min_s)
+        check_positive("max_s", self.max_s)
+        check_positive("verdict_interval_s", self.verdict_interval_s)
+        if not isinstance(self.contact_free_unknot, bool):
+            raise ConfigError(
+                "contact_free_unknot", f"must be true or false, got {self.contact_free_unknot!r}"
+            )
+        if self.max_s < self.min_s:
+            raise ConfigError("max_s", f"must be >= min_s ({self.min_s}), got {self.max_s}")
+
+    @classmethod
+    def fixed(cls, seconds: float) -> SettleParams:
+        """Wait exactly ``seconds`` and judge, rested or not (min = max)."""
+        check_nonnegative("settle_s", seconds)
+        return cls(min_s=seconds, max_s=max(seconds, 1e-9))
+
+
+def free_end_at_rest(
+    speed: np.ndarray, displacement: np.ndarray, criterion: RestCriterion, length: float
+) -> bool:
+    """Whether a window of free-end samples shows a rope at rest.
+
+    rest <=> max_k |v_k| <= speed_m_s and max_k |d_k| <= displacement bound.
+
+    Args:
+        speed: Free-end speeds over the window, shape (k,) [m/s].
+        displacement: Free-end distances from the hanging position, shape (k,) [m].
+        criterion: The criterion.
+        length: Rope length [m] (for the default displacement bound).
+    """
+    speed = np.asarray(speed, dtype=float)
+    displacement = np.asarray(displacement, dtype=float)
+    if speed.size == 0:
+        return False
+    return bool(
+        np.nanmax(speed) <= criterion.speed_m_s
+        and np.nanmax(displacement) <= criterion.max_displacement(length)
+    )
+
+
+def settled_start(
+    rng: np.random.Generator, criterion: RestCriterion, length: float = ROPE_LENGTH
+) -> tuple[float, float, float]:
+    """Draw a start state uniformly within the rest criterion.
+
+    The rope is taken as a rigid pendulum in its lowest swing: free-end displacement
+    a cos(phi) and velocity -a omega sin(phi) along a horizontal azimuth psi, with (a, phi)
+    uniform over the disc of radius A = max_displacement (a = A sqrt(u)) and psi uniform; A
+    omega <= speed bound by construction when the displacement bound is the default.
+
+    Args:
+        rng: Source of the draw.
+        criterion: The criterion.
+        length: Rope length L [m].
+
+    Returns:
+        ``(tilt [rad], tilt_rate [rad/s], azimuth [rad])``: the rope's angle from vertical
+        toward ``azimuth`` and its rate of change (tilt may be negative: toward azimuth + pi).
+    """
+    omega = pendulum_omega(length)
+    amp = criterion.max_displacement(length)
+    amp = min(amp, criterion.speed_m_s / omega)
+    a = amp * math.sqrt(float(rng.uniform()))
+    phi = float(rng.uniform(0.0, 2.0 * math.pi))
+    psi = float(rng.uniform(0.0, 2.0 * math.pi))
+    return a * math.cos(phi) / length, -a * omega * math.sin(phi) / length, psi
+
+
+@dataclass(frozen=True)
+class SettleOutcome:
+    """How a settle ended.
+
+    Attributes:
+        settled: The free end came to rest and the verdict held over the final window.
+        contact_free: Not at rest, but judged early: unknotted and free of self-contact over
+            the final window (``SettleParams.contact_free_unknot``).
+        settle_s: Time from the end of the command to the verdict [s].
+        verdict: The knot verdict at the end.
+        free_end_speed_m_s: Largest free-end speed over the final window [m/s].
+        history_t: Times of the verdicts [s] (the caller's clock).
+        history: The verdicts, oldest first.
+    """
+
+    settled: bool
+    contact_free: bool
+    settle_s: float
+    verdict: str
+    free_end_speed_m_s: float
+    history_t: tuple[float, ...]
+    history: tuple[str, ...]
+
+    def as_metadata(self, params: SettleParams) -> dict:
+        """Plain data for a trial record's metadata."""
+        return {
+            "settled": self.settled,
+            "contact_free": self.contact_free,
+            "settle_s": self.settle_s,
+            "free_end_speed_m_s": self.free_end_speed_m_s,
+            "verdict_stable_s": _stable_for(self.history_t, self.history),
+            "criterion": {
+                "speed_m_s": params.rest.speed_m_s,
+                "window_s": params.rest.window_s,
+                "min_s": params.min_s,
+                "max_s": params.max_s,
+                "verdict_interval_s": params.verdict_interval_s,
+                "contact_free_unknot": params.contact_free_unknot,
+            },
+            "knot_history": {"t": list(self.history_t), "verdict": list(self.history)},
+        }
+
+
+def _stable_for(t: tuple[float, ...], verdicts: tuple[str, ...]) -> float:
+    """How long the last verdict has held, from its first sample in the final run [s]."""
+    if not verdicts:
+        return 0.0
+    k = len(verdicts) - 1
+    while k > 0 and verdicts[k - 1] == verdicts[-1]:
+        k -= 1
+    return float(t[-1] - t[k])
+
+
+class SettleMonitor:
+    """Decides when a rope after a motion is at rest and its knot verdict is stable.
+
+    Feed it the free-end speed at every sample (:meth:`observe`); it asks ``judge()`` for a
+    verdict every ``verdict_interval_s`` and says when to stop: after ``min_s``, once the speed
+    has stayed below the threshold for ``window_s`` and every verdict within that window agrees
+    (at least two), or at ``max_s``.
+    """
+
+    def __init__(self, params: SettleParams, t_end: float):
+        """Start monitoring; ``t_end`` is the end of the command on the caller's clock [s]."""
+        self.params = params
+        self.t_end = float(t_end)
+        self._last_fast = float(t_end)
+        self._t: list[float] = []
+        self._v: list[str] = []
+        self._speeds: deque[tuple[float, float]] = deque()
+        self._next_verdict = float(t_end)
+        self._last_contact = float(t_end)
+        self._done: SettleOutcome | None = None
+
+    def observe(self, t: float, speed: float, judge, contact: bool | None = None) -> bool:
+        """Take one sample; return True when the verdict is final (see :meth:`outcome`).
+
+        Args:
+            t: Sample time on the caller's clock [s], >= ``t_end``, increasing.
+            speed: Free-end speed [m/s] (NaN counts as moving).
+            judge: Callable returning the knot verdict of the rope's current shape.
+            contact: Whether the rope touches itself now (None: unknown). With
+                ``params.contact_free_unknot``, a rope that has been free of self-contact and
+                unknotted over a whole window is judged without waiting for rest.
+        """
+        if self._done is not None:
+            return True
+        p, rest = self.params, self.params.rest
+        if not speed <= rest.speed_m_s:  # NaN included
+            self._last_fast = t
+        if contact is None or contact:
+            self._last_contact = t
+        self._speeds.append((t, speed))
+        while self._speeds and self._speeds[0][0] <= t - rest.window_s + 1e-9:
+            self._speeds.popleft()
+        elapsed = t - self.t_end
+        cap = elapsed >= p.max_s - 1e-9
+        if t >= self._next_verdict - 1e-9:
+            self._t.append(t)
+            self._v.append(judge())
+            self._next_verdict = t + p.verdict_interval_s
+        if elapsed < p.min_s - 1e-9 and not cap:
+            return False
+        quiet = t - self._last_fast >= rest.window_s - 1e-9
+        window = [v for tv, v in zip(self._t, self._v) if tv >= t - rest.window_s - 1e-9]
+        stable = len(window) >= 2 and len(set(window)) == 1
+        fixed = p.max_s <= p.min_s + 1e-9
+        free = (
+            p.contact_free_unknot
+            and t - self._last_contact >= rest.window_s - 1e-9
+            and stable
+            and window[-1] == UNKNOT
+        )
+        if (quiet and stable) or free or cap or fixed:
+            if not self._t or self._t[-1] < t - 1e-9:
+                self._t.append(t)
+                self._v.append(judge())
+            final = [v for tv, v in zip(self._t, self._v) if tv >= t - rest.window_s - 1e-9]
+            settled = quiet and len(final) >= 2 and len(set(final)) == 1
+            speeds = [s for ts, s in self._speeds]
+            self._done = SettleOutcome(
+                settled=bool(settled),
+                contact_free=bool(free and not settled),
+                settle_s=float(elapsed),
+                verdict=self._v[-1],
+                free_end_speed_m_s=float(np.nanmax(speeds)) if speeds else float("nan"),
+                history_t=tuple(self._t),
+                history=tuple(self._v),
+            )
+            return True
+        return False
+
+    @property
+    def outcome(self) -> SettleOutcome:
+        """The outcome, once :meth:`observe` returned True.
+
+        Raises:
+            ConfigError: The settle has not ended yet.
+        """
+        if self._done is None:
+            raise ConfigError("outcome", "the settle has not ended yet (observe more samples)")
+        return self._done

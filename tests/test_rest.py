@@ -1,0 +1,170 @@
+"""The rest criterion, the settled start and the settle monitor (flyknot.rest)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from flyknot.errors import ConfigError
+from flyknot.rest import (
+    RestCriterion,
+    SettleMonitor,
+    SettleParams,
+    free_end_at_rest,
+    pendulum_omega,
+    settled_start,
+)
+
+
+def test_pendulum_omega_is_sqrt_g_over_l():
+    assert pendulum_omega(1.1) == pytest.approx(math.sqrt(9.81 / 1.1))
+
+
+def test_default_displacement_is_swing_amplitude_at_speed_bound():
+    c = RestCriterion()
+    assert c.max_displacement(1.1) == pytest.approx(0.03 / math.sqrt(9.81 / 1.1))
+    assert RestCriterion(displacement_m=0.004).max_displacement() == 0.004
+
+
+@given(st.integers(0, 2**32 - 1))
+@settings(max_examples=50, deadline=None)
+def test_settled_start_lies_within_the_criterion(seed):
+    c = RestCriterion()
+    tilt, rate, _ = settled_start(np.random.default_rng(seed), c, 1.1)
+    assert abs(tilt) * 1.1 <= c.max_displacement(1.1) + 1e-12
+    assert abs(rate) * 1.1 <= c.speed_m_s + 1e-12
+
+
+def test_settled_start_fills_the_disc_uniformly():
+    c = RestCriterion()
+    rng = np.random.default_rng(0)
+    d = np.array([settled_start(rng, c, 1.1) for _ in range(4000)])
+    amp = c.max_displacement(1.1)
+    w = pendulum_omega(1.1)
+    r2 = (d[:, 0] * 1.1) ** 2 + (d[:, 1] * 1.1 / w) ** 2
+    # Uniform over a disc of radius A: E[r^2] = A^2 / 2.
+    assert np.mean(r2) == pytest.approx(amp**2 / 2, rel=0.05)
+    assert np.max(r2) <= amp**2 * (1 + 1e-9)
+
+
+def test_free_end_at_rest():
+    c = RestCriterion()
+    assert free_end_at_rest([0.01, 0.02], [0.001, 0.002], c, 1.1)
+    assert not free_end_at_rest([0.01, 0.04], [0.001, 0.002], c, 1.1)
+    assert not free_end_at_rest([0.01], [0.05], c, 1.1)
+    assert not free_end_at_rest([], [], c, 1.1)
+
+
+def _run(monitor, t0, speed_fn, verdict_fn, contact_fn=lambda t: True, dt=0.004):
+    t = t0
+    while not monitor.observe(t, speed_fn(t), lambda: verdict_fn(t), contact_fn(t)):
+        t += dt
+        if t > t0 + 100:
+            raise AssertionError("monitor never ended")
+    return monitor.outcome
+
+
+def test_monitor_stops_one_window_after_the_speed_falls_below_threshold():
+    p = SettleParams()
+    out = _run(SettleMonitor(p, 2.0), 2.0, lambda t: 0.5 if t < 6.0 else 0.01, lambda t: "trefoil")
+    assert out.settled and not out.contact_free
+    assert out.settle_s == pytest.approx(4.0 + p.rest.window_s, abs=0.005)
+    assert out.verdict == "trefoil"
+    assert out.free_end_speed_m_s == pytest.approx(0.01)
+
+
+def test_monitor_waits_at_least_min_s():
+    out = _run(SettleMonitor(SettleParams(min_s=1.5), 0.0), 0.0, lambda t: 0.0, lambda t: "unknot")
+    assert out.settled
+    assert out.settle_s == pytest.approx(1.5, abs=0.005)
+
+
+def test_monitor_waits_for_a_stable_verdict():
+    # At rest from the start, but the verdict flips at every sample until t = 5 s.
+    calls = []
+
+    def verdict(t):
+        calls.append(t)
+        return ("trefoil" if len(calls) % 2 else "unknot") if t < 5.0 else "trefoil"
+
+    out = _run(SettleMonitor(SettleParams(), 0.0), 0.0, lambda t: 0.0, verdict)
+    assert out.settled and out.verdict == "trefoil"
+    assert out.settle_s >= 5.0 + 1.0 - 0.3
+    window = [v for tv, v in zip(out.history_t, out.history) if tv >= out.settle_s - 1.0]
+    assert set(window) == {"trefoil"}
+
+
+def test_monitor_cap_marks_the_trial_unsettled():
+    out = _run(SettleMonitor(SettleParams(max_s=3.0), 0.0), 0.0, lambda t: 1.0, lambda t: "trefoil")
+    assert not out.settled and not out.contact_free
+    assert out.settle_s == pytest.approx(3.0, abs=0.005)
+    assert out.free_end_speed_m_s == 1.0
+
+
+def test_monitor_contact_free_unknot_ends_early():
+    out = _run(
+        SettleMonitor(SettleParams(), 0.0),
+        0.0,
+        lambda t: 1.0,
+        lambda t: "unknot",
+        contact_fn=lambda t: t < 2.0,
+    )
+    assert out.contact_free and not out.settled
+    assert out.settle_s == pytest.approx(3.0, abs=0.005)
+    # A swinging trefoil without contact is not judged early.
+    out = _run(
+        SettleMonitor(SettleParams(max_s=4.0), 0.0),
+        0.0,
+        lambda t: 1.0,
+        lambda t: "trefoil",
+        contact_fn=lambda t: False,
+    )
+    assert not out.contact_free and out.settle_s == pytest.approx(4.0, abs=0.005)
+
+
+def test_fixed_settle_judges_at_its_time():
+    out = _run(SettleMonitor(SettleParams.fixed(0.5), 1.0), 1.0, lambda t: 2.0, lambda t: "unknot")
+    assert out.settle_s == pytest.approx(0.5, abs=0.005)
+    assert not out.settled
+
+
+def test_outcome_before_the_end_is_an_error():
+    m = SettleMonitor(SettleParams(), 0.0)
+    with pytest.raises(ConfigError, match=r"^outcome: the settle has not ended yet"):
+        _ = m.outcome
+
+
+def test_metadata_round_trip_fields():
+    p = SettleParams()
+    out = _run(SettleMonitor(p, 0.0), 0.0, lambda t: 0.0, lambda t: "unknot")
+    meta = out.as_metadata(p)
+    assert meta["settled"] is True
+    assert meta["criterion"]["speed_m_s"] == 0.03
+    assert meta["knot_history"]["verdict"][-1] == "unknot"
+    assert meta["verdict_stable_s"] >= 1.0
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"min_s": -1.0}, "min_s: must be a finite number >= 0, got -1.0"),
+        ({"max_s": 1.0, "min_s": 2.0}, "max_s: must be >= min_s (2.0), got 1.0"),
+        ({"verdict_interval_s": 0.0}, "verdict_interval_s: must be a finite number > 0, got 0.0"),
+        ({"contact_free_unknot": 1}, "contact_free_unknot: must be true or false, got 1"),
+        ({"rest": 0.03}, "rest: must be a RestCriterion, got float"),
+    ],
+)
+def test_settle_params_errors(kwargs, message):
+    with pytest.raises(ConfigError) as e:
+        SettleParams(**kwargs)
+    assert str(e.value) == message
+
+
+def test_rest_criterion_errors():
+    with pytest.raises(ConfigError) as e:
+        RestCriterion(speed_m_s=0.0)
+    assert str(e.value) == "speed_m_s: must be a finite number > 0, got 0.0"
