@@ -9,18 +9,33 @@ from collections.abc import Sequence
 from flyknot.errors import ConfigError
 
 
-def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bool = True) -> dict:
-    """Wall seconds per simulated second of a fast trial (robot + rope + self-contact).
+def _lab_variants():
+    """The lab before issue 10 (fixed 1.5 s settle, no air drag, 1 deg sway) and now."""
+    from flyknot_sim.aero import AeroParams
+    from flyknot_sim.lab import LabParams, VariationParams
 
-    The trial is the showcase swing (0.8 s, joint speeds up to 2.7 rad/s) plus the lab's
-    default settling time, run by :class:`flyknot_sim.lab.SimLab` exactly as a learning trial
-    is. Each rope is timed ``repeats`` times; the best is kept (least disturbed by other
-    load on the machine).
+    before = {
+        "settle_s": 1.5,
+        "aero": AeroParams(enabled=False),
+        "variation": VariationParams(sway_deg=1.0, rest_start=False),
+    }
+    return {"before": before, "now": {}}, LabParams
+
+
+def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bool = True) -> dict:
+    """Wall seconds per simulated second, and simulated seconds per trial, of a fast trial.
+
+    The trial is the showcase swing (0.8 s, joint speeds up to 2.7 rad/s) and the settle,
+    run by :class:`flyknot_sim.lab.SimLab` exactly as a learning trial is, in two labs measured
+    in the same run: ``before`` (the fixed 1.5 s settle, no drag) and ``now`` (the lab's
+    defaults: air drag, settle until the rope is at rest, capped). Each is timed ``repeats``
+    times per rope (trials 0, 1, ... of seed 0); the best wall time per simulated second is
+    kept (least disturbed by other load), the simulated seconds are averaged.
     """
     from tqdm import tqdm
 
     from flyknot_sim.commands import swing_command
-    from flyknot_sim.lab import LabParams, SimLab
+    from flyknot_sim.lab import SimLab
     from flyknot_sim.rope import load_rope_table
 
     table = load_rope_table()
@@ -29,26 +44,27 @@ def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bo
         if r not in table:
             raise ConfigError("rope", f"unknown rope id {r}", sorted(table))
     command = swing_command()
+    variants, lab_params = _lab_variants()
     out = []
     for r in tqdm(ropes, desc="bench sim", disable=not progress, unit="rope"):
-        lab = SimLab(LabParams(rope=r))
-        best = float("inf")
-        sim_s = 0.0
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            rec = lab.run(command)
-            wall = time.perf_counter() - t0
-            sim_s = float(rec.metadata["sim_duration_s"])
-            best = min(best, wall)
-        out.append(
-            {
-                "rope": r,
-                "wall_per_sim_s": best / sim_s,
-                "realtime_factor": sim_s / best,
-                "sim_s": sim_s,
-                "segments": table[r].n_segments,
+        row: dict = {"rope": r, "segments": table[r].n_segments}
+        for name, kw in variants.items():
+            lab = SimLab(lab_params(rope=r, **kw))
+            best = float("inf")
+            sims = []
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                rec = lab.run(command)
+                wall = time.perf_counter() - t0
+                sim_s = float(rec.metadata["sim_duration_s"])
+                sims.append(sim_s)
+                best = min(best, wall / sim_s)
+            row[name] = {
+                "wall_per_sim_s": best,
+                "realtime_factor": 1.0 / best,
+                "sim_s_per_trial": sum(sims) / len(sims),
             }
-        )
+        out.append(row)
     return {"ropes": out}
 
 
@@ -61,12 +77,17 @@ def main(what: str, *, as_json: bool = False, ropes=None, repeats: int = 1) -> i
         if as_json:
             print(json.dumps(res))
         else:
-            print(f"{'rope':>4} {'segments':>8} {'wall s / sim s':>15} {'x real time':>12}")
+            print(
+                f"{'rope':>4} {'lab':>7} {'wall s / sim s':>15} {'x real time':>12} "
+                f"{'sim s / trial':>14}"
+            )
             for row in res["ropes"]:
-                print(
-                    f"{row['rope']:>4} {row['segments']:>8} {row['wall_per_sim_s']:>15.3f} "
-                    f"{row['realtime_factor']:>12.1f}"
-                )
+                for name in ("before", "now"):
+                    v = row[name]
+                    print(
+                        f"{row['rope']:>4} {name:>7} {v['wall_per_sim_s']:>15.3f} "
+                        f"{v['realtime_factor']:>12.1f} {v['sim_s_per_trial']:>14.2f}"
+                    )
         return 0
     if what == "learner":
         from learner.bench import bench_learner, format_learner
