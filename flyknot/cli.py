@@ -106,6 +106,30 @@ def _cmd_view(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_explain(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from flyknot.anatomy import explain_directory, format_table, plot_anatomy
+    from flyknot.errors import check_nonnegative
+
+    def progress(files):
+        return tqdm(files, desc="explain", unit="trial", leave=False, disable=args.json)
+
+    if args.tc is not None:
+        check_nonnegative("--tc", args.tc)
+    figure = Path(args.out) if args.out else Path(args.dir) / "anatomy.png"
+    if figure.suffix.lower() != ".png":
+        raise ConfigError("--out", f"must be a .png file, got {str(figure)!r}")
+    anatomy = explain_directory(args.dir, t_c=args.tc, progress=progress)
+    plot_anatomy(anatomy, figure)
+    if args.json:
+        print(json.dumps({**anatomy.as_dict(), "figure": str(figure)}))
+    else:
+        print(format_table(anatomy, trials=args.trials))
+        print(f"figure: {figure}")
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from flyknot import bench
 
@@ -234,6 +258,23 @@ def build_parser() -> argparse.ArgumentParser:
     )
     m.add_argument("--json", action="store_true", help="print one JSON object")
     m.set_defaults(func=_cmd_model_check)
+
+    e = sub.add_parser(
+        "explain",
+        help="failure anatomy: why each trial under a run or replay directory failed",
+    )
+    e.add_argument("dir", help="run directory (flyknot run) or replay directory (demo replay)")
+    e.add_argument("--out", default=None, help="figure (.png; default DIR/anatomy.png)")
+    e.add_argument(
+        "--tc",
+        type=float,
+        default=None,
+        help="critical time t_c [s] for every trial (default: each run's, or the replayed "
+        "demonstration's)",
+    )
+    e.add_argument("--trials", action="store_true", help="also list every trial and why")
+    e.add_argument("--json", action="store_true", help="print one JSON object")
+    e.set_defaults(func=_cmd_explain)
 
     b = sub.add_parser("bench", help="benchmarks: sim (lab speed per rope), learner")
     b.add_argument("what", choices=["sim", "learner"])

@@ -12,6 +12,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from flyknot.anatomy import report_section
+
 # The paper's results (Suresh & Atkeson), quoted per scenario kind.
 PAPER = {
     "track": "Tracking the demonstration hand alone never tied the knot on rope 1; "
@@ -248,7 +250,9 @@ def write_report(out_dir: str | Path, summary: dict[str, Any]) -> Path:
                 f"| {r['name']} | {r['rope']} | {r['demo']} | {r['objective']} | "
                 f"{r.get('start_from') or '-'} | {_trials_text(r)} | {costs} | {rep} |"
             )
-    lines += ["", outcome_line(kind, runs), "", "## Figures", ""]
+    lines += ["", outcome_line(kind, runs), ""]
+    lines += report_section(out_dir)  # failure anatomy of every trial; writes anatomy.png
+    lines += ["## Figures", ""]
     lines += [f"![{p.stem}]({p.name})" for p in figs]
     path = out_dir / "report.md"
     path.write_text("\n".join(lines) + "\n")
