@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from flyknot.errors import ConfigError, FlyknotError
+from flyknot.scenario import parse_rope_arg
 
 
 def _cmd_knot(args: argparse.Namespace) -> int:
@@ -25,13 +26,13 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     from flyknot_sim.lab import LabParams, SimLab
 
     command = JointCommand.load(args.command)
-    lab = SimLab(LabParams(rope=args.rope, seed=args.seed, settle_s=args.settle))
+    lab = SimLab(LabParams(rope=args.rope, seed=args.seed, settle_s=args.settle, ropes=args.ropes))
     record = lab.run(command)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     path = record.save(out / "trial")
     summary = {
-        "rope": args.rope,
+        "rope": lab.rope_params.id,
         "fault": record.fault,
         "knot": record.knot,
         "first_contact_time": record.first_contact_time,
@@ -89,7 +90,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from flyknot.scenario import load_scenario, parse_overrides
 
     overrides = parse_overrides(args.set)
-    scen = load_scenario(args.scenario, overrides)
+    scen = load_scenario(args.scenario, overrides, ropes=args.ropes)
     out = Path(args.out) if args.out else _default_run_dir(scen.name, args.resume)
     print(f"scenario {scen.name!r} ({scen.kind}, {len(scen.runs)} runs) -> {out}")
     summary = run_scenario(scen, out, workers=args.workers, resume=args.resume, overrides=overrides)
@@ -194,6 +195,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="override a run field, e.g. max_trials=3 or rope_model.stiffness=1e3",
     )
     r.add_argument("--resume", action="store_true", help="continue an interrupted run")
+    r.add_argument(
+        "--ropes",
+        default=None,
+        help="your own ropes file (.toml), replacing the scenario's `ropes` "
+        "(see assets/ropes_example.toml)",
+    )
     r.set_defaults(func=_cmd_run)
 
     k = sub.add_parser("knot", help="classify a rope centreline (.npy or .csv, (n, 3))")
@@ -201,7 +208,15 @@ def build_parser() -> argparse.ArgumentParser:
     k.set_defaults(func=_cmd_knot)
 
     t = sub.add_parser("trial", help="run one command on the simulated lab and save its record")
-    t.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
+    t.add_argument(
+        "--rope",
+        type=parse_rope_arg,
+        default=1,
+        help="rope id 1..7 or a rope's name, e.g. of --ropes (default 1)",
+    )
+    t.add_argument(
+        "--ropes", default=None, help="your own ropes file (.toml; see assets/ropes_example.toml)"
+    )
     t.add_argument("--command", required=True, help="command file (.csv or .npy, see README)")
     t.add_argument("--out", required=True, help="directory for the trial record")
     t.add_argument("--seed", type=int, default=0, help="trial-to-trial variation seed")

@@ -138,7 +138,9 @@ def execute_run(
     rope_model = _rope_model(spec)
     _, target = prepare_target(spec.demo, rope_model.dt, spec.window)
     ig_info: dict[str, Any] = {}
-    lab = SimLab(LabParams(rope=spec.rope, seed=spec.seed, settle_s=spec.settle_s))
+    lab = SimLab(
+        LabParams(rope=spec.rope, seed=spec.seed, settle_s=spec.settle_s, ropes=spec.ropes)
+    )
     if knots0 is None:
         knots0, ig_info = initial_knots(
             spec.demo, out_dir, robot, rope_model.dt, float(lab.base_pose[2]), spec.window
@@ -194,6 +196,7 @@ def execute_run(
         "name": spec.name,
         "label": spec.label,
         "rope": spec.rope,
+        **_custom_rope_summary(lab),
         "demo": spec.demo,
         "objective": spec.objective,
         "rope_model": asdict(rope_model),
@@ -223,6 +226,25 @@ def execute_run(
     }
     result_path.write_text(json.dumps(summary, indent=2))
     return summary
+
+
+def _custom_rope_summary(lab) -> dict[str, Any]:
+    """A custom rope's parameters and file for a run's summary (nothing for the paper's)."""
+    from flyknot_sim.rope import rope_record
+
+    rec = rope_record(lab.rope_params, lab.params.ropes)
+    return {k: rec[k] for k in ("rope_name", "rope_params", "ropes_file") if "rope_params" in rec}
+
+
+def _ropes_manifest(scen: Scenario) -> dict[str, Any]:
+    """The custom ropes the scenario's runs use: ``{"ropes": {file: {name: params}}}``."""
+    from flyknot_sim.rope import resolve_rope
+
+    used: dict[str, dict[str, Any]] = {}
+    for r in scen.runs:
+        if r.ropes is not None and isinstance(r.rope, str):
+            used.setdefault(r.ropes, {})[r.rope] = resolve_rope(r.rope, r.ropes).to_dict()
+    return {"ropes": used} if used else {}
 
 
 def _worker(args):
@@ -256,6 +278,7 @@ def run_scenario(
         "description": scen.description,
         "overrides": overrides or {},
         "runs": [asdict(r) for r in scen.runs],
+        **_ropes_manifest(scen),
         "versions": {
             "flyknot": __version__,
             "mujoco": mujoco.__version__,

@@ -42,7 +42,7 @@ class FlyknotEnv(gym.Env):
 
     def __init__(
         self,
-        rope: int = 1,
+        rope: int | str = 1,
         demo: str = "robot",
         *,
         window: tuple[float, float] = (0.25, 0.0),
@@ -52,7 +52,10 @@ class FlyknotEnv(gym.Env):
         fault_penalty: float = 100.0,
         settle_s: float | None = None,
         seed: int = 0,
+        ropes: str | None = None,
     ):
+        """``rope``: a paper rope id 1..7 or a rope's name (the paper's, or one of ``ropes``,
+        a user's ropes file; see ``assets/ropes_example.toml``)."""
         super().__init__()
         from flyknot.experiment import prepare_target
         from flyknot_sim.lab import LabParams, SimLab
@@ -67,7 +70,7 @@ class FlyknotEnv(gym.Env):
         self.action_scale = float(action_scale)
         self.knot_bonus = float(knot_bonus)
         self.fault_penalty = float(fault_penalty)
-        self._lab = SimLab(LabParams(rope=rope, seed=seed, settle_s=settle_s))
+        self._lab = SimLab(LabParams(rope=rope, seed=seed, settle_s=settle_s, ropes=ropes))
         self._robot = RobotModel.from_mjcf()
         self._weights = InverseModelWeights()
         self._window = (float(window[0]), float(window[1]))

@@ -21,6 +21,11 @@ Format (every field is validated; unknown keys are errors that list the valid on
     [grid]                              # or: the product of lists makes the runs
     rope = [1, 2, 3, 4, 5, 6, 7]
 
+Your own ropes: a top-level ``ropes = "my_ropes.toml"`` (a ropes file, see
+``assets/ropes_example.toml``; a relative path is looked up beside the scenario file, then in
+the working directory; ``flyknot run --ropes FILE`` replaces it) lets ``rope`` (in runs,
+defaults and grids) name its ropes: ``rope = "my cord"``.
+
 A run may start from another run's learned command: ``start_from = "rope3"`` (the name of a
 run in the same scenario); it then runs after that one.
 """
@@ -60,7 +65,8 @@ class RunSpec:
 
     Attributes:
         name: Unique within the scenario (a directory name).
-        rope: Rope id in the simulated lab (1..7).
+        rope: Rope id in the simulated lab (1..7), or a rope's name: the paper's (it becomes
+            its id) or one of ``ropes``.
         demo: Demonstration: a name under ``assets/demos`` (without ``.npz``) or a path.
         seed: Seed of the lab's trial-to-trial variation.
         max_trials: Learning trials at most (0: only play the initial command once).
@@ -80,10 +86,12 @@ class RunSpec:
         path_frac: Demonstration window start: the fraction of the hand path travelled at
             t_0, in [0, 1) (the paper: 0.05).
         label: Free text for figures (e.g. "k=1e3, m_e=5").
+        ropes: A user's ropes file (absolute path; set from the scenario's top-level
+            ``ropes``), or None.
     """
 
     name: str
-    rope: int = 1
+    rope: int | str = 1
     demo: str = "fast"
     seed: int = 0
     max_trials: int = 10
@@ -100,13 +108,22 @@ class RunSpec:
     follow_through_s: float = FOLLOW_THROUGH_S
     path_frac: float = PATH_FRAC
     label: str = ""
+    ropes: str | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name or "/" in self.name:
             raise ConfigError(
                 "run.name", f"must be a non-empty name without '/', got {self.name!r}"
             )
-        check_choice("rope", self.rope, range(1, 8))
+        rope = parse_rope_arg(self.rope) if isinstance(self.rope, str) else self.rope
+        if isinstance(rope, str) or self.ropes is not None:
+            from flyknot_sim.rope import resolve_rope
+
+            params = resolve_rope(rope, self.ropes)
+            rope = params.name if params.custom else params.id
+        else:
+            check_choice("rope", rope, range(1, 8))
+        object.__setattr__(self, "rope", rope)
         for f in ("seed", "max_trials", "repeats"):
             v = getattr(self, f)
             if not isinstance(v, int) or isinstance(v, bool) or v < 0:
@@ -141,7 +158,29 @@ class RunSpec:
         return (float(self.follow_through_s), float(self.path_frac))
 
 
-RUN_KEYS = tuple(f.name for f in fields(RunSpec))
+RUN_KEYS = tuple(f.name for f in fields(RunSpec) if f.name != "ropes")
+"""Fields a scenario's runs, defaults, grid and ``--set`` may give (``ropes`` is top-level)."""
+
+
+def parse_rope_arg(text: str) -> int | str:
+    """A rope on the command line or in a scenario: digits are a paper rope id (an int),
+    anything else a rope's name (``argparse`` ``type=`` for ``--rope``)."""
+    t = text.strip()
+    return int(t) if t.isdigit() else text
+
+
+def find_ropes_file(path: str | Path, base: Path | None = None) -> str:
+    """A ropes file as an absolute path: ``path`` itself if absolute, else beside ``base``
+    (a scenario's folder) if there, else in the working directory.
+
+    Raises:
+        ConfigError: No such file.
+    """
+    p = Path(path).expanduser()
+    for cand in [p] if p.is_absolute() else [*([base / p] if base else []), p]:
+        if cand.is_file():
+            return str(cand.resolve())
+    raise ConfigError("ropes", f"no ropes file {str(path)!r}")
 
 
 @dataclass(frozen=True)
@@ -222,12 +261,17 @@ def parse_overrides(pairs: list[str] | None) -> dict[str, Any]:
     return out
 
 
-def _make_run(raw: Mapping[str, Any], where: str) -> RunSpec:
+def _name_part(value: Any) -> str:
+    """A grid value in a run name: a rope name's spaces and slashes become '_'."""
+    return "_".join(value.replace("/", " ").split()) if isinstance(value, str) else str(value)
+
+
+def _make_run(raw: Mapping[str, Any], where: str, ropes: str | None = None) -> RunSpec:
     for k in raw:
         if k not in RUN_KEYS:
             raise ConfigError(f"{where}.{k}", "unknown field", RUN_KEYS)
     try:
-        return RunSpec(**raw)
+        return RunSpec(**raw, ropes=ropes)
     except TypeError as e:
         raise ConfigError(where, str(e)) from None
 
@@ -238,12 +282,23 @@ def parse_scenario(
     name: str,
     overrides: Mapping[str, Any] | None = None,
     source: str | None = None,
+    ropes: str | Path | None = None,
 ) -> Scenario:
-    """Build a :class:`Scenario` from a parsed TOML document (plus ``--set`` overrides)."""
-    allowed = ("name", "description", "kind", "paper", "defaults", "run", "grid")
+    """Build a :class:`Scenario` from a parsed TOML document (plus ``--set`` overrides).
+
+    ``ropes`` (``flyknot run --ropes FILE``) replaces the document's top-level ``ropes``; a
+    relative path in the document is looked up beside ``source`` first.
+    """
+    allowed = ("name", "description", "kind", "paper", "ropes", "defaults", "run", "grid")
     for k in doc:
         if k not in allowed:
             raise ConfigError(k, "unknown top-level field", allowed)
+    if ropes is not None:
+        ropes = find_ropes_file(ropes)
+    elif "ropes" in doc:
+        if not isinstance(doc["ropes"], str) or not doc["ropes"]:
+            raise ConfigError("ropes", f"must be a file path, got {doc['ropes']!r}")
+        ropes = find_ropes_file(doc["ropes"], Path(source).parent if source else None)
     defaults = dict(doc.get("defaults", {}))
     overrides = dict(overrides or {})
     max_runs = overrides.pop("max_runs", None)
@@ -258,7 +313,7 @@ def parse_scenario(
                 raise ConfigError(f"grid.{k}", "must be a non-empty list")
         for combo in itertools.product(*(grid[k] for k in keys)):
             entry = dict(zip(keys, combo, strict=True))
-            entry.setdefault("name", "-".join(f"{k}{v}" for k, v in entry.items()))
+            entry.setdefault("name", "-".join(f"{k}{_name_part(v)}" for k, v in entry.items()))
             raw_runs.append(entry)
     for entry in doc.get("run", []):
         raw_runs.append(dict(entry))
@@ -272,7 +327,7 @@ def parse_scenario(
         }
         merged["weights"] = {**weights, **dict(entry.get("weights", {}))}
         merged.setdefault("name", f"run{i}")
-        runs.append(_make_run(merged, f"run[{i}]"))
+        runs.append(_make_run(merged, f"run[{i}]", ropes))
     scen = Scenario(
         name=str(doc.get("name", name)),
         kind=str(doc.get("kind", "learn")),
@@ -320,11 +375,16 @@ def find_scenario(name_or_path: str) -> Path:
     return find_named_file("scenario", name_or_path, SCENARIOS_DIR, ".toml")
 
 
-def load_scenario(name_or_path: str, overrides: Mapping[str, Any] | None = None) -> Scenario:
-    """Read and validate a scenario file."""
+def load_scenario(
+    name_or_path: str,
+    overrides: Mapping[str, Any] | None = None,
+    ropes: str | Path | None = None,
+) -> Scenario:
+    """Read and validate a scenario file (``ropes``: a ropes file replacing the scenario's
+    own, see :func:`parse_scenario`)."""
     path = find_scenario(name_or_path)
     try:
         doc = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(str(path), f"not valid TOML: {e}") from None
-    return parse_scenario(doc, name=path.stem, overrides=overrides, source=str(path))
+    return parse_scenario(doc, name=path.stem, overrides=overrides, source=str(path), ropes=ropes)

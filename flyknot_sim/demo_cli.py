@@ -6,7 +6,8 @@ also runs alone as ``python -m flyknot_sim.demo_cli demo ...`` (same parser, sam
 * ``flyknot demo synthesize --variant NAME --seed S --out FILE`` searches a motion of the
   variant (progress on stderr), saves the nominal trial as a demonstration (``.npz``) and
   checks it with ``--check-repeats`` varied replays (the rate goes into its metadata).
-* ``flyknot demo replay FILE --rope N [--repeats K] [--out DIR] [--json]`` plays the stored
+* ``flyknot demo replay FILE --rope N [--ropes ROPES] [--repeats K] [--out DIR] [--json]``
+  (N: a rope id, or a rope's name, e.g. one of the ropes file ROPES) plays the stored
   motion again with the lab's trial-to-trial variation and reports the settled knot and t_c
   of each replay; ``--out`` saves each replay (``replay_000.npz``, ... ; format in
   ``assets/demos/README.md``).
@@ -21,6 +22,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from flyknot.errors import ConfigError, SolverError
+from flyknot.scenario import parse_rope_arg
 
 
 def _positive_int(name: str, value: int, minimum: int = 1) -> int:
@@ -87,11 +89,13 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         settle_s=args.settle,
         keep_trials=args.out is not None,
         progress=not args.json and not args.quiet,
+        ropes=args.ropes,
     )
     if args.out is not None:
         from flyknot_sim.hand import HandLab
 
-        rope_binding = HandLab(ds.hand_from_demo(demo, result.rope, vary=False)).rope
+        hand = ds.hand_from_demo(demo, result.rope, vary=False, ropes=args.ropes)
+        rope_binding = HandLab(hand).rope
         for i, trial in enumerate(result.trials):
             ds.save_replay(
                 Path(args.out) / f"replay_{i:03d}.npz",
@@ -266,7 +270,15 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
 
     r = dsub.add_parser("replay", help="replay a synthesized demo's hand motion")
     r.add_argument("file", help="demonstration file (.npz) made by `demo synthesize`")
-    r.add_argument("--rope", type=int, default=None, help="rope id (default: the demo's)")
+    r.add_argument(
+        "--rope",
+        type=parse_rope_arg,
+        default=None,
+        help="rope id 1..7 or a rope's name, e.g. of --ropes (default: the demo's)",
+    )
+    r.add_argument(
+        "--ropes", default=None, help="your own ropes file (.toml; see assets/ropes_example.toml)"
+    )
     r.add_argument("--repeats", type=int, default=1, help="number of replays (default 1)")
     r.add_argument("--seed", type=int, default=0, help="variation seed (default 0)")
     r.add_argument(

@@ -1136,12 +1136,14 @@ def hand_metadata(params: HandParams) -> dict[str, Any]:
     }
 
 
-def rope_metadata(rope_id: int) -> dict[str, Any]:
+def rope_metadata(rope_id: int | str | Any, ropes: str | None = None) -> dict[str, Any]:
     """The rope's parameters and the simulation settings, as plain data (a shipped demo is
-    stale when these differ from ``assets/ropes.toml``)."""
-    from flyknot_sim.rope import get_rope, load_sim_settings
+    stale when these differ from ``assets/ropes.toml``). ``rope_id``: anything
+    :func:`flyknot_sim.rope.resolve_rope` takes (with the ropes file ``ropes``)."""
+    from flyknot_sim.rope import load_sim_settings, resolve_rope
 
-    data = {"rope": asdict(get_rope(rope_id)), "simulation": asdict(load_sim_settings())}
+    rope = resolve_rope(rope_id, ropes).to_dict()
+    data = {"rope": rope, "simulation": asdict(load_sim_settings())}
     return json.loads(json.dumps(data))  # as stored: tuples become lists
 
 
@@ -1167,6 +1169,12 @@ def make_demonstration(
     import mujoco
 
     hand = HandParams() if hand is None else hand
+    if hand.rope_params.custom:
+        raise ConfigError(
+            "rope",
+            f"a demonstration records one of the paper's ropes 1..7, got the custom rope "
+            f"{hand.rope_params.name!r} (custom ropes replay demonstrations)",
+        )
     hand = replace(hand, variation=HandVariation.none())
     mocap_params = MocapParams() if mocap_params is None else mocap_params
     lab = HandLab(hand)
@@ -1186,7 +1194,7 @@ def make_demonstration(
         "knot_any": trial.knot_any,
         "settle_fraction": trial.settle_fraction,
         "mujoco": mujoco.__version__,
-        **rope_metadata(hand.rope),
+        **rope_metadata(hand.rope_params),
         **dict(extra or {}),
     }
     demo = trial_demonstration(
@@ -1215,8 +1223,11 @@ def motion_from_demo(demo: Demonstration, source: str = "demonstration") -> Knot
     return KnotMotion.from_dict(motion)
 
 
-def hand_from_demo(demo: Demonstration, rope: int, *, vary: bool = True) -> HandParams:
-    """The hand lab a demonstration was made in, holding rope ``rope``."""
+def hand_from_demo(
+    demo: Demonstration, rope: int | str, *, vary: bool = True, ropes: str | None = None
+) -> HandParams:
+    """The hand lab a demonstration was made in, holding rope ``rope`` (an id or a name,
+    from ``ropes``, a user's ropes file, for a custom rope)."""
     stored = demo.metadata.get("hand", {})
     # The settle is the lab's own rule (judged at rest, issue 10), not the fixed wait a
     # demonstration made before it stored.
@@ -1224,7 +1235,7 @@ def hand_from_demo(demo: Demonstration, rope: int, *, vary: bool = True) -> Hand
     if "home" in kwargs:
         kwargs["home"] = tuple(kwargs["home"])
     variation = HandVariation() if vary else HandVariation.none()
-    return HandParams(rope=rope, variation=variation, **kwargs)
+    return HandParams(rope=rope, variation=variation, ropes=ropes, **kwargs)
 
 
 @dataclass(frozen=True)
@@ -1232,13 +1243,13 @@ class ReplayResult:
     """Replays of a demonstration's motion.
 
     Attributes:
-        rope: Rope id replayed with.
+        rope: Rope id replayed with (a custom rope's name for a custom rope).
         outcomes: Settled knot type per replay (None if the simulation diverged).
         t_c: First rope self-contact per replay [s, demonstration clock], None if none.
         trials: The trials (kept only when asked for).
     """
 
-    rope: int
+    rope: int | str
     outcomes: tuple[str | None, ...]
     t_c: tuple[float | None, ...]
     trials: tuple[HandTrial, ...] = ()
@@ -1261,13 +1272,14 @@ class ReplayResult:
 def replay(
     demo: Demonstration,
     *,
-    rope: int | None = None,
+    rope: int | str | None = None,
     repeats: int = 1,
     seed: int = 0,
     vary: bool = True,
     settle_s: float | None = None,
     keep_trials: bool = False,
     progress: bool = False,
+    ropes: str | None = None,
 ) -> ReplayResult:
     """Play a synthetic demonstration's hand motion again, on any rope.
 
@@ -1277,13 +1289,14 @@ def replay(
 
     Args:
         demo: A demonstration made by :func:`make_demonstration`.
-        rope: Rope id (default: the demonstration's).
+        rope: Rope id or name (default: the demonstration's).
         repeats: Number of replays, >= 1.
         seed: Seed of the variations.
         vary: Apply the lab's trial-to-trial variation.
         settle_s: Settling time [s] (default: the demonstration's).
         keep_trials: Keep the trials in the result (memory: ~2 MB each).
         progress: Show a tqdm progress bar.
+        ropes: A user's ropes file whose ropes ``rope`` may name.
 
     Raises:
         RecordError: The demonstration holds no motion.
@@ -1295,7 +1308,8 @@ def replay(
     rope = demo.rope if rope is None else rope
     if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
         raise ConfigError("repeats", f"must be an integer >= 1, got {repeats!r}")
-    hand = hand_from_demo(demo, rope, vary=vary)
+    hand = hand_from_demo(demo, rope, vary=vary, ropes=ropes)
+    rope = hand.rope_params.id
     if settle_s is not None:
         hand = replace(hand, settle_s=settle_s)
     lab = HandLab(hand)
@@ -1319,7 +1333,7 @@ def save_replay(
     trial: HandTrial,
     lab_rope: Any,
     *,
-    rope: int,
+    rope: int | str,
     seed: int,
     index: int,
     source: str,
@@ -1371,6 +1385,9 @@ def save_replay(
             "motion_start": trial.motion_start,
         },
     }
+    params = getattr(lab_rope, "params", None)
+    if getattr(params, "custom", False):  # a custom rope: the file's parameters
+        meta["metadata"]["rope_params"] = params.to_dict()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(

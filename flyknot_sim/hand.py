@@ -31,10 +31,12 @@ motion capture of a human demonstration gives (200 Hz, marker noise and tracking
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Protocol
 
 import mujoco
@@ -52,7 +54,7 @@ from flyknot_sim.rope import (
     SimSettings,
     add_rope,
     configure_options,
-    get_rope,
+    resolve_rope,
 )
 
 __all__ = [
@@ -124,7 +126,9 @@ class HandParams:
     """Everything that defines the hand lab.
 
     Attributes:
-        rope: Rope id (1..7, see ``assets/ropes.toml``).
+        rope: Rope id (1..7, see ``assets/ropes.toml``), a rope's name (the paper's, or one of
+            ``ropes``), or a :class:`flyknot_sim.rope.RopeParams`
+            (:func:`flyknot_sim.rope.resolve_rope`); a paper rope's name becomes its id.
         home: Hand position at zero joints [m]; the rope hangs from it.
         hand_mass: Mass of the hand [kg] (gravity-compensated).
         hand_inertia: Rotational inertia of the hand about each axis [kg m^2].
@@ -142,9 +146,10 @@ class HandParams:
         variation: Trial-to-trial variation.
         settings: Rope simulation settings (default: the ``[simulation]`` table of
             ``assets/ropes.toml``).
+        ropes: A user's ropes file whose ropes ``rope`` may name, or None (an absolute path).
     """
 
-    rope: int = 1
+    rope: int | str | RopeParams = 1
     home: tuple[float, float, float] = (0.0, 0.0, 1.5)
     hand_mass: float = 0.5
     hand_inertia: float = 1e-3
@@ -158,9 +163,14 @@ class HandParams:
     judge_rate_hz: float = 10.0
     variation: HandVariation = field(default_factory=HandVariation)
     settings: SimSettings | None = None
+    ropes: str | None = None
 
     def __post_init__(self) -> None:
-        get_rope(self.rope)  # validates the id, listing the valid choices
+        if self.ropes is not None:
+            object.__setattr__(self, "ropes", str(Path(self.ropes).expanduser().resolve()))
+        rope = resolve_rope(self.rope, self.ropes)  # validates, listing the valid choices
+        if not rope.custom and not isinstance(self.rope, RopeParams):
+            object.__setattr__(self, "rope", rope.id)
         home = tuple(float(v) for v in np.asarray(self.home, dtype=float).ravel())
         if len(home) != 3 or not all(math.isfinite(v) for v in home):
             raise ConfigError("HandParams.home", f"must be 3 finite numbers, got {self.home!r}")
@@ -191,7 +201,7 @@ class HandParams:
     @property
     def rope_params(self) -> RopeParams:
         """The rope."""
-        return get_rope(self.rope)
+        return resolve_rope(self.rope, self.ropes)
 
     def joint_inertia(self) -> np.ndarray:
         """Inertia seen by each joint, (m, m, m, I + I_a, I + I_a, I + I_a), shape (6,)
@@ -416,7 +426,11 @@ class HandLab:
         self._kv0 = self.model.actuator_gainprm[self.scene.act_vel, 0].copy()
         self._vbias0 = self.model.actuator_biasprm[self.scene.act_vel, :3].copy()
         self._inertia = self.params.joint_inertia()
-        self._drag = RopeDrag(self.scene.rope, self.params.aero)
+        aero = self.params.aero
+        cd = self.params.rope_params.cd
+        if cd is not None:  # the rope's own drag coefficient
+            aero = dataclasses.replace(aero, cd=cd)
+        self._drag = RopeDrag(self.scene.rope, aero)
 
     @staticmethod
     def nominal_variation() -> dict[str, Any]:

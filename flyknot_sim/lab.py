@@ -23,9 +23,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import platform
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -40,7 +42,7 @@ from flyknot_sim import faults as faults_mod
 from flyknot_sim import mocap, robot
 from flyknot_sim.aero import AeroParams, RopeDrag
 from flyknot_sim.knot import classify_centreline
-from flyknot_sim.rope import RopeParams, add_rope, configure_options, get_rope
+from flyknot_sim.rope import RopeParams, add_rope, configure_options, resolve_rope, rope_record
 from flyknot_sim.scene import ROBOT_PREFIX, SceneParams, robot_base_pose, scene_spec
 
 _BAR = "{desc}: {percentage:3.0f}%|{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}]"
@@ -84,7 +86,9 @@ class LabParams:
     """Everything that defines the simulated lab.
 
     Attributes:
-        rope: Rope id (1..7, see ``assets/ropes.toml``).
+        rope: Rope id (1..7, see ``assets/ropes.toml``), a rope's name (the paper's, or one of
+            ``ropes``), or a :class:`flyknot_sim.rope.RopeParams`
+            (:func:`flyknot_sim.rope.resolve_rope`); a paper rope's name becomes its id.
         seed: Seed of the trial-to-trial variation and the mocap noise; trial ``i`` of a
             lab uses ``(seed, i)``.
         settle: When the knot is judged after the command: until the rope is at rest, capped
@@ -96,9 +100,11 @@ class LabParams:
         variation: Trial-to-trial variation.
         mocap: Motion-capture emulation.
         scene: Geometry of the lab.
+        ropes: A user's ropes file (``assets/ropes_example.toml``) whose ropes ``rope`` may
+            name, or None; kept as an absolute path.
     """
 
-    rope: int = 1
+    rope: int | str | RopeParams = 1
     seed: int = 0
     settle: SettleParams = field(default_factory=SettleParams)
     settle_s: float | None = None
@@ -108,15 +114,25 @@ class LabParams:
     variation: VariationParams = field(default_factory=VariationParams)
     mocap: mocap.MocapParams = field(default_factory=mocap.MocapParams)
     scene: SceneParams = field(default_factory=SceneParams)
+    ropes: str | None = None
 
     def __post_init__(self) -> None:
-        get_rope(self.rope)  # validates the id, listing valid choices
+        if self.ropes is not None:
+            object.__setattr__(self, "ropes", str(Path(self.ropes).expanduser().resolve()))
+        rope = resolve_rope(self.rope, self.ropes)  # validates, listing valid choices
+        if not rope.custom and not isinstance(self.rope, RopeParams):
+            object.__setattr__(self, "rope", rope.id)
         if self.settle_s is not None:
             check_nonnegative("settle_s", self.settle_s)
         if not isinstance(self.settle, SettleParams):
             raise ConfigError("settle", f"must be SettleParams, got {type(self.settle).__name__}")
         if not isinstance(self.aero, AeroParams):
             raise ConfigError("aero", f"must be AeroParams, got {type(self.aero).__name__}")
+
+    @property
+    def rope_params(self) -> RopeParams:
+        """The rope."""
+        return resolve_rope(self.rope, self.ropes)
 
     @property
     def settle_rule(self) -> SettleParams:
@@ -131,7 +147,7 @@ class SimLab:
 
     def __init__(self, params: LabParams = LabParams()):
         self.params = params
-        self.rope_params: RopeParams = get_rope(params.rope)
+        self.rope_params: RopeParams = params.rope_params
         spec = scene_spec(params.scene)
         tip_body, tip_pos, tip_axis = robot.fingertip_anchor()
         self.rope = add_rope(
@@ -160,7 +176,10 @@ class SimLab:
         self._trial_index = 0
         self.base_pose = robot_base_pose(params.scene)
         self._bound = self.rope.bind(self.model) if hasattr(self.rope, "bind") else self.rope
-        self._drag = RopeDrag(self._bound, params.aero)
+        aero = params.aero
+        if self.rope_params.cd is not None:  # the rope's own drag coefficient
+            aero = dataclasses.replace(aero, cd=self.rope_params.cd)
+        self._drag = RopeDrag(self._bound, aero)
 
     # --------------------------------------------------------------------------------
     def _rng(self, trial_index: int) -> np.random.Generator:
@@ -263,7 +282,7 @@ class SimLab:
             total=round((n_cmd * tick + rule.min_s) if fault is None else n_ticks * tick, 2),
             unit="sim s",
             disable=not progress,
-            desc=f"trial (rope {self.params.rope})",
+            desc=f"trial (rope {self.rope_params.id})",
             bar_format=_BAR,
         )
         n_done = n_ticks
@@ -331,8 +350,7 @@ class SimLab:
             knot=knot,
             metadata={
                 "cell": "sim",
-                "rope": self.params.rope,
-                "rope_name": self.rope_params.name,
+                **rope_record(self.rope_params, self.params.ropes),
                 "seed": self.params.seed,
                 "trial_index": trial_index,
                 "start_delay_s": delay,

@@ -102,7 +102,7 @@ def test_limit_runs_keeps_dependencies():
         (
             {"runs": []},
             "runs: unknown top-level field (valid choices: name, description, kind, "
-            "paper, defaults, run, grid)",
+            "paper, ropes, defaults, run, grid)",
         ),
         ({}, "run: the scenario defines no runs"),
     ],
