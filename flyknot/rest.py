@@ -10,17 +10,18 @@ apply to its state. Here it is, for the free end of the rope:
 
 Defaults and why:
 
-* ``speed_m_s = 0.03`` [m/s]: a pendulum swinging at this peak speed has an amplitude of
-  v / omega_1 ~ 1 cm at the free end (omega_1 = sqrt(g / L) = 2.99 rad/s for L = 1.1 m, the
-  lowest swing frequency of a hanging rope: the end-mass-dominated limit), the rope's own
-  diameter: still to the eye. A motion-capture system sees it: with 1 mm marker noise at
+* ``speed_m_s = 0.03`` [m/s]: a swing at this peak speed has an amplitude of at most
+  v / omega_1 = 8.4 mm at the free end (omega_1 = 1.2024 sqrt(g / L) = 3.59 rad/s for
+  L = 1.1 m, the first swing mode of a uniform hanging chain; an end mass lowers it toward
+  sqrt(g / L) = 2.99 rad/s), about the rope's own diameter: still to the eye. A motion-capture system sees it: with 1 mm marker noise at
   200 Hz, a least-squares speed over 0.1 s has a noise of about
   sqrt(12) * 1 mm / (0.1 s * sqrt(20)) ~ 8 mm/s, a quarter of the threshold.
-* ``window_s = 1.0`` [s]: longer than half the swing period (pi / omega_1 = 1.05 s, the time
-  between the speed peaks of a swing) rounded to a tick: a swing's peak speed always falls in
-  the window, so a rope passing slowly through a turning point is not taken for a rope at rest.
-* ``displacement_m = speed_m_s / omega_1`` (1.0 cm): the amplitude of a swing at the speed
-  threshold, so the two conditions describe the same rest.
+* ``window_s = 1.0`` [s]: about half a swing period (pi / omega_1 = 0.87 s for the uniform
+  chain, 1.05 s in the end-mass limit; the time between a swing's speed peaks), so a rope
+  passing slowly through a turning point is not taken for a rope at rest.
+* ``displacement_m = speed_m_s / omega_1`` (8.4 mm): the amplitude of a swing at the speed
+  threshold in the fastest first mode, so a rope within it never swings faster than the
+  speed bound.
 
 :func:`settled_start` draws a start state uniformly within this criterion (the state of a
 rope a lab waits for before it throws); :func:`free_end_at_rest` checks it on measurements.
@@ -35,9 +36,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from flyknot.constants import GRAVITY, ROPE_LENGTH
+from flyknot.errors import ConfigError, check_nonnegative, check_positive
 
 UNKNOT = "unknot"
-from flyknot.errors import ConfigError, check_nonnegative, check_positive
 
 __all__ = [
     "RestCriterion",
@@ -51,16 +52,16 @@ __all__ = [
 
 
 def pendulum_omega(length: float = ROPE_LENGTH) -> float:
-    """Lowest swing frequency bound of a hanging rope, omega_1 = sqrt(g / L) [rad/s].
+    """First swing frequency of a uniform hanging chain, omega_1 = 1.2024 sqrt(g / L) [rad/s].
 
-    A uniform chain has omega_1 = 1.2024 sqrt(g / L) (first zero of J_0, halved); an end mass
-    lowers it towards the simple pendulum's sqrt(g / L), the value used here.
+    1.2024 is half the first zero of J_0 (2.4048); an end mass lowers the frequency toward the
+    simple pendulum's sqrt(g / L), so this is the fastest first swing of the paper's ropes.
 
     Args:
         length: Rope length L [m].
     """
     check_positive("length", length)
-    return math.sqrt(GRAVITY / length)
+    return 1.2024 * math.sqrt(GRAVITY / length)
 
 
 @dataclass(frozen=True)
@@ -295,7 +296,9 @@ class SettleMonitor:
         if elapsed < p.min_s - 1e-9 and not cap:
             return False
         quiet = t - self._last_fast >= rest.window_s - 1e-9
-        window = [v for tv, v in zip(self._t, self._v) if tv >= t - rest.window_s - 1e-9]
+        window = [
+            v for tv, v in zip(self._t, self._v, strict=True) if tv >= t - rest.window_s - 1e-9
+        ]
         stable = len(window) >= 2 and len(set(window)) == 1
         fixed = p.max_s <= p.min_s + 1e-9
         free = (
@@ -308,7 +311,9 @@ class SettleMonitor:
             if not self._t or self._t[-1] < t - 1e-9:
                 self._t.append(t)
                 self._v.append(judge())
-            final = [v for tv, v in zip(self._t, self._v) if tv >= t - rest.window_s - 1e-9]
+            final = [
+                v for tv, v in zip(self._t, self._v, strict=True) if tv >= t - rest.window_s - 1e-9
+            ]
             settled = quiet and len(final) >= 2 and len(set(final)) == 1
             speeds = [s for ts, s in self._speeds]
             self._done = SettleOutcome(

@@ -333,8 +333,14 @@ class SimLab:
             outcome = monitor.outcome
             knot = outcome.verdict
             settle_meta = outcome.as_metadata(rule)
-        truth = _truth(t_hist, vert_hist, bound, self.params.truth_rate_hz, sim_dt,
-                       t_full=monitor.t_end + rule.min_s)
+        truth = _truth(
+            t_hist,
+            vert_hist,
+            bound,
+            self.params.truth_rate_hz,
+            sim_dt,
+            t_full=monitor.t_end + rule.min_s,
+        )
         return TrialRecord(
             t_joint=t_joint,
             q_cmd=q_sent,

@@ -1,0 +1,60 @@
+"""The simulated lab's settled start and knot judged at rest (issue 10)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from flyknot.record import JointCommand
+from flyknot.rest import RestCriterion
+from flyknot_sim.lab import LabParams, SimLab, VariationParams
+
+Q0 = np.array([0.0, -0.3, 0.0, 0.8, 0.0, 1.1, 0.0])
+
+
+@pytest.fixture(scope="module")
+def lab():
+    return SimLab(LabParams(rope=1, seed=4))
+
+
+def test_settled_start_is_within_the_rest_criterion(lab):
+    crit = RestCriterion()
+    bound = lab._bound
+    for i in range(12):
+        lab.reset(Q0, lab._rng(i))
+        x = bound.vertex_positions(lab.model, lab.data)
+        v = bound.vertex_velocities(lab.model, lab.data)
+        plumb = x[1] + np.array([0.0, 0.0, -np.linalg.norm(x[-1] - x[1])])
+        assert np.linalg.norm(x[-1] - plumb) <= crit.max_displacement() * 1.01
+        assert np.linalg.norm(v[-1]) <= crit.speed_m_s * 1.01
+
+
+def test_old_sway_is_a_robustness_option():
+    lab = SimLab(LabParams(rope=1, variation=VariationParams(sway_deg=5.0, rest_start=False)))
+    bound = lab._bound
+    tilts = []
+    for i in range(6):
+        lab.reset(Q0, lab._rng(i))
+        x = bound.vertex_positions(lab.model, lab.data)
+        d = x[-1] - x[1]
+        tilts.append(np.degrees(np.arccos(-d[2] / np.linalg.norm(d))))
+    assert max(tilts) > 2.0  # |N(0, 5 deg)| draws
+
+
+def test_a_still_command_is_judged_at_rest_after_the_minimum_wait(lab):
+    rec = lab.run(JointCommand(np.tile(Q0, (50, 1))))
+    st = rec.metadata["settle"]
+    assert st["settled"] is True and st["contact_free"] is False
+    assert st["settle_s"] == pytest.approx(1.5, abs=0.01)
+    assert st["free_end_speed_m_s"] <= 0.03
+    assert rec.knot == "unknot" and st["knot_history"]["verdict"][-1] == "unknot"
+    assert rec.metadata["aero"] is True
+    # The trial ends at the verdict: the command (0.2 s) plus the wait.
+    assert rec.t_joint[-1] == pytest.approx(0.2 + 1.5, abs=0.01)
+
+
+def test_a_fixed_wait_is_judged_then_whatever_the_rope_does():
+    lab = SimLab(LabParams(rope=1, settle_s=0.3))
+    rec = lab.run(JointCommand(np.tile(Q0, (50, 1))))
+    assert rec.metadata["settle"]["settle_s"] == pytest.approx(0.3, abs=0.005)
+    assert rec.metadata["settle"]["settled"] is False  # a 1 s window cannot fit in 0.3 s
