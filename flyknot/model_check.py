@@ -184,7 +184,8 @@ def check_models(
     dt = rope_models[0].dt
     _, target = prepare_target(demo, dt, window)
     robot = RobotModel.from_mjcf()
-    lab = SimLab(LabParams(rope=rope, variation=VariationParams.none()))
+    # Only markers up to t_f are compared and no knot is judged: the old fixed 1.5 s wait.
+    lab = SimLab(LabParams(rope=rope, variation=VariationParams.none(), settle_s=1.5))
     if knots is None:
         with TemporaryDirectory() as tmp:
             knots, _ = initial_knots(demo, Path(tmp), robot, dt, float(lab.base_pose[2]), window)
