@@ -46,7 +46,7 @@ from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, check_nonnegative, check_positive
 from flyknot.rest import SettleMonitor, SettleParams, settled_start
 from flyknot_sim import mocap
-from flyknot_sim.aero import AeroParams, RopeDrag
+from flyknot_sim.aero import DRAG_HOLD_S, AeroParams, RopeDrag
 from flyknot_sim.knot import TREFOIL, classify_centreline
 from flyknot_sim.rope import (
     BoundRope,
@@ -534,6 +534,7 @@ class HandLab:
         )
         rope = s.rope
         monitor = SettleMonitor(rule, t_end=motion_start + motion_len)
+        drag_every = max(1, round(DRAG_HOLD_S / dt))
         end_dof = rope.vert_dof[-1]
 
         def verdict() -> str:
@@ -560,7 +561,8 @@ class HandLab:
             d.ctrl[s.act_vel] = qd_t[k + 1]
             d.ctrl[s.act_ff] = ff[k + 1]
             before = d.time
-            self._drag.apply(d)
+            if k % drag_every == 0:
+                self._drag.apply(d)
             mujoco.mj_step(m, d)
             if d.time < before:  # MuJoCo reset a diverged state
                 diverged = True

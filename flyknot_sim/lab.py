@@ -40,7 +40,7 @@ from flyknot.record import JointCommand, TrialRecord
 from flyknot.rest import SettleMonitor, SettleParams, settled_start
 from flyknot_sim import faults as faults_mod
 from flyknot_sim import mocap, robot
-from flyknot_sim.aero import AeroParams, RopeDrag
+from flyknot_sim.aero import DRAG_HOLD_S, AeroParams, RopeDrag
 from flyknot_sim.knot import classify_centreline
 from flyknot_sim.rope import RopeParams, add_rope, configure_options, resolve_rope, rope_record
 from flyknot_sim.scene import ROBOT_PREFIX, SceneParams, robot_base_pose, scene_spec
@@ -256,9 +256,12 @@ class SimLab:
         j = 0  # steps taken
         first_contact: float | None = None
 
+        drag_every = max(1, round(DRAG_HOLD_S / sim_dt))
+
         def step() -> None:
             nonlocal j, first_contact
-            drag.apply(d)
+            if j % drag_every == 0:
+                drag.apply(d)
             mujoco.mj_step(m, d)
             j += 1
             vert_hist[j - 1] = d.flexvert_xpos[bound.vert_adr : bound.vert_adr + n_vert]
