@@ -13,9 +13,10 @@ Defaults and why:
 * ``speed_m_s = 0.03`` [m/s]: a swing at this peak speed has an amplitude of at most
   v / omega_1 = 8.4 mm at the free end (omega_1 = 1.2024 sqrt(g / L) = 3.59 rad/s for
   L = 1.1 m, the first swing mode of a uniform hanging chain; an end mass lowers it toward
-  sqrt(g / L) = 2.99 rad/s), about the rope's own diameter: still to the eye. A motion-capture system sees it: with 1 mm marker noise at
-  200 Hz, a least-squares speed over 0.1 s has a noise of about
-  sqrt(12) * 1 mm / (0.1 s * sqrt(20)) ~ 8 mm/s, a quarter of the threshold.
+  sqrt(g / L) = 2.99 rad/s), about the rope's own diameter: still to the eye. A
+  motion-capture system sees it: with 1 mm marker noise at 200 Hz, a least-squares speed over
+  0.1 s has a noise of about sqrt(12) * 1 mm / (0.1 s * sqrt(20)) ~ 8 mm/s, a quarter of the
+  threshold.
 * ``window_s = 1.0`` [s]: about half a swing period (pi / omega_1 = 0.87 s for the uniform
   chain, 1.05 s in the end-mass limit; the time between a swing's speed peaks), so a rope
   passing slowly through a turning point is not taken for a rope at rest.

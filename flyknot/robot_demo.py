@@ -380,12 +380,12 @@ def record_demonstration(
     Raises:
         FlyknotError: The trial faulted, or the rope did not touch itself during the motion.
     """
+    import dataclasses
+
     from scipy.spatial.transform import Rotation, Slerp
 
     from flyknot_sim.lab import LabParams, SimLab, VariationParams
     from learner.bezier import BezierCommand
-
-    import dataclasses
 
     if lab_params is None:
         lab_params = LabParams(rope=rope, variation=VariationParams.none())
