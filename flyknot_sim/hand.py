@@ -47,6 +47,7 @@ from flyknot.errors import ConfigError, check_nonnegative, check_positive
 from flyknot.rest import SettleMonitor, SettleParams, settled_start
 from flyknot_sim import mocap
 from flyknot_sim.aero import DRAG_HOLD_S, AeroParams, RopeDrag
+from flyknot_sim.bend_friction import BendFrictionParams, RopeBendFriction
 from flyknot_sim.knot import TREFOIL, classify_centreline
 from flyknot_sim.rope import (
     BoundRope,
@@ -141,6 +142,8 @@ class HandParams:
             at rest, capped, as in the robot lab.
         settle_s: A fixed wait instead [s]; None: ``settle``.
         aero: Air drag on the rope.
+        bend_friction: Hysteretic bending friction of the rope (off by default), as in the
+            robot lab.
         judge_rate_hz: Rate of the frames judged for ``knot_any`` and the settling
             fraction [Hz].
         variation: Trial-to-trial variation.
@@ -160,6 +163,7 @@ class HandParams:
     settle: SettleParams = field(default_factory=SettleParams)
     settle_s: float | None = None
     aero: AeroParams = field(default_factory=AeroParams)
+    bend_friction: BendFrictionParams = field(default_factory=BendFrictionParams)
     judge_rate_hz: float = 10.0
     variation: HandVariation = field(default_factory=HandVariation)
     settings: SimSettings | None = None
@@ -431,6 +435,7 @@ class HandLab:
         if cd is not None:  # the rope's own drag coefficient
             aero = dataclasses.replace(aero, cd=cd)
         self._drag = RopeDrag(self.scene.rope, aero)
+        self._bend = RopeBendFriction(self.scene.rope, self.params.bend_friction.moment)
 
     @staticmethod
     def nominal_variation() -> dict[str, Any]:
@@ -563,6 +568,7 @@ class HandLab:
             before = d.time
             if k % drag_every == 0:
                 self._drag.apply(d)
+            self._bend.apply(d)
             mujoco.mj_step(m, d)
             if d.time < before:  # MuJoCo reset a diverged state
                 diverged = True

@@ -41,6 +41,7 @@ from flyknot.rest import SettleMonitor, SettleParams, settled_start
 from flyknot_sim import faults as faults_mod
 from flyknot_sim import mocap, robot
 from flyknot_sim.aero import DRAG_HOLD_S, AeroParams, RopeDrag
+from flyknot_sim.bend_friction import BendFrictionParams, RopeBendFriction
 from flyknot_sim.knot import classify_centreline
 from flyknot_sim.rope import RopeParams, add_rope, configure_options, resolve_rope, rope_record
 from flyknot_sim.scene import ROBOT_PREFIX, SceneParams, robot_base_pose, scene_spec
@@ -95,6 +96,8 @@ class LabParams:
             (:class:`flyknot.rest.SettleParams`).
         settle_s: A fixed wait instead [s] (judged then, at rest or not); None: ``settle``.
         aero: Air drag on the rope.
+        bend_friction: Hysteretic bending friction of the rope (Grosberg's frictional couple;
+            off by default: no published value for cords, see ``docs/rope-model.md``).
         brake_s: After a fault, how long the arm is simulated braking [s].
         truth_rate_hz: Rate of the ground-truth centreline stored in ``truth`` [Hz].
         variation: Trial-to-trial variation.
@@ -109,6 +112,7 @@ class LabParams:
     settle: SettleParams = field(default_factory=SettleParams)
     settle_s: float | None = None
     aero: AeroParams = field(default_factory=AeroParams)
+    bend_friction: BendFrictionParams = field(default_factory=BendFrictionParams)
     brake_s: float = 0.3
     truth_rate_hz: float = 100.0
     variation: VariationParams = field(default_factory=VariationParams)
@@ -126,6 +130,11 @@ class LabParams:
             check_nonnegative("settle_s", self.settle_s)
         if not isinstance(self.settle, SettleParams):
             raise ConfigError("settle", f"must be SettleParams, got {type(self.settle).__name__}")
+        if not isinstance(self.bend_friction, BendFrictionParams):
+            raise ConfigError(
+                "bend_friction",
+                f"must be BendFrictionParams, got {type(self.bend_friction).__name__}",
+            )
         if not isinstance(self.aero, AeroParams):
             raise ConfigError("aero", f"must be AeroParams, got {type(self.aero).__name__}")
 
@@ -180,6 +189,7 @@ class SimLab:
         if self.rope_params.cd is not None:  # the rope's own drag coefficient
             aero = dataclasses.replace(aero, cd=self.rope_params.cd)
         self._drag = RopeDrag(self._bound, aero)
+        self._bend = RopeBendFriction(self._bound, params.bend_friction.moment)
 
     # --------------------------------------------------------------------------------
     def _rng(self, trial_index: int) -> np.random.Generator:
@@ -257,11 +267,13 @@ class SimLab:
         first_contact: float | None = None
 
         drag_every = max(1, round(DRAG_HOLD_S / sim_dt))
+        bend = self._bend
 
         def step() -> None:
             nonlocal j, first_contact
             if j % drag_every == 0:
                 drag.apply(d)
+            bend.apply(d)  # adds to the drag; every step (it is solved at the step's end)
             mujoco.mj_step(m, d)
             j += 1
             vert_hist[j - 1] = d.flexvert_xpos[bound.vert_adr : bound.vert_adr + n_vert]

@@ -58,3 +58,18 @@ def test_a_fixed_wait_is_judged_then_whatever_the_rope_does():
     rec = lab.run(JointCommand(np.tile(Q0, (50, 1))))
     assert rec.metadata["settle"]["settle_s"] == pytest.approx(0.3, abs=0.005)
     assert rec.metadata["settle"]["settled"] is False  # a 1 s window cannot fit in 0.3 s
+
+
+def test_bend_friction_is_a_lab_switch():
+    from flyknot.errors import ConfigError
+    from flyknot_sim.bend_friction import BendFrictionParams
+
+    on = SimLab(LabParams(rope=1, settle_s=0.2, bend_friction=BendFrictionParams(0.02)))
+    off = SimLab(LabParams(rope=1, settle_s=0.2))
+    assert on._bend.moment == 0.02 and off._bend.moment == 0.0
+    cmd = JointCommand(np.tile(Q0, (50, 1)))
+    a, b = on.run(cmd), off.run(cmd)
+    assert not np.array_equal(a.truth["centreline"], b.truth["centreline"])
+    with pytest.raises(ConfigError) as e:
+        LabParams(bend_friction=0.02)
+    assert str(e.value) == "bend_friction: must be BendFrictionParams, got float"
