@@ -123,6 +123,7 @@ def execute_run(
     """Learn (and optionally repeat) one run; write and return its summary."""
     from tqdm import tqdm
 
+    from flyknot.record import TrialRecord
     from flyknot_sim.lab import LabParams, SimLab
     from learner.bezier import BezierCommand
     from learner.ilc import ILCParams, learn
@@ -188,8 +189,14 @@ def execute_run(
         for i in tqdm(
             range(spec.repeats), desc=f"{spec.name} repeats", disable=not progress, leave=False
         ):
-            rec = lab.run(command)
-            rec.save(run_dir / "repeats" / f"repeat_{i:03d}")
+            # Repeat i is the cell's trial len(learning trials) + i, resumed or not.
+            lab.trial_index = len(res.trials) + i
+            stem = run_dir / "repeats" / f"repeat_{i:03d}"
+            if resume and stem.with_name(stem.name + ".json").is_file():
+                rec = TrialRecord.load(stem)
+            else:
+                rec = lab.run(command)
+                rec.save(stem)
             repeats.append("fault" if rec.fault else rec.knot)
     counted = {s.trial: s for s in res.trials}
     summary = {

@@ -304,9 +304,13 @@ class Cell(Protocol):
     Attributes:
         base_pose: The lab's calibration: robot base in the mocap frame,
             (x, y, z, qw, qx, qy, qz); z is the base's height above the floor [m].
+        trial_index: Index of the next trial (0 for a new cell); it seeds a simulated trial's
+            variation, and a resumed run sets it so that its trials continue the sequence of
+            the interrupted run.
     """
 
     base_pose: np.ndarray
+    trial_index: int
 
     def run(self, command: JointCommand) -> TrialRecord:
         """Play ``command`` once from rest and return what was measured."""

@@ -35,7 +35,7 @@ from tqdm import tqdm
 
 from flyknot import __version__
 from flyknot.constants import N_JOINTS
-from flyknot.errors import ConfigError, check_nonnegative, check_positive
+from flyknot.errors import ConfigError, check_int, check_nonnegative, check_positive
 from flyknot.record import JointCommand, TrialRecord
 from flyknot.rest import SettleMonitor, SettleParams, settled_start
 from flyknot_sim import faults as faults_mod
@@ -191,6 +191,16 @@ class SimLab:
         self._drag = RopeDrag(self._bound, aero)
         self._bend = RopeBendFriction(self._bound, params.bend_friction.moment)
 
+    @property
+    def trial_index(self) -> int:
+        """Index of the next trial: trial i draws its variation from ``(seed, i)``."""
+        return self._trial_index
+
+    @trial_index.setter
+    def trial_index(self, value: int) -> None:
+        check_int("trial_index", value)
+        self._trial_index = value
+
     # --------------------------------------------------------------------------------
     def _rng(self, trial_index: int) -> np.random.Generator:
         return np.random.default_rng([self.params.seed, trial_index])
@@ -228,7 +238,7 @@ class SimLab:
             command: Joint targets at their rate (250 Hz on the xArm).
             progress: Show a progress bar over simulated time.
         """
-        rng = self._rng(self._trial_index)
+        rng = self._rng(self._trial_index)  # see the trial_index property
         trial_index = self._trial_index
         self._trial_index += 1
         m, d = self.model, self.data

@@ -254,6 +254,10 @@ def learn(
     elif rd is not None and rd.ledger():
         raise ConfigError("run_dir", f"{str(rd.path)!r} already holds a run; use resume")
 
+    if rd is not None and resume and hasattr(cell, "trial_index"):
+        # Every ledger line is one trial on the cell: continue its sequence (a cell seeds its
+        # trial-to-trial variation by this index), as the uninterrupted run would have.
+        cell.trial_index = len(trials)
     if rd is not None and k == 0:
         rd.save_knots(0, knots)
     while k < params.max_trials:
@@ -266,44 +270,78 @@ def learn(
             t0 = time.perf_counter()
             stem = rd.record_stem(k, attempt) if rd is not None else None
             if stem is not None and resume and stem.with_name(stem.name + ".json").is_file():
-                # Interrupted after the trial ran but before it was assessed: keep it.
+                # Interrupted after the trial ran but before it was assessed: keep it (it
+                # used the cell's next trial index).
                 record = TrialRecord.load(stem)
+                if hasattr(cell, "trial_index"):
+                    cell.trial_index += 1
             else:
                 record = cell.run(joint_cmd)
                 if stem is not None:
                     record.save(stem)
             summary, update = _assess(record, command, target, robot, params, limits, k, attempt)
             summary = TrialSummary(**{**asdict(summary), "wall_s": time.perf_counter() - t0})
+            last = (
+                not summary.tracking_lost
+                or summary.success
+                or summary.fault is not None
+                or attempt == params.tracking_retries
+            )
+            new, why = None, None
+            if last and not (summary.success and params.stop_at_success):
+                new, why = _next_knots(
+                    summary, update, knots, prev_knots, target, robot, params, limits
+                )
             trials.append(summary)
             if rd is not None:
                 if update is not None:
                     rd.save_update(k, update)
+                if new is not None:
+                    # The next trial's knots go to disk before the ledger line: the line is
+                    # the commit point a resumed run continues from.
+                    rd.save_knots(k + 1, new)
                 rd.append_ledger(summary)
             if on_trial is not None:
                 on_trial(summary)
-            if not summary.tracking_lost or summary.success or summary.fault is not None:
+            if last:
                 break
         if summary.success and params.stop_at_success:
             return _finish(trials, knots, params, "success")
-        # next command
-        if summary.fault is not None or summary.tracking_lost:
-            if prev_knots is None:
-                why = "initial command faults" if summary.fault else "tracking lost before t_c"
-                return _finish(trials, knots, params, why)
-            new = prev_knots + 0.5 * (knots - prev_knots)
-        elif summary.update_solved:
-            dk = params.gain * np.asarray(update["dkappa"])
-            new = _safe_step(knots, dk, target.T, robot, limits)
-        else:
-            new = knots  # failed QP: command unchanged (reported in the ledger)
+        if new is None:
+            return _finish(trials, knots, params, why)
         prev_knots, knots = knots, new
         k += 1
-        if rd is not None:
-            rd.save_knots(k, knots)  # the resume point for the next trial
     first = next((s.trial for s in _counted(tuple(trials)) if s.success), None)
     return _finish(
         trials, knots, params, "max_trials" if first is None else "max_trials (knot tied)"
     )
+
+
+def _next_knots(
+    summary: TrialSummary,
+    update: dict | None,
+    knots: np.ndarray,
+    prev_knots: np.ndarray | None,
+    target: DemoTarget,
+    robot: RobotModel,
+    params: ILCParams,
+    limits: JointLimits,
+) -> tuple[np.ndarray | None, str | None]:
+    """The next trial's knots after ``summary``, or (None, why the loop stops).
+
+    A fault or lost tracking halves the step back toward the previous command (stops if there
+    is none); a solved update takes kappa - gain dkappa (limit-safe); a failed QP keeps the
+    command.
+    """
+    if summary.fault is not None or summary.tracking_lost:
+        if prev_knots is None:
+            why = "initial command faults" if summary.fault else "tracking lost before t_c"
+            return None, why
+        return prev_knots + 0.5 * (knots - prev_knots), None
+    if summary.update_solved:
+        dk = params.gain * np.asarray(update["dkappa"])
+        return _safe_step(knots, dk, target.T, robot, limits), None
+    return knots, None  # failed QP: command unchanged (reported in the ledger)
 
 
 MAX_HALVINGS = 4

@@ -1,0 +1,95 @@
+"""Kill -9 in the middle of a run, resume, and get exactly the uninterrupted run (issue 12)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from flyknot.experiment import initial_knots
+from flyknot.scenario import load_scenario
+from flyknot_sim.scene import SceneParams, robot_base_pose
+
+ARGS = [
+    "--set",
+    "max_trials=4",
+    "--set",
+    "settle_s=0.2",
+    "--set",
+    "stop_at_success=false",
+    "--set",
+    "repeats=2",
+]
+
+
+def _run(out: Path, *extra: str) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "flyknot", "run", "quick", "--out", str(out), *ARGS, *extra]
+    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+
+def _ledger(out: Path) -> list[dict]:
+    p = out / "runs" / "rope1" / "learning" / "ledger.jsonl"
+    if not p.is_file():
+        return []
+    rows = [json.loads(line) for line in p.read_text().splitlines() if line.strip()]
+    for r in rows:
+        r.pop("wall_s")
+    return rows
+
+
+@pytest.fixture(scope="module")
+def guess(tmp_path_factory):
+    from learner.kinematics import RobotModel
+
+    root = tmp_path_factory.mktemp("ig")
+    spec = load_scenario("quick").runs[0]
+    z = float(robot_base_pose(SceneParams())[2])
+    initial_knots(spec.demo, root, RobotModel.from_mjcf(), 0.005, z, spec.window)
+    return root / "initial_guess"
+
+
+def test_kill_and_resume_equals_the_uninterrupted_run(tmp_path, guess):
+    whole, killed = tmp_path / "whole", tmp_path / "killed"
+    for d in (whole, killed):
+        shutil.copytree(guess, d / "initial_guess")
+    p = _run(killed)
+    deadline = time.monotonic() + 300
+    while len(_ledger(killed)) < 1:
+        assert p.poll() is None, p.stderr.read().decode()
+        assert time.monotonic() < deadline, "no trial finished in 300 s"
+        time.sleep(0.01)
+    os.kill(p.pid, signal.SIGKILL)
+    p.wait()
+    assert not (killed / "summary.json").exists()
+    assert 1 <= len(_ledger(killed)) < 4
+    r = _run(killed, "--resume")
+    assert r.wait(timeout=600) == 0, r.stderr.read().decode()
+    w = _run(whole)
+    assert w.wait(timeout=600) == 0, w.stderr.read().decode()
+
+    assert _ledger(killed) == _ledger(whole)
+    a = json.loads((killed / "summary.json").read_text())["runs"][0]
+    b = json.loads((whole / "summary.json").read_text())["runs"][0]
+    for key in ("costs", "knots", "faults", "repeats", "first_success_trial"):
+        assert a[key] == b[key], key
+    files = sorted(f.relative_to(whole) for f in (whole / "runs").rglob("*.npz"))
+    assert files == sorted(f.relative_to(killed) for f in (killed / "runs").rglob("*.npz"))
+    for f in files:
+        with np.load(whole / f) as x, np.load(killed / f) as y:
+            assert sorted(x.files) == sorted(y.files), f
+            for k in x.files:
+                np.testing.assert_array_equal(x[k], y[k], err_msg=f"{f}:{k}")
+    for f in sorted((whole / "runs").rglob("trial_*.json")) + sorted(
+        (whole / "runs").rglob("repeat_*.json")
+    ):
+        meta = json.loads(f.read_text())["metadata"]
+        other = json.loads((killed / f.relative_to(whole)).read_text())["metadata"]
+        assert meta["trial_index"] == other["trial_index"], f
