@@ -144,6 +144,7 @@ class HandParams:
         aero: Air drag on the rope.
         bend_friction: Hysteretic bending friction of the rope (off by default), as in the
             robot lab.
+        twist: Build the rope with a twist hinge per edge, as in the robot lab.
         judge_rate_hz: Rate of the frames judged for ``knot_any`` and the settling
             fraction [Hz].
         variation: Trial-to-trial variation.
@@ -164,6 +165,7 @@ class HandParams:
     settle_s: float | None = None
     aero: AeroParams = field(default_factory=AeroParams)
     bend_friction: BendFrictionParams = field(default_factory=BendFrictionParams)
+    twist: bool = False
     judge_rate_hz: float = 10.0
     variation: HandVariation = field(default_factory=HandVariation)
     settings: SimSettings | None = None
@@ -341,6 +343,7 @@ def build_hand_scene(params: HandParams) -> HandScene:
         axis=(0.0, 0.0, -1.0),
         prefix="rope",
         settings=params.settings,
+        twist=params.twist,
     )
     configure_options(spec, [rope_params], params.settings)
     model = spec.compile()

@@ -98,6 +98,7 @@ class LabParams:
         aero: Air drag on the rope.
         bend_friction: Hysteretic bending friction of the rope (Grosberg's frictional couple;
             off by default: no published value for cords, see ``docs/rope-model.md``).
+        twist: Build the rope with a twist hinge per edge (rod torsion; ``add_rope(twist=)``).
         brake_s: After a fault, how long the arm is simulated braking [s].
         truth_rate_hz: Rate of the ground-truth centreline stored in ``truth`` [Hz].
         variation: Trial-to-trial variation.
@@ -113,6 +114,7 @@ class LabParams:
     settle_s: float | None = None
     aero: AeroParams = field(default_factory=AeroParams)
     bend_friction: BendFrictionParams = field(default_factory=BendFrictionParams)
+    twist: bool = False
     brake_s: float = 0.3
     truth_rate_hz: float = 100.0
     variation: VariationParams = field(default_factory=VariationParams)
@@ -130,6 +132,8 @@ class LabParams:
             check_nonnegative("settle_s", self.settle_s)
         if not isinstance(self.settle, SettleParams):
             raise ConfigError("settle", f"must be SettleParams, got {type(self.settle).__name__}")
+        if not isinstance(self.twist, bool):
+            raise ConfigError("twist", f"must be true or false, got {self.twist!r}")
         if not isinstance(self.bend_friction, BendFrictionParams):
             raise ConfigError(
                 "bend_friction",
@@ -166,6 +170,7 @@ class SimLab:
             anchor_pos=tip_pos,
             axis=tip_axis,
             prefix="rope",
+            twist=params.twist,
         )
         configure_options(spec, [self.rope_params])
         self.model = spec.compile()

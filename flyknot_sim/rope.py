@@ -126,6 +126,13 @@ class RopeParams:
         timestep: Largest simulation step this rope was validated at [s].
         cd: Fixed cross-flow drag coefficient [-] replacing the C_D(Re) curve of
             :mod:`flyknot_sim.aero` (the labs pass it on as ``AeroParams.cd``), or None.
+        condim: Contact dimensionality of the rope's contacts: 3 (sliding friction, the
+            default) or 4 (plus torsional friction about the contact normal).
+        torsional_friction: MuJoCo's torsional friction coefficient [m] (the moment about the
+            normal is this times the normal force) when ``condim`` is 4; None:
+            (2/3) friction r, the moment of uniform pressure over a contact disc of radius a
+            = r (K. L. Johnson, "Contact Mechanics", 1985, sec. 7.4; a soft cord flattens to
+            a patch about its radius wide -- an upper bound, no measured value found).
     """
 
     id: int | str
@@ -142,6 +149,8 @@ class RopeParams:
     segments: int
     timestep: float
     cd: float | None = None
+    condim: int = 3
+    torsional_friction: float | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.id, str):
@@ -174,6 +183,17 @@ class RopeParams:
             )
         if self.cd is not None:
             check_positive("cd", self.cd)
+        check_choice("condim", self.condim, (3, 4))
+        if self.torsional_friction is not None:
+            check_nonnegative("torsional_friction", self.torsional_friction)
+
+    @property
+    def friction_triple(self) -> list[float]:
+        """MuJoCo's (sliding, torsional [m], rolling [m]) friction of the rope's contacts."""
+        tors = self.torsional_friction
+        if tors is None:
+            tors = 2.0 / 3.0 * self.friction * self.radius
+        return [self.friction, tors, 0.0001]
 
     @property
     def custom(self) -> bool:
@@ -184,8 +204,9 @@ class RopeParams:
         """The parameters as plain data (``cd`` only when set, so that the paper's ropes read
         as before it existed)."""
         d = {f.name: getattr(self, f.name) for f in fields(self)}
-        if d["cd"] is None:
-            del d["cd"]
+        for k, default in (("cd", None), ("condim", 3), ("torsional_friction", None)):
+            if d[k] == default:
+                del d[k]
         return d
 
     @property
@@ -235,7 +256,7 @@ class RopeParams:
 
 
 _ROPE_FIELDS = tuple(f.name for f in fields(RopeParams))
-_OPTIONAL_ROPE_FIELDS = ("cd",)
+_OPTIONAL_ROPE_FIELDS = ("cd", "condim", "torsional_friction")
 _MATERIAL_FIELDS = ("bend_modulus", "shear_modulus", "damping", "friction")
 
 
@@ -387,6 +408,8 @@ CUSTOM_OPTIONAL = (
     "damping",
     "friction",
     "cd",
+    "condim",
+    "torsional_friction",
     "segments",
     "timestep",
 )
@@ -470,6 +493,8 @@ def _custom_rope(entry: Mapping[str, Any], where: str, paper: Mapping[str, int])
         "damping": mat["damping"],
         "friction": mat["friction"],
         "cd": None,
+        "condim": 3,
+        "torsional_friction": None,
         "segments": min(DEFAULT_SEGMENTS, n_max),
         "timestep": DEFAULT_TIMESTEP,
     }
@@ -791,7 +816,8 @@ def _flexcomp_xml(
         f'<elasticity young="{f(params.bend_modulus)}" shear="{f(params.shear_modulus)}" '
         f'damping="{f(params.damping)}"/>'
         f'<contact selfcollide="{settings.selfcollide}" contype="{ROPE_CONTYPE}" '
-        f'conaffinity="{ROPE_CONAFFINITY}" condim="3" friction="{f(params.friction)}" '
+        f'conaffinity="{ROPE_CONAFFINITY}" condim="{params.condim}" '
+        f'friction="{" ".join(f(v) for v in params.friction_triple)}" '
         f'solref="{f(settings.contact_timeconst)} {f(settings.contact_dampratio)}" '
         f'solimp="{" ".join(f(v) for v in settings.contact_solimp)} 0.5 2"/>'
         "</flexcomp></worldbody></mujoco>"
@@ -830,8 +856,8 @@ def _add_raw_flex(
     f.selfcollide = getattr(mujoco.mjtFlexSelf, f"mjFLEXSELF_{settings.selfcollide.upper()}")
     f.contype = ROPE_CONTYPE
     f.conaffinity = ROPE_CONAFFINITY
-    f.condim = 3
-    f.friction = [params.friction, 0.005, 0.0001]
+    f.condim = params.condim
+    f.friction = params.friction_triple
     f.solref = [settings.contact_timeconst, settings.contact_dampratio]
     f.solimp = [*settings.contact_solimp, 0.5, 2.0]
     f.rgba = _RGBA[params.material]
@@ -940,8 +966,8 @@ def add_rope(
         mass=0.0,
         contype=ROPE_CONTYPE,
         conaffinity=ROPE_CONAFFINITY,
-        condim=3,
-        friction=[params.friction, 0.005, 0.0001],
+        condim=params.condim,
+        friction=params.friction_triple,
         solref=[settings.contact_timeconst, settings.contact_dampratio],
         solimp=[*settings.contact_solimp, 0.5, 2.0],
         rgba=[0.3, 0.3, 0.32, 1.0],

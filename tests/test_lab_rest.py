@@ -73,3 +73,33 @@ def test_bend_friction_is_a_lab_switch():
     with pytest.raises(ConfigError) as e:
         LabParams(bend_friction=0.02)
     assert str(e.value) == "bend_friction: must be BendFrictionParams, got float"
+
+
+def test_twist_and_torsional_friction_switches():
+    import dataclasses
+
+    import mujoco
+
+    from flyknot.errors import ConfigError
+    from flyknot_sim.rope import get_rope
+
+    lab = SimLab(LabParams(rope=1, settle_s=0.1, twist=True))
+    assert len(lab._bound.twist_dof) == get_rope(1).segments
+    rec = lab.run(JointCommand(np.tile(Q0, (20, 1))))
+    assert rec.knot == "unknot"
+    r4 = dataclasses.replace(get_rope(1), condim=4)
+    assert r4.friction_triple[1] == pytest.approx(2 / 3 * 0.5 * 0.0045)
+    assert dataclasses.replace(r4, torsional_friction=0.002).friction_triple[1] == 0.002
+    from flyknot_sim import rope as rope_mod
+
+    spec = mujoco.MjSpec()
+    holder = spec.worldbody.add_body(name="h")
+    holder.add_joint(name="s", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0, 0, 1])
+    holder.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.01, 0, 0], mass=0.1)
+    rope_mod.add_rope(spec, r4, anchor_body="h")
+    model = spec.compile()
+    assert int(model.flex_condim[0]) == 4
+    assert model.flex_friction[0][1] == pytest.approx(r4.friction_triple[1])
+    with pytest.raises(ConfigError) as e:
+        dataclasses.replace(r4, condim=6)
+    assert str(e.value) == "condim: unknown value 6 (valid choices: 3, 4)"
