@@ -7,6 +7,7 @@ import time
 from collections.abc import Sequence
 
 from flyknot.errors import ConfigError
+from flyknot.progress import bar_disable
 
 
 def _lab_variants():
@@ -46,7 +47,7 @@ def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bo
     command = swing_command()
     variants, lab_params = _lab_variants()
     out = []
-    for r in tqdm(ropes, desc="bench sim", disable=not progress, unit="rope"):
+    for r in tqdm(ropes, desc="bench sim", disable=bar_disable(progress), unit="rope"):
         row: dict = {"rope": r, "segments": table[r].n_segments}
         for name, kw in variants.items():
             lab = SimLab(lab_params(rope=r, **kw))

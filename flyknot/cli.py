@@ -114,7 +114,9 @@ def _cmd_explain(args: argparse.Namespace) -> int:
     from flyknot.errors import check_nonnegative
 
     def progress(files):
-        return tqdm(files, desc="explain", unit="trial", leave=False, disable=args.json)
+        return tqdm(
+            files, desc="explain", unit="trial", leave=False, disable=True if args.json else None
+        )
 
     if args.tc is not None:
         check_nonnegative("--tc", args.tc)

@@ -31,6 +31,7 @@ from flyknot import __version__
 from flyknot.constants import DEMOS_DIR, FOLLOW_THROUGH_S, PATH_FRAC
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, FlyknotError
+from flyknot.progress import bar_disable
 from flyknot.scenario import RunSpec, Scenario, find_named_file
 
 
@@ -157,7 +158,11 @@ def execute_run(
         trust_region=spec.trust_region,
     )
     bar = tqdm(
-        total=params.max_trials, desc=spec.name, unit="trial", disable=not progress, leave=False
+        total=params.max_trials,
+        desc=spec.name,
+        unit="trial",
+        disable=bar_disable(progress),
+        leave=False,
     )
 
     def on_trial(s) -> None:
@@ -187,7 +192,10 @@ def execute_run(
     if spec.repeats:
         command = BezierCommand(final, target.T).joint_command()
         for i in tqdm(
-            range(spec.repeats), desc=f"{spec.name} repeats", disable=not progress, leave=False
+            range(spec.repeats),
+            desc=f"{spec.name} repeats",
+            disable=bar_disable(progress),
+            leave=False,
         ):
             # Repeat i is the cell's trial len(learning trials) + i, resumed or not.
             lab.trial_index = len(res.trials) + i
@@ -308,7 +316,7 @@ def run_scenario(
         initial_knots(demo, out_dir, robot, dt, float(robot_base_pose(SceneParams())[2]), window)
 
     results: dict[str, dict[str, Any]] = {}
-    overall = tqdm(total=len(scen.runs), desc=scen.name, unit="run", disable=not progress)
+    overall = tqdm(total=len(scen.runs), desc=scen.name, unit="run", disable=bar_disable(progress))
     for wave in scen.order():
         jobs = []
         for spec in wave:

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from flyknot.errors import ConfigError, RecordError, check_positive
+from flyknot.progress import bar_disable
 
 __all__ = [
     "ModelAgreement",
@@ -192,7 +193,9 @@ def check_models(
     knots = np.asarray(knots, dtype=float)
     T = target.T
     dirs = random_directions(n_directions, seed, step)
-    bar = tqdm(total=1 + 2 * n_directions, desc="model-check", unit="trial", disable=not progress)
+    bar = tqdm(
+        total=1 + 2 * n_directions, desc="model-check", unit="trial", disable=bar_disable(progress)
+    )
 
     def play(k: np.ndarray):
         rec = lab.run(BezierCommand(k, T).joint_command())

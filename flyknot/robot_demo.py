@@ -40,6 +40,7 @@ import numpy as np
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, FlyknotError, check_int, check_positive
 from flyknot.limits import JointLimits
+from flyknot.progress import bar_disable
 from flyknot.record import TrialRecord
 
 __all__ = [
@@ -285,7 +286,7 @@ def search_command(
         return ties
 
     total = config.evaluations + config.local_evaluations
-    bar = tqdm(total=total, desc="robot demo search", disable=not progress)
+    bar = tqdm(total=total, desc="robot demo search", disable=bar_disable(progress))
     history: list[float] = []
     best: tuple[float, np.ndarray, float] = (-math.inf, np.asarray(start_knots), T0)
     first_hit: int | None = None

@@ -53,6 +53,7 @@ import numpy as np
 from flyknot.constants import DEMOS_DIR
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, RecordError, check_choice, check_positive
+from flyknot.progress import bar_disable
 from flyknot_sim.hand import (
     HandLab,
     HandParams,
@@ -1314,7 +1315,7 @@ def replay(
         hand = replace(hand, settle_s=settle_s)
     lab = HandLab(hand)
     outcomes, t_c, trials = [], [], []
-    for i in tqdm(range(repeats), desc=f"replay (rope {rope})", disable=not progress):
+    for i in tqdm(range(repeats), desc=f"replay (rope {rope})", disable=bar_disable(progress)):
         rng = np.random.default_rng([seed, i]) if vary else None
         trial = lab.run(motion, rng)
         outcomes.append(trial.knot)
@@ -1544,7 +1545,7 @@ def synthesize_motion(
         total=config.total_budget,
         unit="trial",
         desc=f"demo {v.name} seed {seed}",
-        disable=not progress,
+        disable=bar_disable(progress),
     )
     used = 0
     done: list[tuple[str, SearchResult]] = []

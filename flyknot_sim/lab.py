@@ -36,6 +36,7 @@ from tqdm import tqdm
 from flyknot import __version__
 from flyknot.constants import N_JOINTS
 from flyknot.errors import ConfigError, check_int, check_nonnegative, check_positive
+from flyknot.progress import bar_disable
 from flyknot.record import JointCommand, TrialRecord
 from flyknot.rest import SettleMonitor, SettleParams, settled_start
 from flyknot_sim import faults as faults_mod
@@ -311,7 +312,7 @@ class SimLab:
         bar = tqdm(
             total=round((n_cmd * tick + rule.min_s) if fault is None else n_ticks * tick, 2),
             unit="sim s",
-            disable=not progress,
+            disable=bar_disable(progress),
             desc=f"trial (rope {self.rope_params.id})",
             bar_format=_BAR,
         )

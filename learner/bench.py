@@ -28,6 +28,7 @@ from collections.abc import Callable
 import numpy as np
 
 from flyknot.errors import ConfigError
+from flyknot.progress import bar_disable
 from learner.bezier import BezierCommand
 from learner.follow_through import follow_through_terms
 from learner.inverse_qp import InverseModelWeights, build_inverse_qp, limit_rows, solve_qp
@@ -95,7 +96,7 @@ def bench_learner(repeats: int = 1, progress: bool = True) -> dict:
 
     if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
         raise ConfigError("repeats", f"must be an integer >= 1, got {repeats!r}")
-    bar = tqdm(total=8, desc="bench learner", disable=not progress, unit="stage")
+    bar = tqdm(total=8, desc="bench learner", disable=bar_disable(progress), unit="stage")
     robot = RobotModel.from_mjcf()
     params = RopeModelParams()
     weights = InverseModelWeights()
