@@ -25,10 +25,12 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     from flyknot.record import JointCommand
     from flyknot_sim.lab import LabParams, SimLab
 
+    out = Path(args.out)
+    if (out / "trial.json").exists() and not args.force:
+        raise ConfigError("--out", f"{str(out)!r} already holds a trial; use --force to replace it")
     command = JointCommand.load(args.command)
     lab = SimLab(LabParams(rope=args.rope, seed=args.seed, settle_s=args.settle, ropes=args.ropes))
     record = lab.run(command)
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     path = record.save(out / "trial")
     summary = {
@@ -228,6 +230,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="fixed settling time after the command [s] (default: until the rope is at rest)",
     )
+    t.add_argument("--force", action="store_true", help="replace a trial already in --out")
     t.add_argument("--json", action="store_true", help="print a JSON summary")
     t.set_defaults(func=_cmd_trial)
 

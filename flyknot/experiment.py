@@ -281,11 +281,15 @@ def run_scenario(
     from tqdm import tqdm
 
     out_dir = Path(out_dir)
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ConfigError("--workers", f"must be an integer >= 1, got {workers!r}")
+    if resume and not (out_dir / "manifest.json").is_file():
+        raise ConfigError(
+            "--resume", f"{str(out_dir)!r} holds no run to resume (no manifest.json there)"
+        )
     if not resume and (out_dir / "manifest.json").is_file():
         raise ConfigError("--out", f"{str(out_dir)!r} already holds a run; use --resume")
     out_dir.mkdir(parents=True, exist_ok=True)
-    if workers < 1:
-        raise ConfigError("--workers", f"must be >= 1, got {workers}")
     manifest = {
         "scenario": scen.name,
         "kind": scen.kind,
