@@ -49,6 +49,7 @@ __all__ = [
     "free_end_at_rest",
     "pendulum_omega",
     "settled_start",
+    "start_with_sway",
 ]
 
 
@@ -339,3 +340,33 @@ class SettleMonitor:
         if self._done is None:
             raise ConfigError("outcome", "the settle has not ended yet (observe more samples)")
         return self._done
+
+
+def start_with_sway(
+    rng: np.random.Generator,
+    criterion: RestCriterion,
+    length: float,
+    sway: float,
+    azimuth: float,
+) -> tuple[float, float, float]:
+    """A settled start (:func:`settled_start`, drawn from ``rng``) plus an extra tilt.
+
+    Small tilts add as vectors: (sway, azimuth) + (tilt, psi) -> (angle, direction). The start's
+    rate acts along psi; the part along the composed direction is kept, the part across it
+    (below 0.01 rad/s at the default criterion) is dropped.
+
+    Args:
+        rng: Source of the settled start.
+        criterion: The rest criterion.
+        length: Rope length [m].
+        sway: Extra tilt [rad] (>= 0).
+        azimuth: Its direction about world z [rad].
+
+    Returns:
+        ``(angle [rad] >= 0, azimuth [rad], rate [rad/s])`` for ``set_hanging``.
+    """
+    tilt, rate, psi = settled_start(rng, criterion, length)
+    tx = sway * math.cos(azimuth) + tilt * math.cos(psi)
+    ty = sway * math.sin(azimuth) + tilt * math.sin(psi)
+    angle, direction = math.hypot(tx, ty), math.atan2(ty, tx)
+    return angle, direction, rate * math.cos(psi - direction)

@@ -44,7 +44,7 @@ import numpy as np
 
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, check_nonnegative, check_positive
-from flyknot.rest import SettleMonitor, SettleParams, settled_start
+from flyknot.rest import SettleMonitor, SettleParams, start_with_sway
 from flyknot_sim import mocap
 from flyknot_sim.aero import DRAG_HOLD_S, AeroParams, RopeDrag
 from flyknot_sim.bend_friction import BendFrictionParams, RopeBendFriction
@@ -470,11 +470,9 @@ class HandLab:
         rate = 0.0
         if v.rest_start:
             p = self.params
-            tilt, rate, psi = settled_start(rng, p.settle.rest, p.rope_params.length)
-            tx = sway * math.cos(azimuth) + tilt * math.cos(psi)
-            ty = sway * math.sin(azimuth) + tilt * math.sin(psi)
-            sway, azimuth = math.hypot(tx, ty), math.atan2(ty, tx)
-            rate *= math.cos(psi - azimuth)
+            sway, azimuth, rate = start_with_sway(
+                rng, p.settle.rest, p.rope_params.length, sway, azimuth
+            )
         return {
             "kp_factor": np.clip(kp, 0.5, 1.5).tolist(),
             "kv_factor": np.clip(kv, 0.5, 1.5).tolist(),

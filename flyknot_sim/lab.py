@@ -38,7 +38,7 @@ from flyknot.constants import N_JOINTS
 from flyknot.errors import ConfigError, check_int, check_nonnegative, check_positive
 from flyknot.progress import bar_disable
 from flyknot.record import JointCommand, TrialRecord
-from flyknot.rest import SettleMonitor, SettleParams, settled_start
+from flyknot.rest import SettleMonitor, SettleParams, start_with_sway
 from flyknot_sim import faults as faults_mod
 from flyknot_sim import mocap, robot
 from flyknot_sim.aero import DRAG_HOLD_S, AeroParams, RopeDrag
@@ -225,14 +225,9 @@ class SimLab:
         azimuth = rng.uniform(0, 2 * math.pi)
         rate = 0.0
         if var.rest_start:
-            tilt, rate, psi = settled_start(rng, self.params.settle.rest, self.rope_params.length)
-            # Compose the settled start with the extra sway (small angles add as vectors).
-            tx = sway * math.cos(azimuth) + tilt * math.cos(psi)
-            ty = sway * math.sin(azimuth) + tilt * math.sin(psi)
-            sway, azimuth = math.hypot(tx, ty), math.atan2(ty, tx)
-            # The rate acts along psi; project it on the composed tilt direction (the part
-            # across it is dropped: below 0.01 rad/s at the default criterion).
-            rate *= math.cos(psi - azimuth)
+            sway, azimuth, rate = start_with_sway(
+                rng, self.params.settle.rest, self.rope_params.length, sway, azimuth
+            )
         self.rope.set_hanging(m, d, sway_angle=sway, sway_azimuth=azimuth, sway_rate=rate)
         mujoco.mj_forward(m, d)
         return float(rng.uniform(0.0, var.start_delay_max_s)) if var.start_delay_max_s else 0.0

@@ -170,3 +170,17 @@ def test_rest_criterion_errors():
     with pytest.raises(ConfigError) as e:
         RestCriterion(speed_m_s=0.0)
     assert str(e.value) == "speed_m_s: must be a finite number > 0, got 0.0"
+
+
+def test_start_with_sway_adds_tilts_as_vectors():
+    from flyknot.rest import start_with_sway
+
+    c = RestCriterion()
+    tilt, rate, psi = settled_start(np.random.default_rng(5), c, 1.1)
+    angle, direction, r = start_with_sway(np.random.default_rng(5), c, 1.1, 0.0, 0.0)
+    assert angle == pytest.approx(abs(tilt))
+    assert r * np.sign(tilt) == pytest.approx(rate)
+    # A large sway dominates: the direction is the sway's, the angle about sway + tilt cos.
+    angle, direction, _ = start_with_sway(np.random.default_rng(5), c, 1.1, 0.1, 1.0)
+    assert direction == pytest.approx(1.0, abs=0.01)
+    assert angle == pytest.approx(0.1 + tilt * np.cos(psi - 1.0), abs=1e-4)
