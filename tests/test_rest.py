@@ -180,7 +180,10 @@ def test_start_with_sway_adds_tilts_as_vectors():
     angle, direction, r = start_with_sway(np.random.default_rng(5), c, 1.1, 0.0, 0.0)
     assert angle == pytest.approx(abs(tilt))
     assert r * np.sign(tilt) == pytest.approx(rate)
-    # A large sway dominates: the direction is the sway's, the angle about sway + tilt cos.
+    # With a sway: the two tilts add as plane vectors.
     angle, direction, _ = start_with_sway(np.random.default_rng(5), c, 1.1, 0.1, 1.0)
-    assert direction == pytest.approx(1.0, abs=0.01)
-    assert angle == pytest.approx(0.1 + tilt * np.cos(psi - 1.0), abs=1e-4)
+    expected = 0.1 * np.array([np.cos(1.0), np.sin(1.0)]) + tilt * np.array(
+        [np.cos(psi), np.sin(psi)]
+    )
+    got = angle * np.array([np.cos(direction), np.sin(direction)])
+    np.testing.assert_allclose(got, expected, atol=1e-12)
