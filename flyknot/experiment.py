@@ -156,6 +156,7 @@ def execute_run(
         gain=spec.gain,
         weights=InverseModelWeights(**spec.weights),
         trust_region=spec.trust_region,
+        confirm=spec.confirm,
     )
     bar = tqdm(
         total=params.max_trials,
@@ -229,6 +230,8 @@ def execute_run(
         if res.first_success_trial is None
         else res.first_success_trial + 1,
         "stopped_because": res.stopped_because,
+        "confirm": None if spec.confirm is None else list(spec.confirm),
+        "confirmed": res.stopped_because == "confirmed",
         "attempts": len(res.trials),
         "repeats": repeats,
         "repeat_success_rate": (sum(r == "trefoil" for r in repeats) / len(repeats))

@@ -49,7 +49,13 @@ def outcome_line(kind: str, runs: list[dict[str, Any]]) -> str:
     alone tied, in the first trial and in the repeats."""
     n_ok = sum(r["first_success_trial"] is not None for r in runs)
     if kind != "track":
-        return f"Knot learned in {n_ok} of {len(runs)} runs."
+        text = f"Knot learned in {n_ok} of {len(runs)} runs"
+        confirming = [r for r in runs if r.get("confirm")]
+        if confirming:
+            k, n = confirming[0]["confirm"]
+            n_conf = sum(bool(r.get("confirmed")) for r in confirming)
+            text += f"; confirmed ({k} of {n} repeats tied) in {n_conf} of {len(confirming)}"
+        return text + "."
     reps = [x for r in runs for x in (r.get("repeats") or [])]
     text = f"Tracking alone (no learning): the first trial tied in {n_ok} of {len(runs)} runs"
     if reps:

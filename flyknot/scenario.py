@@ -82,6 +82,9 @@ class RunSpec:
         weights: Overrides of the inverse-model weights (learner.inverse_qp).
         trust_region: Largest change of any arm knot per update [rad], or None (the paper
             has none).
+        confirm: Confirmed-success stop rule ``[k, n]`` (a tying command is repeated until
+            n of its trials ran; stop when k tied; repeats count as trials), or None: the
+            paper's stop at the first knot. On the command line: ``--set confirm=k/n``.
         follow_through_s: Demonstration window end t_f - t_c [s] (the paper: 0.035).
         path_frac: Demonstration window start: the fraction of the hand path travelled at
             t_0, in [0, 1) (the paper: 0.05).
@@ -105,6 +108,7 @@ class RunSpec:
     gain: float = 1.0
     weights: Mapping[str, float] = field(default_factory=dict)
     trust_region: float | None = None
+    confirm: tuple[int, int] | None = None
     follow_through_s: float = FOLLOW_THROUGH_S
     path_frac: float = PATH_FRAC
     label: str = ""
@@ -148,6 +152,24 @@ class RunSpec:
             raise ConfigError("gain", f"must lie in (0, 1], got {self.gain!r}")
         if self.trust_region is not None:
             check_positive("trust_region", self.trust_region)
+        if self.confirm is not None:
+            c = self.confirm
+            if isinstance(c, str) and "/" in c:
+                try:
+                    c = tuple(int(v) for v in c.split("/"))
+                except ValueError:
+                    c = self.confirm
+            if isinstance(c, (list, tuple)):
+                c = tuple(c)
+            ok = isinstance(c, tuple) and len(c) == 2
+            ok = ok and all(isinstance(v, int) and not isinstance(v, bool) for v in c)
+            if not ok or not 1 <= c[0] <= c[1]:
+                raise ConfigError(
+                    "confirm", f"must be [k, n] (or k/n) with 1 <= k <= n, got {self.confirm!r}"
+                )
+            if not self.stop_at_success:
+                raise ConfigError("confirm", "needs stop_at_success = true")
+            object.__setattr__(self, "confirm", c)
         check_nonnegative("follow_through_s", self.follow_through_s)
         if not (isinstance(self.path_frac, (int, float)) and 0.0 <= self.path_frac < 1.0):
             raise ConfigError("path_frac", f"must lie in [0, 1), got {self.path_frac!r}")

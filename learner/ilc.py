@@ -61,6 +61,11 @@ class ILCParams:
         rope_model: The learner's rope model (default: the paper's).
         trust_region: Largest change of any arm knot per update [rad] (a box in the QP),
             or None for none (the paper's).
+        confirm: Confirmed-success stop rule ``(k, n)``, or None for the paper's (stop at the
+            first knot). With it, a command that ties is played again until n trials of it
+            have run (the tying one included; every repeat is a trial and counts towards
+            ``max_trials``); the run stops when k of them tie, and otherwise learns on from the
+            last of them. Needs ``stop_at_success``.
     """
 
     max_trials: int = 10
@@ -73,6 +78,7 @@ class ILCParams:
     weights: InverseModelWeights = field(default_factory=InverseModelWeights)
     rope_model: RopeModelParams = field(default_factory=RopeModelParams)
     trust_region: float | None = None
+    confirm: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.max_trials, int) or self.max_trials < 1:
@@ -87,6 +93,16 @@ class ILCParams:
             raise ConfigError("gain", f"must lie in (0, 1], got {self.gain!r}")
         if self.trust_region is not None:
             check_positive("trust_region", self.trust_region)
+        if self.confirm is not None:
+            c = tuple(self.confirm)
+            ok = len(c) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in c)
+            if not ok or not 1 <= c[0] <= c[1]:
+                raise ConfigError(
+                    "confirm", f"must be two integers (k, n) with 1 <= k <= n, got {self.confirm!r}"
+                )
+            if not self.stop_at_success:
+                raise ConfigError("confirm", "needs stop_at_success = true")
+            object.__setattr__(self, "confirm", c)
 
 
 @dataclass(frozen=True)
@@ -105,6 +121,7 @@ class TrialSummary:
     action: str
     wall_s: float
     t_eff: float | None = None
+    confirm: int | None = None
 
     @property
     def success(self) -> bool:
@@ -232,12 +249,19 @@ def learn(
     knots = np.asarray(knots0, dtype=float)
     prev_knots: np.ndarray | None = None
     k = 0
+    conf = _Confirmation(params.confirm)
     if rd is not None and resume:
         trials = rd.ledger()
         done = _counted(tuple(trials))
+        for s in done:  # the confirmation state, as the loop built it
+            conf.observe(s.success)
+            if conf.outcome != "confirmed":
+                conf.reset_if_failed()
         if done:
             last = done[-1]
-            if last.success and params.stop_at_success:
+            if conf.outcome == "confirmed":
+                return _finish(trials, rd.load_knots(last.trial), params, "confirmed")
+            if params.confirm is None and last.success and params.stop_at_success:
                 return _finish(
                     trials,
                     knots if not rd.knots_path(last.trial).is_file() else rd.load_knots(last.trial),
@@ -287,11 +311,28 @@ def learn(
                 or summary.fault is not None
                 or attempt == params.tracking_retries
             )
-            new, why = None, None
-            if last and not (summary.success and params.stop_at_success):
-                new, why = _next_knots(
-                    summary, update, knots, prev_knots, target, robot, params, limits
-                )
+            new, stop = None, None
+            if last:
+                position = conf.observe(summary.success)
+                if position is not None:
+                    summary = TrialSummary(
+                        **{
+                            **asdict(summary),
+                            "confirm": position,
+                            "action": f"confirm {position}/{params.confirm[1]}: " + summary.action,
+                        }
+                    )
+                if params.confirm is None and summary.success and params.stop_at_success:
+                    stop = "success"
+                elif conf.outcome == "confirmed":
+                    stop = "confirmed"
+                elif conf.active:
+                    new = knots  # the same command again, to confirm it
+                else:
+                    conf.reset_if_failed()
+                    new, stop = _next_knots(
+                        summary, update, knots, prev_knots, target, robot, params, limits
+                    )
             trials.append(summary)
             if rd is not None:
                 if update is not None:
@@ -305,16 +346,55 @@ def learn(
                 on_trial(summary)
             if last:
                 break
-        if summary.success and params.stop_at_success:
-            return _finish(trials, knots, params, "success")
-        if new is None:
-            return _finish(trials, knots, params, why)
+        if stop is not None:
+            return _finish(trials, knots, params, stop)
         prev_knots, knots = knots, new
         k += 1
     first = next((s.trial for s in _counted(tuple(trials)) if s.success), None)
     return _finish(
         trials, knots, params, "max_trials" if first is None else "max_trials (knot tied)"
     )
+
+
+class _Confirmation:
+    """The confirmed-success rule's state: the outcomes of the current command's repeats."""
+
+    def __init__(self, rule: tuple[int, int] | None):
+        self.rule = rule
+        self.streak: list[bool] = []
+
+    @property
+    def active(self) -> bool:
+        return bool(self.streak) and self.outcome is None
+
+    @property
+    def outcome(self) -> str | None:
+        """``"confirmed"``, ``"failed"`` (k can no longer be reached, or n ran short) or None."""
+        if not self.streak or self.rule is None:
+            return None
+        k, n = self.rule
+        ties = sum(self.streak)
+        if ties >= k:
+            return "confirmed"
+        if ties + (n - len(self.streak)) < k:
+            return "failed"
+        return None
+
+    def observe(self, success: bool) -> int | None:
+        """Take a counted trial; return its position in the confirmation (None: not in one)."""
+        if self.rule is None:
+            return None
+        if self.active:
+            self.streak.append(bool(success))
+            return len(self.streak)
+        if success:
+            self.streak = [True]
+            return 1
+        return None
+
+    def reset_if_failed(self) -> None:
+        if self.outcome == "failed":
+            self.streak = []
 
 
 def _next_knots(

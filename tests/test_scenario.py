@@ -87,7 +87,7 @@ def test_limit_runs_keeps_dependencies():
             {"run": [{"name": "a", "max_trial": 3}]},
             "run[0].max_trial: unknown field (valid choices: name, rope, demo, seed, max_trials, "
             "objective, stop_at_success, repeats, settle_s, backend, start_from, rope_model, "
-            "gain, weights, trust_region, follow_through_s, path_frac, label)",
+            "gain, weights, trust_region, confirm, follow_through_s, path_frac, label)",
         ),
         ({"run": [{"name": "a"}, {"name": "a"}]}, "run.name: duplicate run names: a"),
         (
@@ -209,3 +209,17 @@ def test_wilson_interval_known_values():
     assert wilson_interval(40, 40)[1] == 1.0
     with pytest.raises(ValueError):
         wilson_interval(3, 2)
+
+
+def test_confirm_field_from_toml_and_command_line():
+    scen = load_scenario("quick", parse_overrides(["confirm=19/20"]))
+    assert scen.runs[0].confirm == (19, 20)
+    from flyknot.scenario import RunSpec
+
+    assert RunSpec(name="a", confirm=[2, 3]).confirm == (2, 3)
+    with pytest.raises(ConfigError) as e:
+        RunSpec(name="a", confirm="3/2")
+    assert str(e.value) == "confirm: must be [k, n] (or k/n) with 1 <= k <= n, got '3/2'"
+    with pytest.raises(ConfigError) as e:
+        RunSpec(name="a", confirm=[1, 2], stop_at_success=False)
+    assert str(e.value) == "confirm: needs stop_at_success = true"

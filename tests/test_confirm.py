@@ -1,0 +1,136 @@
+"""The confirmed-success stop rule of the ILC loop (issue 11): a tie must repeat k of n."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from flyknot.errors import ConfigError
+from learner.bezier import BezierCommand
+from learner.ilc import ILCParams, RunDirectory, learn
+from learner.kinematics import RobotModel
+from learner.system_model import model_demonstration
+from learner.update import DemoTarget
+from tests.test_ilc import ROPE, T_C, ModelCell, T, _knots
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return RobotModel.from_mjcf()
+
+
+@pytest.fixture(scope="module")
+def setup(arm):
+    target_knots = _knots(np.array([0.3, 0.25, -0.2, 0.3, 0.2, -0.3, 0.2]))
+    demo = model_demonstration(BezierCommand(target_knots, T), T_C, arm, ROPE)
+    target = DemoTarget.from_demonstration(demo, dt=ROPE.dt)
+    start = _knots(np.array([0.22, 0.3, -0.12, 0.22, 0.26, -0.22, 0.25]))
+    return target, start
+
+
+class ScriptedCell(ModelCell):
+    """The model cell, but the knot of trial i is ``script[i]`` (True: trefoil)."""
+
+    def __init__(self, arm, target, script):
+        super().__init__(arm, target)
+        self.script = script
+
+    def run(self, command):
+        i = self.n
+        rec = super().run(command)
+        return dataclasses.replace(rec, knot="trefoil" if self.script[i] else "unknot")
+
+
+def _cell(arm, target, script, monkeypatch):
+    cell = ScriptedCell(arm, target, script)
+    orig = BezierCommand.joint_command
+
+    def spy(self, rate_hz=250.0):
+        cell.current = np.asarray(self.knots)
+        return orig(self, rate_hz)
+
+    monkeypatch.setattr(BezierCommand, "joint_command", spy)
+    return cell
+
+
+def test_confirmed_after_k_of_n(arm, setup, monkeypatch, tmp_path):
+    target, start = setup
+    cell = _cell(arm, target, [False, True, False, True, True, True], monkeypatch)
+    params = ILCParams(max_trials=8, rope_model=ROPE, confirm=(2, 3))
+    res = learn(cell, target, start, arm, params, run_dir=tmp_path / "run")
+    assert res.stopped_because == "confirmed"
+    assert res.first_success_trial == 1
+    assert [s.confirm for s in res.trials] == [None, 1, 2, 3]
+    # The tying command was played three times unchanged.
+    np.testing.assert_array_equal(cell.played[1], cell.played[2])
+    np.testing.assert_array_equal(cell.played[1], cell.played[3])
+    assert not np.array_equal(cell.played[0], cell.played[1])
+    assert res.trials[2].action.startswith("confirm 2/3: ")
+
+
+def test_a_failed_confirmation_learns_on_from_its_last_trial(arm, setup, monkeypatch, tmp_path):
+    target, start = setup
+    cell = _cell(arm, target, [True, False, True, True, True, True], monkeypatch)
+    params = ILCParams(max_trials=6, rope_model=ROPE, confirm=(3, 3))
+    res = learn(cell, target, start, arm, params, run_dir=tmp_path / "run")
+    # [T, F]: 3 of 3 can no longer be reached -> update; trial 2 is a new command that ties
+    # and is confirmed by trials 3 and 4.
+    assert [s.confirm for s in res.trials] == [1, 2, 1, 2, 3]
+    np.testing.assert_array_equal(cell.played[0], cell.played[1])
+    assert not np.array_equal(cell.played[1], cell.played[2])
+    assert res.stopped_because == "confirmed"
+
+
+def test_resume_inside_a_confirmation(arm, setup, monkeypatch, tmp_path):
+    target, start = setup
+    script = [False, True, True, False, True, True, True, True]
+    whole = _cell(arm, target, script, monkeypatch)
+    params = ILCParams(max_trials=8, rope_model=ROPE, confirm=(3, 4))
+    res = learn(whole, target, start, arm, params, run_dir=tmp_path / "a")
+    cut = _cell(arm, target, script, monkeypatch)
+    learn(
+        cut, target, start, arm, dataclasses.replace(params, max_trials=3), run_dir=tmp_path / "b"
+    )
+    again = learn(cut, target, start, arm, params, run_dir=tmp_path / "b", resume=True)
+    assert again.stopped_because == res.stopped_because == "confirmed"
+    strip = [
+        {k: v for k, v in json.loads(line).items() if k != "wall_s"}
+        for line in (tmp_path / "a" / "ledger.jsonl").read_text().splitlines()
+    ]
+    strip_b = [
+        {k: v for k, v in json.loads(line).items() if k != "wall_s"}
+        for line in (tmp_path / "b" / "ledger.jsonl").read_text().splitlines()
+    ]
+    assert strip == strip_b
+    assert len(RunDirectory(tmp_path / "b").ledger()) == len(res.trials) == 5
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"confirm": (3, 2)}, "confirm: must be two integers (k, n) with 1 <= k <= n, got (3, 2)"),
+        ({"confirm": (0, 2)}, "confirm: must be two integers (k, n) with 1 <= k <= n, got (0, 2)"),
+        ({"confirm": (1, 2), "stop_at_success": False}, "confirm: needs stop_at_success = true"),
+    ],
+)
+def test_confirm_errors(kwargs, message):
+    with pytest.raises(ConfigError) as e:
+        ILCParams(**kwargs)
+    assert str(e.value) == message
+
+
+def test_outcome_line_reports_both_stop_rules():
+    from flyknot.report import outcome_line
+
+    runs = [
+        {"first_success_trial": 2, "confirm": [2, 3], "confirmed": True},
+        {"first_success_trial": 1, "confirm": [2, 3], "confirmed": False},
+        {"first_success_trial": None, "confirm": [2, 3], "confirmed": False},
+    ]
+    assert outcome_line("learn", runs) == (
+        "Knot learned in 2 of 3 runs; confirmed (2 of 3 repeats tied) in 1 of 3."
+    )
+    assert outcome_line("learn", [{"first_success_trial": 0}]) == "Knot learned in 1 of 1 runs."
