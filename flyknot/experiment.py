@@ -157,6 +157,7 @@ def execute_run(
         weights=InverseModelWeights(**spec.weights),
         trust_region=spec.trust_region,
         confirm=spec.confirm,
+        safeguard=spec.safeguard,
     )
     bar = tqdm(
         total=params.max_trials,
@@ -232,6 +233,7 @@ def execute_run(
         "stopped_because": res.stopped_because,
         "confirm": None if spec.confirm is None else list(spec.confirm),
         "confirmed": res.stopped_because == "confirmed",
+        "safeguard": spec.safeguard,
         "attempts": len(res.trials),
         "repeats": repeats,
         "repeat_success_rate": (sum(r == "trefoil" for r in repeats) / len(repeats))

@@ -85,6 +85,8 @@ class RunSpec:
         confirm: Confirmed-success stop rule ``[k, n]`` (a tying command is repeated until
             n of its trials ran; stop when k tied; repeats count as trials), or None: the
             paper's stop at the first knot. On the command line: ``--set confirm=k/n``.
+        safeguard: Reject an update whose trial's cost rose above the best trial's and step
+            from the best command instead, shrunk by 1/2 per rejection (the paper: none).
         follow_through_s: Demonstration window end t_f - t_c [s] (the paper: 0.035).
         path_frac: Demonstration window start: the fraction of the hand path travelled at
             t_0, in [0, 1) (the paper: 0.05).
@@ -109,6 +111,7 @@ class RunSpec:
     weights: Mapping[str, float] = field(default_factory=dict)
     trust_region: float | None = None
     confirm: tuple[int, int] | None = None
+    safeguard: bool = False
     follow_through_s: float = FOLLOW_THROUGH_S
     path_frac: float = PATH_FRAC
     label: str = ""
@@ -170,6 +173,8 @@ class RunSpec:
             if not self.stop_at_success:
                 raise ConfigError("confirm", "needs stop_at_success = true")
             object.__setattr__(self, "confirm", c)
+        if not isinstance(self.safeguard, bool):
+            raise ConfigError("safeguard", f"must be true or false, got {self.safeguard!r}")
         check_nonnegative("follow_through_s", self.follow_through_s)
         if not (isinstance(self.path_frac, (int, float)) and 0.0 <= self.path_frac < 1.0):
             raise ConfigError("path_frac", f"must lie in [0, 1), got {self.path_frac!r}")

@@ -66,6 +66,9 @@ class ILCParams:
             have run (the tying one included; every repeat is a trial and counts towards
             ``max_trials``); the run stops when k of them tie, and otherwise learns on from the
             last of them. Needs ``stop_at_success``.
+        safeguard: Reject an update whose trial measured a higher critical-point cost than
+            the best trial so far: the next command is the best trial's command moved by its
+            own update, shrunk by 1/2 per consecutive rejection (the paper has none).
     """
 
     max_trials: int = 10
@@ -79,6 +82,7 @@ class ILCParams:
     rope_model: RopeModelParams = field(default_factory=RopeModelParams)
     trust_region: float | None = None
     confirm: tuple[int, int] | None = None
+    safeguard: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.max_trials, int) or self.max_trials < 1:
@@ -205,6 +209,10 @@ class RunDirectory:
     def save_update(self, k: int, info: dict[str, Any]) -> None:
         (self.path / f"update_{k:04d}.json").write_text(json.dumps(info, indent=2))
 
+    def load_update(self, k: int) -> dict[str, Any] | None:
+        p = self.path / f"update_{k:04d}.json"
+        return json.loads(p.read_text()) if p.is_file() else None
+
 
 def critical_cost(err: np.ndarray, weights: InverseModelWeights) -> float:
     """||err||_Q^2 with Q = diag(w_crit_pos I_33, w_crit_vel I_33); err (66,) [m, m/s]."""
@@ -250,11 +258,14 @@ def learn(
     prev_knots: np.ndarray | None = None
     k = 0
     conf = _Confirmation(params.confirm)
+    guard = _Safeguard(params.safeguard)
     if rd is not None and resume:
         trials = rd.ledger()
         done = _counted(tuple(trials))
-        for s in done:  # the confirmation state, as the loop built it
+        for s in done:  # the confirmation and safeguard states, as the loop built them
             conf.observe(s.success)
+            if params.safeguard:
+                guard.observe(s, rd.load_update(s.trial), rd.load_knots(s.trial))
             if conf.outcome != "confirmed":
                 conf.reset_if_failed()
         if done:
@@ -313,6 +324,7 @@ def learn(
             )
             new, stop = None, None
             if last:
+                back = guard.observe(summary, update, knots)
                 position = conf.observe(summary.success)
                 if position is not None:
                     summary = TrialSummary(
@@ -328,6 +340,16 @@ def learn(
                     stop = "confirmed"
                 elif conf.active:
                     new = knots  # the same command again, to confirm it
+                elif back is not None:
+                    conf.reset_if_failed()
+                    summary = TrialSummary(
+                        **{
+                            **asdict(summary),
+                            "action": "cost rose: back to the best command, step x0.5^"
+                            f"{guard.rejects}",
+                        }
+                    )
+                    new = _safe_step(back[0], params.gain * back[1], target.T, robot, limits)
                 else:
                     conf.reset_if_failed()
                     new, stop = _next_knots(
@@ -354,6 +376,30 @@ def learn(
     return _finish(
         trials, knots, params, "max_trials" if first is None else "max_trials (knot tied)"
     )
+
+
+class _Safeguard:
+    """The safeguarded update's state: the best measured trial and the rejections since."""
+
+    def __init__(self, on: bool):
+        self.on = on
+        self.best: tuple[float, np.ndarray, np.ndarray] | None = None
+        self.rejects = 0
+
+    def observe(
+        self, summary: TrialSummary, update: dict[str, Any] | None, knots: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Take a counted trial; return (best knots, shrunk best dkappa) when its cost rose
+        above the best's, else None (and it may be the new best)."""
+        if not self.on or summary.cost is None or not summary.update_solved or update is None:
+            return None
+        if self.best is None or summary.cost <= self.best[0]:
+            self.best = (summary.cost, np.array(knots, dtype=float), np.asarray(update["dkappa"]))
+            self.rejects = 0
+            return None
+        self.rejects += 1
+        _, best_knots, best_dk = self.best
+        return best_knots, best_dk * 0.5**self.rejects
 
 
 class _Confirmation:

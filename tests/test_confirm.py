@@ -134,3 +134,72 @@ def test_outcome_line_reports_both_stop_rules():
         "Knot learned in 2 of 3 runs; confirmed (2 of 3 repeats tied) in 1 of 3."
     )
     assert outcome_line("learn", [{"first_success_trial": 0}]) == "Knot learned in 1 of 1 runs."
+
+
+class DisturbedCell(ModelCell):
+    """The model cell with the markers of trial ``bad`` shifted 5 cm (a bad measurement)."""
+
+    def __init__(self, arm, target, bad):
+        super().__init__(arm, target, knot_cost=0.0)
+        self.bad = bad
+
+    def run(self, command):
+        i = self.n
+        rec = super().run(command)
+        if i == self.bad:
+            rec = dataclasses.replace(rec, markers=rec.markers + np.array([0.05, 0.0, 0.0]))
+        return rec
+
+
+def test_safeguard_returns_to_the_best_command_with_a_shrunk_step(
+    arm, setup, monkeypatch, tmp_path
+):
+    target, start = setup
+    cell = DisturbedCell(arm, target, bad=2)
+    orig = BezierCommand.joint_command
+
+    def spy(self, rate_hz=250.0):
+        cell.current = np.asarray(self.knots)
+        return orig(self, rate_hz)
+
+    monkeypatch.setattr(BezierCommand, "joint_command", spy)
+    params = ILCParams(max_trials=4, rope_model=ROPE, safeguard=True, gain=1.0)
+    res = learn(cell, target, start, arm, params, run_dir=tmp_path / "run")
+    costs = res.costs
+    assert costs[2] > costs[1]  # the disturbed trial measured worse
+    assert res.trials[2].action.startswith("cost rose: back to the best command")
+    rd = RunDirectory(tmp_path / "run")
+    dk_best = np.asarray(rd.load_update(1)["dkappa"])
+    np.testing.assert_allclose(cell.played[3], cell.played[1] - 0.5 * dk_best, atol=1e-12)
+    # Resuming after the rejection rebuilds the same state.
+    again = learn(
+        cell,
+        target,
+        start,
+        arm,
+        dataclasses.replace(params, max_trials=5),
+        run_dir=tmp_path / "run",
+        resume=True,
+    )
+    assert len(again.trials) == 5
+
+
+def test_without_safeguard_the_disturbed_update_is_taken(arm, setup, monkeypatch, tmp_path):
+    target, start = setup
+    cell = DisturbedCell(arm, target, bad=2)
+    orig = BezierCommand.joint_command
+
+    def spy(self, rate_hz=250.0):
+        cell.current = np.asarray(self.knots)
+        return orig(self, rate_hz)
+
+    monkeypatch.setattr(BezierCommand, "joint_command", spy)
+    params = ILCParams(max_trials=4, rope_model=ROPE, gain=1.0)
+    learn(cell, target, start, arm, params, run_dir=tmp_path / "run")
+    rd = RunDirectory(tmp_path / "run")
+    dk2 = np.asarray(rd.load_update(2)["dkappa"])
+    assert not np.allclose(
+        cell.played[3], cell.played[1] - 0.5 * np.asarray(rd.load_update(1)["dkappa"])
+    )
+    assert np.linalg.norm(cell.played[3] - cell.played[2]) > 0
+    assert np.all(np.isfinite(dk2))
