@@ -158,6 +158,7 @@ def execute_run(
         trust_region=spec.trust_region,
         confirm=spec.confirm,
         safeguard=spec.safeguard,
+        average=spec.average,
     )
     bar = tqdm(
         total=params.max_trials,
@@ -234,6 +235,7 @@ def execute_run(
         "confirm": None if spec.confirm is None else list(spec.confirm),
         "confirmed": res.stopped_because == "confirmed",
         "safeguard": spec.safeguard,
+        "average": spec.average,
         "attempts": len(res.trials),
         "repeats": repeats,
         "repeat_success_rate": (sum(r == "trefoil" for r in repeats) / len(repeats))

@@ -87,6 +87,8 @@ class RunSpec:
             paper's stop at the first knot. On the command line: ``--set confirm=k/n``.
         safeguard: Reject an update whose trial's cost rose above the best trial's and step
             from the best command instead, shrunk by 1/2 per rejection (the paper: none).
+        average: Plays of each command before an update, on their mean critical-point error
+            (each play a trial; the paper: 1).
         follow_through_s: Demonstration window end t_f - t_c [s] (the paper: 0.035).
         path_frac: Demonstration window start: the fraction of the hand path travelled at
             t_0, in [0, 1) (the paper: 0.05).
@@ -112,6 +114,7 @@ class RunSpec:
     trust_region: float | None = None
     confirm: tuple[int, int] | None = None
     safeguard: bool = False
+    average: int = 1
     follow_through_s: float = FOLLOW_THROUGH_S
     path_frac: float = PATH_FRAC
     label: str = ""
@@ -173,6 +176,8 @@ class RunSpec:
             if not self.stop_at_success:
                 raise ConfigError("confirm", "needs stop_at_success = true")
             object.__setattr__(self, "confirm", c)
+        if isinstance(self.average, bool) or not isinstance(self.average, int) or self.average < 1:
+            raise ConfigError("average", f"must be an integer >= 1, got {self.average!r}")
         if not isinstance(self.safeguard, bool):
             raise ConfigError("safeguard", f"must be true or false, got {self.safeguard!r}")
         check_nonnegative("follow_through_s", self.follow_through_s)

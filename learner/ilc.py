@@ -69,6 +69,8 @@ class ILCParams:
         safeguard: Reject an update whose trial measured a higher critical-point cost than
             the best trial so far: the next command is the best trial's command moved by its
             own update, shrunk by 1/2 per consecutive rejection (the paper has none).
+        average: Plays of each command before an update (>= 1; the paper: 1); the update
+            uses the mean critical-point error of the plays (each play is a trial).
     """
 
     max_trials: int = 10
@@ -83,6 +85,7 @@ class ILCParams:
     trust_region: float | None = None
     confirm: tuple[int, int] | None = None
     safeguard: bool = False
+    average: int = 1
 
     def __post_init__(self) -> None:
         if not isinstance(self.max_trials, int) or self.max_trials < 1:
@@ -97,6 +100,8 @@ class ILCParams:
             raise ConfigError("gain", f"must lie in (0, 1], got {self.gain!r}")
         if self.trust_region is not None:
             check_positive("trust_region", self.trust_region)
+        if isinstance(self.average, bool) or not isinstance(self.average, int) or self.average < 1:
+            raise ConfigError("average", f"must be an integer >= 1, got {self.average!r}")
         if self.confirm is not None:
             c = tuple(self.confirm)
             ok = len(c) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in c)
@@ -126,6 +131,7 @@ class TrialSummary:
     wall_s: float
     t_eff: float | None = None
     confirm: int | None = None
+    average: int | None = None
 
     @property
     def success(self) -> bool:
@@ -259,10 +265,15 @@ def learn(
     k = 0
     conf = _Confirmation(params.confirm)
     guard = _Safeguard(params.safeguard)
+    group: list[TrialRecord] = []  # earlier plays of the current command (averaging)
     if rd is not None and resume:
         trials = rd.ledger()
         done = _counted(tuple(trials))
-        for s in done:  # the confirmation and safeguard states, as the loop built them
+        for s in done:  # the confirmation, safeguard and averaging states, as the loop left them
+            if s.average is not None and s.average < params.average:
+                group.append(TrialRecord.load(rd.record_stem(s.trial, s.attempt)))
+            else:
+                group.clear()
             conf.observe(s.success)
             if params.safeguard:
                 guard.observe(s, rd.load_update(s.trial), rd.load_knots(s.trial))
@@ -342,6 +353,7 @@ def learn(
                     new = knots  # the same command again, to confirm it
                 elif back is not None:
                     conf.reset_if_failed()
+                    group.clear()
                     summary = TrialSummary(
                         **{
                             **asdict(summary),
@@ -350,8 +362,46 @@ def learn(
                         }
                     )
                     new = _safe_step(back[0], params.gain * back[1], target.T, robot, limits)
+                elif (
+                    params.average > 1
+                    and len(group) + 1 < params.average
+                    and summary.fault is None
+                    and not summary.tracking_lost
+                ):
+                    conf.reset_if_failed()
+                    group.append(record)
+                    summary = TrialSummary(
+                        **{
+                            **asdict(summary),
+                            "average": len(group),
+                            "action": f"play {len(group)}/{params.average} of the command",
+                        }
+                    )
+                    new = knots  # the same command again, to average its error
                 else:
                     conf.reset_if_failed()
+                    if group and summary.fault is None and not summary.tracking_lost:
+                        n_plays = len(group) + 1
+                        _, update = _assess(
+                            record,
+                            command,
+                            target,
+                            robot,
+                            params,
+                            limits,
+                            k,
+                            attempt,
+                            extra_records=tuple(group),
+                        )
+                        summary = TrialSummary(
+                            **{
+                                **asdict(summary),
+                                "average": n_plays,
+                                "update_solved": update["solved"] if update else None,
+                                "action": f"update on the mean error of {n_plays} plays",
+                            }
+                        )
+                    group.clear()
                     new, stop = _next_knots(
                         summary, update, knots, prev_knots, target, robot, params, limits
                     )
@@ -508,6 +558,7 @@ def _assess(
     limits: JointLimits,
     k: int,
     attempt: int,
+    extra_records: tuple[TrialRecord, ...] = (),
 ) -> tuple[TrialSummary, dict[str, Any] | None]:
     base = dict(
         trial=k,
@@ -539,6 +590,7 @@ def _assess(
             limits=limits,
             follow_through=params.follow_through,
             trust_region=params.trust_region,
+            extra_records=extra_records,
         )
     except RecordError as e:
         return TrialSummary(

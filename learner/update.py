@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import numbers
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
 
@@ -494,6 +494,7 @@ def ilc_update(
     solver_settings: Mapping[str, object] | None = None,
     fallback_s: float = 10.0,
     trust_region: float | None = None,
+    extra_records: Sequence[TrialRecord] = (),
 ) -> UpdateResult:
     """One ILC update: measured error -> linearised model -> inverse-model QP -> new knots.
 
@@ -529,6 +530,10 @@ def ilc_update(
             early), the critical point falls back to the latest model step within
             ``fallback_s`` before t_c at which both the record and the demonstration give a
             marker state (``UpdateResult.t_eff``); 0 disables the fallback.
+        trust_region: Largest change of any arm knot [rad] (a box in the QP), or None.
+        extra_records: Earlier plays of the same command: the critical-point error is the
+            mean over ``record`` and those of them that kept tracking to t_c (the
+            follow-through term uses ``record`` alone).
 
     Returns:
         The :class:`UpdateResult`.
@@ -593,6 +598,15 @@ def ilc_update(
     t_eff = t_c
     try:
         err = critical_state_from_record(record, t_c, base, fit) - demo_target.x_c
+        # Averaged over earlier plays of the same command (those that kept tracking to t_c):
+        # err = mean_i (x_i(t_c) - x_demo(t_c)); each play's noise averages out.
+        errs = [err]
+        for other in extra_records:
+            try:
+                errs.append(critical_state_from_record(other, t_c, base, fit) - demo_target.x_c)
+            except RecordError:
+                continue
+        err = np.mean(errs, axis=0)
     except RecordError:
         if objective == "critical":
             k_c, err = _fallback_critical_point(record, demo_target, base, fit, fallback_s)

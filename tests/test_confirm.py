@@ -203,3 +203,57 @@ def test_without_safeguard_the_disturbed_update_is_taken(arm, setup, monkeypatch
     )
     assert np.linalg.norm(cell.played[3] - cell.played[2]) > 0
     assert np.all(np.isfinite(dk2))
+
+
+def _spy(cell, monkeypatch):
+    orig = BezierCommand.joint_command
+
+    def spy(self, rate_hz=250.0):
+        cell.current = np.asarray(self.knots)
+        return orig(self, rate_hz)
+
+    monkeypatch.setattr(BezierCommand, "joint_command", spy)
+
+
+def test_average_updates_on_the_mean_error_of_its_plays(arm, setup, monkeypatch, tmp_path):
+    target, start = setup
+    cell = DisturbedCell(arm, target, bad=1)
+    _spy(cell, monkeypatch)
+    params = ILCParams(max_trials=4, rope_model=ROPE, average=3)
+    res = learn(cell, target, start, arm, params, run_dir=tmp_path / "run")
+    assert [s.average for s in res.trials] == [1, 2, 3, 1]
+    np.testing.assert_array_equal(cell.played[0], cell.played[1])
+    np.testing.assert_array_equal(cell.played[0], cell.played[2])
+    assert not np.array_equal(cell.played[2], cell.played[3])
+    rd = RunDirectory(tmp_path / "run")
+    e0, e1, e2 = (np.asarray(rd.load_update(k)["err"]) for k in range(3))
+    # Plays 0 and 2 measure the same (a deterministic cell); play 1 was disturbed.
+    np.testing.assert_allclose(e2, (2 * e0 + e1) / 3, atol=1e-9)
+    assert res.trials[2].action == "update on the mean error of 3 plays"
+
+
+def test_resume_inside_an_averaging_group(arm, setup, monkeypatch, tmp_path):
+    target, start = setup
+    params = ILCParams(max_trials=5, rope_model=ROPE, average=3)
+    whole = DisturbedCell(arm, target, bad=1)
+    _spy(whole, monkeypatch)
+    learn(whole, target, start, arm, params, run_dir=tmp_path / "a")
+    cut = DisturbedCell(arm, target, bad=1)
+    _spy(cut, monkeypatch)
+    learn(
+        cut, target, start, arm, dataclasses.replace(params, max_trials=2), run_dir=tmp_path / "b"
+    )
+    learn(cut, target, start, arm, params, run_dir=tmp_path / "b", resume=True)
+
+    def ledger(d):
+        rows = [json.loads(x) for x in (d / "ledger.jsonl").read_text().splitlines()]
+        return [{k: v for k, v in r.items() if k != "wall_s"} for r in rows]
+
+    assert ledger(tmp_path / "a") == ledger(tmp_path / "b")
+    np.testing.assert_array_equal(whole.played[3], cut.played[3])
+
+
+def test_average_must_be_a_positive_integer():
+    with pytest.raises(ConfigError) as e:
+        ILCParams(average=0)
+    assert str(e.value) == "average: must be an integer >= 1, got 0"

@@ -87,7 +87,8 @@ def test_limit_runs_keeps_dependencies():
             {"run": [{"name": "a", "max_trial": 3}]},
             "run[0].max_trial: unknown field (valid choices: name, rope, demo, seed, max_trials, "
             "objective, stop_at_success, repeats, settle_s, backend, start_from, rope_model, "
-            "gain, weights, trust_region, confirm, safeguard, follow_through_s, path_frac, label)",
+            "gain, weights, trust_region, confirm, safeguard, average, follow_through_s, "
+            "path_frac, label)",
         ),
         ({"run": [{"name": "a"}, {"name": "a"}]}, "run.name: duplicate run names: a"),
         (
