@@ -262,7 +262,7 @@ def test_cli_trial_with_ropes_file(ropes_file, tmp_path, capsys):
     assert meta["rope"] == "my cord" and meta["rope_params"]["cd"] == 1.5
     # errors: one line, exit 2
     assert main(["trial", "--rope", "nope", "--ropes", str(ropes_file), "--command", str(cmd),
-                 "--out", str(out)]) == 2  # fmt: skip
+                 "--out", str(tmp_path / "o2")]) == 2  # fmt: skip
     err = capsys.readouterr().err
     assert err.startswith("flyknot: error: rope: unknown rope name 'nope' (valid choices: 1, 2")
     assert err.endswith("'my cord', 'heavy chain')\n") and err.count("\n") == 1
