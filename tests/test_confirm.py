@@ -136,6 +136,16 @@ def test_outcome_line_reports_both_stop_rules():
     assert outcome_line("learn", [{"first_success_trial": 0}]) == "Knot learned in 1 of 1 runs."
 
 
+def _spy(cell, monkeypatch):
+    orig = BezierCommand.joint_command
+
+    def spy(self, rate_hz=250.0):
+        cell.current = np.asarray(self.knots)
+        return orig(self, rate_hz)
+
+    monkeypatch.setattr(BezierCommand, "joint_command", spy)
+
+
 class DisturbedCell(ModelCell):
     """The model cell with the markers of trial ``bad`` shifted 5 cm (a bad measurement)."""
 
@@ -156,13 +166,7 @@ def test_safeguard_returns_to_the_best_command_with_a_shrunk_step(
 ):
     target, start = setup
     cell = DisturbedCell(arm, target, bad=2)
-    orig = BezierCommand.joint_command
-
-    def spy(self, rate_hz=250.0):
-        cell.current = np.asarray(self.knots)
-        return orig(self, rate_hz)
-
-    monkeypatch.setattr(BezierCommand, "joint_command", spy)
+    _spy(cell, monkeypatch)
     params = ILCParams(max_trials=4, rope_model=ROPE, safeguard=True, gain=1.0)
     res = learn(cell, target, start, arm, params, run_dir=tmp_path / "run")
     costs = res.costs
@@ -187,13 +191,7 @@ def test_safeguard_returns_to_the_best_command_with_a_shrunk_step(
 def test_without_safeguard_the_disturbed_update_is_taken(arm, setup, monkeypatch, tmp_path):
     target, start = setup
     cell = DisturbedCell(arm, target, bad=2)
-    orig = BezierCommand.joint_command
-
-    def spy(self, rate_hz=250.0):
-        cell.current = np.asarray(self.knots)
-        return orig(self, rate_hz)
-
-    monkeypatch.setattr(BezierCommand, "joint_command", spy)
+    _spy(cell, monkeypatch)
     params = ILCParams(max_trials=4, rope_model=ROPE, gain=1.0)
     learn(cell, target, start, arm, params, run_dir=tmp_path / "run")
     rd = RunDirectory(tmp_path / "run")
@@ -203,16 +201,6 @@ def test_without_safeguard_the_disturbed_update_is_taken(arm, setup, monkeypatch
     )
     assert np.linalg.norm(cell.played[3] - cell.played[2]) > 0
     assert np.all(np.isfinite(dk2))
-
-
-def _spy(cell, monkeypatch):
-    orig = BezierCommand.joint_command
-
-    def spy(self, rate_hz=250.0):
-        cell.current = np.asarray(self.knots)
-        return orig(self, rate_hz)
-
-    monkeypatch.setattr(BezierCommand, "joint_command", spy)
 
 
 def test_average_updates_on_the_mean_error_of_its_plays(arm, setup, monkeypatch, tmp_path):
