@@ -69,6 +69,7 @@ from scipy.spatial.transform import Rotation
 from flyknot.constants import N_MARKERS
 from flyknot.demo import Demonstration
 from flyknot.errors import RecordError
+from flyknot.geometry import quat_sign_continuous
 
 CSV_FORMAT_VERSION = 1
 HAND_COLUMNS = (
@@ -153,17 +154,6 @@ def fit_rigid(cluster: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.n
     return R, p, rms
 
 
-def _continuous_quat(R: np.ndarray) -> np.ndarray:
-    """Quaternions (w, x, y, z), shape (k, 4), of rotations (k, 3, 3), sign-continuous."""
-    q = Rotation.from_matrix(R).as_quat(scalar_first=True)
-    flips = np.concatenate([[1.0], np.sign(np.sum(q[1:] * q[:-1], axis=1))])
-    flips = np.where(flips == 0, 1.0, flips)
-    sign = np.cumprod(flips)
-    if q[0, 0] < 0:
-        sign = -sign
-    return q * sign[:, None]
-
-
 def hand_pose_from_markers(
     t: np.ndarray,
     hand_markers: np.ndarray,
@@ -205,7 +195,8 @@ def hand_pose_from_markers(
             f"t = {t[worst]:.4f} s exceeds max_fit_rms = {max_fit_rms} m (pass the lab's "
             "hand_cluster layout)"
         )
-    return p, _continuous_quat(R)
+    q = Rotation.from_matrix(R).as_quat(scalar_first=True)
+    return p, quat_sign_continuous(q, first_positive=True)
 
 
 def hand_markers_from_pose(

@@ -20,14 +20,9 @@ import numpy as np
 
 from flyknot.constants import COMMAND_RATE_HZ, N_JOINTS, N_MARKERS
 from flyknot.errors import CommandError, RecordError
+from flyknot.geometry import readonly
 
 RECORD_FORMAT_VERSION = 1
-
-
-def _frozen(a: np.ndarray) -> np.ndarray:
-    a = np.array(a, dtype=float, copy=True)
-    a.setflags(write=False)
-    return a
 
 
 @dataclass(frozen=True)
@@ -59,7 +54,7 @@ class JointCommand:
             )
         if not (np.isfinite(self.rate_hz) and self.rate_hz > 0):
             raise CommandError(f"command rate_hz must be > 0, got {self.rate_hz}")
-        object.__setattr__(self, "q", _frozen(q))
+        object.__setattr__(self, "q", readonly(q))
 
     @property
     def n(self) -> int:
@@ -203,7 +198,7 @@ class TrialRecord:
 
     def __post_init__(self) -> None:
         for name in self._ARRAYS:
-            object.__setattr__(self, name, _frozen(getattr(self, name)))
+            object.__setattr__(self, name, readonly(getattr(self, name)))
         n = self.t_joint.shape[0]
         m = self.t_marker.shape[0]
         shapes = {
@@ -223,7 +218,7 @@ class TrialRecord:
         # Named knots beyond the trefoil are allowed (e.g. "4_1"), but not empty text.
         if self.knot is not None and (not isinstance(self.knot, str) or not self.knot):
             raise RecordError(f"TrialRecord.knot must be a knot name or None, got {self.knot!r}")
-        truth = {k: _frozen(v) for k, v in dict(self.truth).items()}
+        truth = {k: readonly(v) for k, v in dict(self.truth).items()}
         object.__setattr__(self, "truth", truth)
         object.__setattr__(self, "metadata", json.loads(json.dumps(dict(self.metadata))))
 

@@ -85,6 +85,7 @@ import numpy as np
 from scipy.linalg import lapack
 
 from flyknot.errors import check_nonnegative, check_positive
+from flyknot.geometry import skew
 
 __all__ = [
     "RATE0",
@@ -168,19 +169,6 @@ def bend_rates(x: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     return r, e, inv_l2
 
 
-def _skew(a: np.ndarray) -> np.ndarray:
-    """Cross-product matrices [a]x with [a]x b = a x b, shape (..., 3, 3)."""
-    z = np.zeros(a.shape[:-1])
-    return np.stack(
-        [
-            np.stack([z, -a[..., 2], a[..., 1]], -1),
-            np.stack([a[..., 2], z, -a[..., 0]], -1),
-            np.stack([-a[..., 1], a[..., 0], z], -1),
-        ],
-        -2,
-    )
-
-
 def _projectors(e: np.ndarray, inv_l2: np.ndarray) -> np.ndarray:
     """The regularised projectors P_k off span(t_{k-1}, t_k), shape (n - 1, 3, 3)."""
     t = e * np.sqrt(inv_l2)[:, None]
@@ -197,7 +185,7 @@ def _projectors(e: np.ndarray, inv_l2: np.ndarray) -> np.ndarray:
 
 def _joint_blocks(e: np.ndarray, inv_l2: np.ndarray) -> list[np.ndarray]:
     """The 3x3 blocks of J (dw = J v) of joint k on vertices k - 1, k, k + 1, each (n - 1, 3, 3)."""
-    sk = _skew(e) * inv_l2[:, None, None]  # w_j = sk_j (v_{j+1} - v_j)
+    sk = skew(e) * inv_l2[:, None, None]  # w_j = sk_j (v_{j+1} - v_j)
     return [sk[:-1], -sk[1:] - sk[:-1], sk[1:]]
 
 

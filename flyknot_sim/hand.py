@@ -44,11 +44,12 @@ import numpy as np
 
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, check_nonnegative, check_positive
+from flyknot.geometry import quat_sign_continuous
+from flyknot.knot import TREFOIL, classify_centreline
 from flyknot.rest import SettleMonitor, SettleParams, start_with_sway
 from flyknot_sim import mocap
 from flyknot_sim.aero import DRAG_HOLD_S, AeroParams, RopeDrag
 from flyknot_sim.bend_friction import BendFrictionParams, RopeBendFriction
-from flyknot_sim.knot import TREFOIL, classify_centreline
 from flyknot_sim.rope import (
     BoundRope,
     RopeParams,
@@ -591,7 +592,7 @@ class HandLab:
                     break
         t, verts, q, pos, quat = (a[: n_steps + 1] for a in (t, verts, q, pos, quat))
         q_t = q_t[: n_steps + 1]
-        quat = _sign_continuous(quat)
+        quat = quat_sign_continuous(quat)
         knot: str | None = None
         knot_any = False
         settle_fraction = 0.0
@@ -635,15 +636,6 @@ def _nominal_variation() -> dict[str, Any]:
         "delay": 0.0,
         "tempo": 1.0,
     }
-
-
-def _sign_continuous(quat: np.ndarray) -> np.ndarray:
-    """Flip quaternion signs so consecutive rows have a non-negative dot product."""
-    out = quat.copy()
-    for k in range(1, len(out)):
-        if np.dot(out[k], out[k - 1]) < 0:
-            out[k] = -out[k]
-    return out
 
 
 def judged_frames(t: np.ndarray, start: float, rate_hz: float) -> np.ndarray:

@@ -36,6 +36,7 @@ from tqdm import tqdm
 from flyknot import __version__
 from flyknot.constants import N_JOINTS
 from flyknot.errors import ConfigError, check_int, check_nonnegative, check_positive
+from flyknot.knot import classify_centreline
 from flyknot.progress import bar_disable
 from flyknot.record import JointCommand, TrialRecord
 from flyknot.rest import SettleMonitor, SettleParams, start_with_sway
@@ -43,7 +44,6 @@ from flyknot_sim import faults as faults_mod
 from flyknot_sim import mocap, robot
 from flyknot_sim.aero import DRAG_HOLD_S, AeroParams, RopeDrag
 from flyknot_sim.bend_friction import BendFrictionParams, RopeBendFriction
-from flyknot_sim.knot import classify_centreline
 from flyknot_sim.rope import RopeParams, add_rope, configure_options, resolve_rope, rope_record
 from flyknot_sim.scene import ROBOT_PREFIX, SceneParams, robot_base_pose, scene_spec
 

@@ -43,6 +43,7 @@ import numpy as np
 
 from flyknot.constants import MARKER_SPACING, N_MARKERS, ROPE_TABLE
 from flyknot.errors import ConfigError, check_choice, check_nonnegative, check_positive
+from flyknot.geometry import quat_from_x_to
 
 try:  # Python >= 3.11
     import tomllib as _toml
@@ -68,7 +69,6 @@ __all__ = [
     "parse_rope_table",
     "points_at_arclength",
     "polyline_length",
-    "quat_from_x_to",
     "resolve_rope",
     "rope_choices",
     "rope_record",
@@ -682,32 +682,6 @@ def configure_options(
 # ----------------------------------------------------------------------------------------
 # pure geometry kernels
 # ----------------------------------------------------------------------------------------
-def quat_from_x_to(axis: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) of the smallest rotation taking e_x to ``axis``.
-
-    q = normalise(1 + u . a, u x a) takes a unit vector u to a = axis / |axis|. For
-    e_x . a >= 0 it is used with u = e_x; otherwise (where 1 + e_x . a would cancel) with
-    u = -e_x, composed with the half turn about e_z that takes e_x to -e_x:
-    q = q(-e_x -> a) (0, 0, 0, 1). (The result is the smallest rotation up to that choice.)
-
-    Args:
-        axis: Direction, shape (3,), non-zero.
-
-    Returns:
-        Quaternion, shape (4,).
-    """
-    a = np.asarray(axis, dtype=float)
-    a = a / np.linalg.norm(a)
-    flip = a[0] < 0
-    u = np.array([-1.0, 0.0, 0.0]) if flip else np.array([1.0, 0.0, 0.0])
-    q = np.concatenate([[1.0 + float(u @ a)], np.cross(u, a)])
-    q /= np.linalg.norm(q)
-    if flip:  # q (x) (0, 0, 0, 1)
-        w, x, y, z = q
-        q = np.array([-z, y, -x, w])
-    return q
-
-
 def sway_direction(sway_angle: float, sway_azimuth: float) -> np.ndarray:
     """Unit vector tilted by ``sway_angle`` from straight down, toward ``sway_azimuth``.
 

@@ -15,6 +15,7 @@ import numpy as np
 
 from flyknot.constants import N_MARKERS
 from flyknot.errors import ConfigError, RecordError, check_nonnegative, check_positive
+from flyknot.geometry import quat_to_matrix
 from flyknot.record import TrialRecord
 
 
@@ -134,22 +135,6 @@ def to_demo_frame(
     t_b = np.asarray(base_pose[:3], dtype=float)
     R_b = quat_to_matrix(np.asarray(base_pose[3:], dtype=float))
     return (np.asarray(p) - t_b) @ R_b + base_offset, np.asarray(v) @ R_b
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) of a unit quaternion (w, x, y, z) (normalised first)."""
-    q = np.asarray(q, dtype=float)
-    n = np.linalg.norm(q)
-    if not np.isfinite(n) or n < 1e-12:
-        raise RecordError(f"quaternion {q.tolist()} has no direction")
-    w, x, y, z = q / n
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 def critical_state_from_record(

@@ -44,164 +44,13 @@ import numpy as np
 
 from flyknot.constants import N_BASE_ROWS, N_JOINTS, N_KNOTS, N_ROWS
 from flyknot.errors import ConfigError, check_positive
+from flyknot.geometry import as_mat3, as_vec3, right_jacobian_inv, so3_log
 from learner.bezier import bernstein_basis, check_knots
 from learner.inverse_qp import FollowThrough
 from learner.kinematics import RobotModel
 
 N_VARS = N_ROWS * N_KNOTS  # 80
-_SMALL_ANGLE = 1e-4  # [rad] below this the series forms are used
-_SMALL_SIN = 1e-8  # |quaternion vector| below which Log uses its series
 _T_C_SLACK = 1e-9  # [s] the first sample must be t_c within this
-
-
-# --------------------------------------------------------------------------------------------
-# SO(3)
-# --------------------------------------------------------------------------------------------
-
-
-def _vec3(name: str, a: object) -> np.ndarray:
-    a = np.asarray(a, dtype=float)
-    if a.ndim < 1 or a.shape[-1] != 3:
-        raise ConfigError(name, f"must have shape (..., 3), got {a.shape}")
-    return a
-
-
-def _mat3(name: str, a: object) -> np.ndarray:
-    a = np.asarray(a, dtype=float)
-    if a.ndim < 2 or a.shape[-2:] != (3, 3):
-        raise ConfigError(name, f"must have shape (..., 3, 3), got {a.shape}")
-    return a
-
-
-def skew(w: np.ndarray) -> np.ndarray:
-    """[w]x, the matrix with [w]x v = w x v.
-
-    Args:
-        w: Vectors, shape (..., 3).
-
-    Returns:
-        Skew matrices, shape (..., 3, 3).
-    """
-    w = _vec3("w", w)
-    out = np.zeros((*w.shape[:-1], 3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -w[..., 2], w[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = w[..., 2], -w[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -w[..., 1], w[..., 0]
-    return out
-
-
-def so3_exp(phi: np.ndarray) -> np.ndarray:
-    """Exp(phi) = I + (sin th / th) [phi]x + ((1 - cos th) / th^2) [phi]x^2, th = |phi|.
-
-    Series (1 - th^2/6, 1/2 - th^2/24) below 1e-4 rad.
-
-    Args:
-        phi: Rotation vectors, shape (..., 3) [rad].
-
-    Returns:
-        Rotation matrices, shape (..., 3, 3).
-    """
-    phi = _vec3("phi", phi)
-    th = np.linalg.norm(phi, axis=-1)[..., None, None]
-    small = th < _SMALL_ANGLE
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th**2 / 6.0, np.sin(ths) / ths)
-    b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ths)) / ths**2)
-    K = skew(phi)
-    return np.eye(3) + a * K + b * (K @ K)
-
-
-def _quat_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Unit quaternions (w, x, y, z) with w >= 0 of rotation matrices (..., 3, 3).
-
-    Shepperd's rule: take the largest of (tr, R00, R11, R22) under the square root, so the
-    divisor is never below 1/2 and the result is accurate for every rotation.
-    """
-    r00, r11, r22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
-    tr = r00 + r11 + r22
-    which = np.argmax(np.stack([tr, r00, r11, r22], axis=-1), axis=-1)
-    q = np.empty((*R.shape[:-2], 4))
-    # Differences and sums of the off-diagonal pairs.
-    d0 = R[..., 2, 1] - R[..., 1, 2]  # 4 w x
-    d1 = R[..., 0, 2] - R[..., 2, 0]  # 4 w y
-    d2 = R[..., 1, 0] - R[..., 0, 1]  # 4 w z
-    s01 = R[..., 0, 1] + R[..., 1, 0]  # 4 x y
-    s02 = R[..., 0, 2] + R[..., 2, 0]  # 4 x z
-    s12 = R[..., 1, 2] + R[..., 2, 1]  # 4 y z
-    for case, (diag, rest) in enumerate(
-        [
-            (1.0 + tr, (d0, d1, d2)),  # w
-            (1.0 + r00 - r11 - r22, (d0, s01, s02)),  # x: (w, y, z)
-            (1.0 - r00 + r11 - r22, (d1, s01, s12)),  # y: (w, x, z)
-            (1.0 - r00 - r11 + r22, (d2, s02, s12)),  # z: (w, x, y)
-        ]
-    ):
-        sel = which == case
-        if not np.any(sel):
-            continue
-        big = 0.5 * np.sqrt(np.maximum(diag[sel], 0.0))
-        others = [r[sel] / (4.0 * big) for r in rest]
-        order = {0: (0, 1, 2, 3), 1: (1, 0, 2, 3), 2: (2, 0, 1, 3), 3: (3, 0, 1, 2)}[case]
-        vals = [big, *others]
-        for pos, v in zip(order, vals, strict=True):
-            q[sel, pos] = v
-    q *= np.where(q[..., :1] < 0.0, -1.0, 1.0)
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
-
-
-def so3_log(R: np.ndarray) -> np.ndarray:
-    """Log(R), the rotation vector phi with Exp(phi) = R and |phi| <= pi.
-
-    Through the quaternion (w, v) with w >= 0 (:func:`_quat_from_matrix`, Shepperd's rule):
-    th = 2 atan2(|v|, w), phi = (th / |v|) v, with th / |v| -> 2 / w for |v| < 1e-8 (w ~ 1 there).
-    Both the atan2 and Shepperd's rule are well conditioned near th = 0 and th = pi (where
-    arccos((tr R - 1) / 2) is not). At exactly th = pi either of the two opposite vectors is
-    returned.
-
-    Args:
-        R: Rotation matrices, shape (..., 3, 3).
-
-    Returns:
-        Rotation vectors, shape (..., 3) [rad].
-    """
-    R = _mat3("R", R)
-    q = _quat_from_matrix(R)
-    w, v = q[..., 0], q[..., 1:]
-    s = np.linalg.norm(v, axis=-1)
-    small = s < _SMALL_SIN
-    ratio = np.where(
-        small, 2.0 / np.maximum(w, 0.5), 2.0 * np.arctan2(s, w) / np.where(small, 1.0, s)
-    )
-    return v * ratio[..., None]
-
-
-def _inv_jac_coeff(th: np.ndarray) -> np.ndarray:
-    """c(th) = 1/th^2 - (1 + cos th) / (2 th sin th) = 1/th^2 - cot(th/2) / (2 th).
-
-    Series 1/12 + th^2/720 + th^4/30240 below 1e-4 rad; at th = pi, c = 1/pi^2.
-    """
-    small = th < _SMALL_ANGLE
-    ths = np.where(small, 1.0, th)
-    exact = 1.0 / ths**2 - np.cos(ths / 2.0) / (2.0 * ths * np.sin(ths / 2.0))
-    return np.where(small, 1.0 / 12.0 + th**2 / 720.0 + th**4 / 30240.0, exact)
-
-
-def right_jacobian_inv(phi: np.ndarray) -> np.ndarray:
-    """Inverse right Jacobian of SO(3): Log(Exp(phi) Exp(d)) = phi + J_r^-1(phi) d + O(d^2).
-
-    J_r^-1(phi) = I + (1/2) [phi]x + (1/th^2 - (1 + cos th) / (2 th sin th)) [phi]x^2,
-    th = |phi| in [0, pi].
-
-    Args:
-        phi: Rotation vectors, shape (..., 3) [rad].
-
-    Returns:
-        Matrices, shape (..., 3, 3).
-    """
-    phi = _vec3("phi", phi)
-    th = np.linalg.norm(phi, axis=-1)[..., None, None]
-    K = skew(phi)
-    return np.eye(3) + 0.5 * K + _inv_jac_coeff(th) * (K @ K)
 
 
 # --------------------------------------------------------------------------------------------
@@ -286,9 +135,9 @@ def matched_reference(
     Returns:
         (p_ref (k, 3) [m], R_ref (k, 3, 3), v_ref (k, 3) [m/s]).
     """
-    p_h = _vec3("demo_hand_p", demo_hand_p)
-    R_h = _mat3("demo_hand_R", demo_hand_R)
-    v_h = _vec3("demo_hand_v", demo_hand_v)
+    p_h = as_vec3("demo_hand_p", demo_hand_p)
+    R_h = as_mat3("demo_hand_R", demo_hand_R)
+    v_h = as_vec3("demo_hand_v", demo_hand_v)
     k = p_h.shape[0]
     if p_h.shape != (k, 3) or R_h.shape != (k, 3, 3) or v_h.shape != (k, 3) or k < 1:
         raise ConfigError(
@@ -420,9 +269,5 @@ __all__ = [
     "fingertip_errors",
     "follow_through_terms",
     "matched_reference",
-    "right_jacobian_inv",
-    "skew",
-    "so3_exp",
-    "so3_log",
     "tip_angular_jacobian",
 ]

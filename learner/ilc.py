@@ -39,9 +39,7 @@ from learner.bezier import BezierCommand
 from learner.inverse_qp import BACKENDS, InverseModelWeights
 from learner.kinematics import RobotModel
 from learner.rope_model import RopeModelParams
-from learner.update import DemoTarget, ilc_update, sampled_violation
-
-OBJECTIVES = ("critical", "equal")
+from learner.update import OBJECTIVES, DemoTarget, ilc_update, sampled_violation
 
 
 @dataclass(frozen=True)

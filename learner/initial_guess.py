@@ -91,6 +91,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from flyknot.constants import COMMAND_RATE_HZ, N_JOINTS, N_KNOTS, N_ROWS, Z_MIN_TIP
 from flyknot.errors import ConfigError, SolverError, check_nonnegative, check_positive
+from flyknot.geometry import readonly
 from flyknot.limits import JointLimits
 from learner.bezier import BezierCommand, bernstein_basis
 
@@ -464,12 +465,6 @@ class InitialGuessProblem:
     params: InitialGuessParams
 
 
-def _ro(a: np.ndarray) -> np.ndarray:
-    a = np.array(a, dtype=float)
-    a.setflags(write=False)
-    return a
-
-
 def _check_inputs(
     t: object, p: object, R: object, T: object, robot: object, q_seed: object
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray]:
@@ -739,14 +734,14 @@ def build_problem(
 
     return InitialGuessProblem(
         T=T,
-        t_cost=_ro(ti),
-        p_h=_ro(ph),
-        R_h=_ro(Rh),
-        v_h=_ro(vh),
-        t_limit=_ro(tl),
-        x0=_ro(x0),
-        lbg=_ro(np.concatenate(lbg)),
-        ubg=_ro(np.concatenate(ubg)),
+        t_cost=readonly(ti),
+        p_h=readonly(ph),
+        R_h=readonly(Rh),
+        v_h=readonly(vh),
+        t_limit=readonly(tl),
+        x0=readonly(x0),
+        lbg=readonly(np.concatenate(lbg)),
+        ubg=readonly(np.concatenate(ubg)),
         blocks=MappingProxyType(blocks),
         x=x,
         f=ca.Function("f", [x], [f]),
@@ -923,7 +918,7 @@ def _evaluate(
     active = {name: int(near[a:z].sum()) for name, (a, z) in problem.blocks.items()}
     feasible = not violations
     return InitialGuessResult(
-        knots=_ro(knots),
+        knots=readonly(knots),
         T=T,
         status=status,
         converged=converged,

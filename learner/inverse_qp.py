@@ -69,6 +69,7 @@ from flyknot.errors import (
     check_nonnegative,
     check_positive,
 )
+from flyknot.geometry import readonly
 from flyknot.limits import JointLimits
 from learner.bezier import sample_command, sample_jacobian
 
@@ -96,12 +97,6 @@ _OSQP_DEFAULTS = {
     "eps_rel": 1e-6,
     "max_iter": 20000,
 }
-
-
-def _ro(a: object, dtype: type = float) -> np.ndarray:
-    a = np.array(a, dtype=dtype, copy=True)
-    a.setflags(write=False)
-    return a
 
 
 def _finite(name: str, a: np.ndarray) -> None:
@@ -185,9 +180,9 @@ class FollowThrough:
             raise ConfigError("is_tc", f"must be a bool array of shape ({k},)")
         _finite("e", e)
         _finite("J", J)
-        object.__setattr__(self, "e", _ro(e))
-        object.__setattr__(self, "J", _ro(J))
-        object.__setattr__(self, "is_tc", _ro(is_tc, bool))
+        object.__setattr__(self, "e", readonly(e))
+        object.__setattr__(self, "J", readonly(J))
+        object.__setattr__(self, "is_tc", readonly(is_tc, bool))
 
 
 @dataclass(frozen=True)
@@ -219,7 +214,7 @@ class LimitRows:
                 raise ConfigError(name, f"must have shape ({r},), got {a.shape}")
             if np.any(np.isnan(a)):
                 raise ConfigError(name, "must not contain NaN")
-            object.__setattr__(self, name, _ro(a))
+            object.__setattr__(self, name, readonly(a))
         _finite("J", J)
         _finite("b", self.b)
         if np.any(self.lo > self.hi):
@@ -228,7 +223,7 @@ class LimitRows:
         for name, (a, z) in blocks.items():
             if not 0 <= a <= z <= r:
                 raise ConfigError("blocks", f"range {name!r} = ({a}, {z}) outside 0..{r}")
-        object.__setattr__(self, "J", _ro(J))
+        object.__setattr__(self, "J", readonly(J))
         object.__setattr__(self, "blocks", MappingProxyType(blocks))
 
     @property
@@ -354,9 +349,9 @@ class QPData:
         m = self.A.shape[0]
         if np.shape(self.l) != (m,) or np.shape(self.u) != (m,):
             raise ConfigError("l", f"l and u must have shape ({m},)")
-        object.__setattr__(self, "q", _ro(self.q))
-        object.__setattr__(self, "l", _ro(self.l))
-        object.__setattr__(self, "u", _ro(self.u))
+        object.__setattr__(self, "q", readonly(self.q))
+        object.__setattr__(self, "l", readonly(self.l))
+        object.__setattr__(self, "u", readonly(self.u))
         object.__setattr__(self, "blocks", MappingProxyType(dict(self.blocks)))
 
     @property
@@ -664,7 +659,7 @@ def solve_qp(qp: QPData, backend: str = "clarabel", **settings: object) -> QPRes
         x = np.full(qp.n, np.nan)
         objective = float("nan")
     return QPResult(
-        dkappa=_ro(x.reshape(N_ROWS, N_KNOTS)),
+        dkappa=readonly(x.reshape(N_ROWS, N_KNOTS)),
         status=status,
         solved=solved,
         objective=objective,

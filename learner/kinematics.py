@@ -38,6 +38,7 @@ import numpy as np
 
 from flyknot.constants import JOINT_NAMES, XARM7_XML
 from flyknot.errors import ConfigError
+from flyknot.geometry import quat_to_matrix, skew
 
 FINGERTIP_SITE = "fingertip"
 
@@ -45,31 +46,6 @@ FINGERTIP_SITE = "fingertip"
 # --------------------------------------------------------------------------------------------
 # numpy helpers for reading the model
 # --------------------------------------------------------------------------------------------
-
-
-def quat_to_mat(quat: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit quaternion.
-
-    ``R = I + 2 w [v]x + 2 [v]x^2`` for ``quat = (w, v)``.
-
-    Args:
-        quat: Quaternion (4,) in MuJoCo order (w, x, y, z); normalised here.
-
-    Returns:
-        Rotation matrix (3, 3).
-    """
-    w, x, y, z = np.asarray(quat, dtype=float) / np.linalg.norm(quat)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 @dataclass(frozen=True)
@@ -118,7 +94,7 @@ def _static_pose(model: mujoco.MjModel, top: int, body: int) -> tuple[np.ndarray
     p, R = np.zeros(3), np.eye(3)
     for b in reversed(chain):
         p = p + R @ model.body_pos[b]
-        R = R @ quat_to_mat(model.body_quat[b])
+        R = R @ quat_to_matrix(model.body_quat[b])
     return p, R
 
 
@@ -210,7 +186,7 @@ def _read_chain(
             continue  # a free body is not carried by the arm
         k = seg_of_path[on_path]
         p, R = _static_pose(model, jbody[k], b) if b != jbody[k] else (np.zeros(3), np.eye(3))
-        Ri = R @ quat_to_mat(model.body_iquat[b])
+        Ri = R @ quat_to_matrix(model.body_iquat[b])
         masses[k].append(
             (
                 float(model.body_mass[b]),
@@ -227,7 +203,7 @@ def _read_chain(
             (np.zeros(3), np.eye(3)) if parent == prev else _static_pose(model, prev, parent)
         )
         s = p_par + R_par @ model.body_pos[b]
-        S = R_par @ quat_to_mat(model.body_quat[b])
+        S = R_par @ quat_to_matrix(model.body_quat[b])
         m_tot = sum(m for m, _, _ in masses[k])
         if m_tot > 0:
             com = sum(m * c for m, c, _ in masses[k]) / m_tot
@@ -258,7 +234,7 @@ def _read_chain(
         else _static_pose(model, jbody[-1], site_body)
     )
     site_pos = p_site_body + R_site_body @ model.site_pos[sid]
-    site_rot = R_site_body @ quat_to_mat(model.site_quat[sid])
+    site_rot = R_site_body @ quat_to_matrix(model.site_quat[sid])
     _, R_wb = _static_pose(model, 0, base) if base != 0 else (None, np.eye(3))
     dofs = [int(model.jnt_dofadr[j]) for j in jids]
     return {
@@ -282,7 +258,7 @@ def _read_chain(
 
 def _rot_axis(axis: np.ndarray, angle: ca.SX) -> ca.SX:
     """Rodrigues: ``Rot(a, th) = I + sin(th) [a]x + (1 - cos(th)) [a]x^2``, (3, 3)."""
-    K = ca.DM(_skew(axis))
+    K = ca.DM(skew(axis))
     return ca.DM.eye(3) + ca.sin(angle) * K + (1 - ca.cos(angle)) * (K @ K)
 
 

@@ -48,6 +48,7 @@ import numpy as np
 
 from flyknot.constants import GRAVITY, MARKER_SPACING, MODEL_DT, N_MARKERS
 from flyknot.errors import ConfigError, SolverError, check_nonnegative, check_positive
+from flyknot.geometry import readonly
 
 NEWTON_TOL = 1e-10  # [m], scaled residuals (see module docstring)
 NEWTON_MAX_ITER = 25
@@ -454,12 +455,6 @@ def hanging_state(
     )
 
 
-def _frozen(a: np.ndarray) -> np.ndarray:
-    a = np.array(a, dtype=float, copy=True)
-    a.setflags(write=False)
-    return a
-
-
 @dataclass(frozen=True)
 class RopeTrajectory:
     """A rollout of the rope model.
@@ -485,7 +480,7 @@ class RopeTrajectory:
 
     def __post_init__(self) -> None:
         for name in ("p", "v", "lam", "p_tip", "d_tip"):
-            object.__setattr__(self, name, _frozen(getattr(self, name)))
+            object.__setattr__(self, name, readonly(getattr(self, name)))
         it = np.array(self.iterations, dtype=int, copy=True)
         it.setflags(write=False)
         object.__setattr__(self, "iterations", it)

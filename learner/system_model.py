@@ -43,7 +43,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.interpolate import CubicSpline
-from scipy.spatial.transform import Rotation
 
 from flyknot.constants import (
     COMMAND_RATE_HZ,
@@ -56,6 +55,7 @@ from flyknot.constants import (
 )
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, check_choice, check_positive
+from flyknot.geometry import matrix_to_quat
 from flyknot.record import TrialRecord
 from learner.bezier import BezierCommand, bernstein_basis, check_knots
 from learner.kinematics import RobotModel
@@ -535,10 +535,6 @@ def linearise(rollout: ModelRollout, T: float, steps: Iterable[int]) -> np.ndarr
 # --------------------------------------------------------------------------------------------
 
 
-def _quat_wxyz(R: np.ndarray) -> np.ndarray:
-    return Rotation.from_matrix(R).as_quat(scalar_first=True)
-
-
 def _positions_at(t_model: np.ndarray, p: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Linear interpolation of p (k+1, N, 3) from t_model onto t (m,) -> (m, N, 3)."""
     flat = p.reshape(p.shape[0], -1)
@@ -583,7 +579,7 @@ def model_record(
         t_marker=t_marker,
         markers=markers,
         fingertip_pos=p_tip,
-        fingertip_quat=_quat_wxyz(R_tip),
+        fingertip_quat=matrix_to_quat(R_tip),
         base_pose=np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]),
         metadata={"cell": "model"},
     )
@@ -620,7 +616,7 @@ def model_demonstration(
     return Demonstration(
         t=t,
         hand_pos=p_tip,
-        hand_quat=_quat_wxyz(R_tip),
+        hand_quat=matrix_to_quat(R_tip),
         markers=_positions_at(ro.t, ro.traj.p, t),
         t_c=t_c,
         metadata={"generator": "model"},

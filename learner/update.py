@@ -46,6 +46,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from flyknot.constants import COMMAND_RATE_HZ, MODEL_DT, N_JOINTS, N_KNOTS, N_ROWS
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, RecordError, check_choice, check_nonnegative, check_positive
+from flyknot.geometry import readonly, so3_exp, so3_log
 from flyknot.limits import JointLimits
 from flyknot.record import TrialRecord
 from learner.bezier import BezierCommand, sample_command
@@ -55,7 +56,7 @@ from learner.critical_state import (
     local_polyfit_state,
     markers_state_at,
 )
-from learner.follow_through import follow_through_terms, so3_exp, so3_log
+from learner.follow_through import follow_through_terms
 from learner.inverse_qp import (
     BACKENDS,
     BASE_UPDATES,
@@ -75,12 +76,6 @@ LIMIT_TOL = 1e-6  # a limit row counts as violated beyond this fraction of its h
 STATE_DIM = 66
 _ROT_TOL = 1e-6
 _TIME_TOL = 1e-9  # [s]
-
-
-def _ro(a: object) -> np.ndarray:
-    a = np.array(a, dtype=float, copy=True)
-    a.setflags(write=False)
-    return a
 
 
 # --------------------------------------------------------------------------------------------
@@ -134,7 +129,7 @@ class DemoTarget:
             "x_pre": (n_pre, STATE_DIM),
         }
         for name, shape in want.items():
-            a = _ro(getattr(self, name))
+            a = readonly(getattr(self, name))
             if a.shape != shape:
                 raise ConfigError(name, f"must have shape {shape}, got {a.shape}")
             finite = np.isfinite(a)
@@ -311,11 +306,11 @@ class UpdateResult:
 
     def __post_init__(self) -> None:
         for name in ("dkappa", "new_knots"):
-            a = _ro(getattr(self, name))
+            a = readonly(getattr(self, name))
             if a.shape != (N_ROWS, N_KNOTS):
                 raise ConfigError(name, f"must have shape ({N_ROWS}, {N_KNOTS}), got {a.shape}")
             object.__setattr__(self, name, a)
-        object.__setattr__(self, "err", _ro(self.err))
+        object.__setattr__(self, "err", readonly(self.err))
         object.__setattr__(self, "timings", MappingProxyType(dict(self.timings)))
 
 

@@ -1,4 +1,4 @@
-"""Failure anatomy (flyknot.anatomy): labels on constructed records, a real trial, files, CLI.
+"""Failure anatomy (flyknot_app.anatomy): labels on constructed records, a real trial, files, CLI.
 
 Constructed records carry a truth centreline history written as a string, one character per
 10 ms frame: ``l`` a straight hanging rope (unknot), ``T`` the hanging overhand knot of
@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import flyknot.anatomy as an
-from flyknot.cli import main
+import flyknot_app.anatomy as an
 from flyknot.errors import ConfigError, RecordError
+from flyknot.knot import load_centreline
 from flyknot.record import TrialRecord
-from flyknot_sim.knot import load_centreline
+from flyknot_app.cli import main
 
 DATA = Path(__file__).parent / "data" / "knots"
 DT = 0.01  # [s] truth frame interval of the constructed records
@@ -502,7 +502,7 @@ def test_cli_explain_errors_are_one_line(tmp_path, capsys):
 
 
 def test_report_has_an_anatomy_section(tmp_path):
-    from flyknot.report import write_report
+    from flyknot_app.report import write_report
 
     root = run_directory(tmp_path)
     runs = [

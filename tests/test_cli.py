@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from flyknot.cli import main
 from flyknot.constants import REPO_ROOT
+from flyknot_app.cli import main
 
 KNOTS = REPO_ROOT / "tests" / "data" / "knots"
 
@@ -76,7 +76,7 @@ def test_bench_learner_json_keys(capsys):
 
 
 def test_default_run_dir_never_overwrites(tmp_path, monkeypatch):
-    from flyknot.cli import _default_run_dir
+    from flyknot_app.cli import _default_run_dir
 
     monkeypatch.chdir(tmp_path)
     assert _default_run_dir("quick", False).as_posix() == "runs/quick"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from flyknot.cli import main
+from flyknot_app.cli import main
 
 Q0 = np.array([0.0, -0.3, 0.0, 0.8, 0.0, 1.1, 0.0])
 

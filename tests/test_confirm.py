@@ -123,7 +123,7 @@ def test_confirm_errors(kwargs, message):
 
 
 def test_outcome_line_reports_both_stop_rules():
-    from flyknot.report import outcome_line
+    from flyknot_app.report import outcome_line
 
     runs = [
         {"first_success_trial": 2, "confirm": [2, 3], "confirmed": True},

@@ -8,11 +8,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from flyknot.errors import ConfigError, RecordError
+from flyknot.geometry import quat_to_matrix
 from learner.critical_state import (
     MarkerFitParams,
     local_polyfit_state,
     markers_state_at,
-    quat_to_matrix,
     to_demo_frame,
 )
 

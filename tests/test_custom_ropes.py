@@ -8,11 +8,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from flyknot.cli import main
 from flyknot.constants import ASSETS_DIR
 from flyknot.errors import ConfigError
 from flyknot.record import TrialRecord
-from flyknot.scenario import RunSpec, load_scenario, parse_rope_arg, parse_scenario
+from flyknot_app.cli import main
+from flyknot_app.scenario import RunSpec, load_scenario, parse_rope_arg, parse_scenario
 from flyknot_sim.aero import AeroParams, rope_drag_forces
 from flyknot_sim.commands import swing_command
 from flyknot_sim.lab import LabParams, SimLab
@@ -283,11 +283,11 @@ def test_scenario_with_a_ropes_file(ropes_file, tmp_path, monkeypatch):
     assert lace.rope == 4  # a paper rope's name becomes its id
     lab = LabParams(rope=cord.rope, ropes=cord.ropes)
     assert lab.rope_params.cd == 1.5
-    from flyknot.experiment import _ropes_manifest
+    from flyknot_app.runner import _ropes_manifest
 
     used = _ropes_manifest(scen)["ropes"]
     assert list(used) == [cord.ropes] and used[cord.ropes]["my cord"]["cd"] == 1.5
-    from flyknot.cli import build_parser
+    from flyknot_app.cli import build_parser
 
     args = build_parser().parse_args(["run", str(scen_path), "--ropes", "x.toml"])
     assert args.ropes == "x.toml"
@@ -315,7 +315,7 @@ def test_scenario_with_a_ropes_file(ropes_file, tmp_path, monkeypatch):
 
 def test_gym_env_accepts_a_rope_name(ropes_file):
     pytest.importorskip("gymnasium")
-    from flyknot.gym_env import FlyknotEnv
+    from flyknot_app.gym_env import FlyknotEnv
 
     env = FlyknotEnv(rope="my cord", ropes=str(ropes_file), settle_s=0.1)
     assert env._lab.rope_params.name == "my cord" and env._lab._drag.params.cd == 1.5
@@ -335,8 +335,8 @@ def test_demo_replay_on_a_custom_rope(ropes_file, tmp_path, capsys):
         assert z["centreline"].shape[1:] == (31, 3)
     assert meta["rope"] == "my cord" and meta["metadata"]["rope_params"]["cd"] == 1.5
     # making a demonstration needs one of the paper's ropes (Demonstration.rope is an id)
-    from flyknot_sim import demo_synth as ds
     from flyknot_sim.hand import HandParams
+    from flyknot_tools import demo_synth as ds
 
     motion = ds.motion_from_demo(ds.Demonstration.load(DEMOS_DIR / "fast.npz"))
     with pytest.raises(ConfigError, match=r"^rope: a demonstration records one of the paper"):

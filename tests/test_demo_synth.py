@@ -1,5 +1,5 @@
 """Tests of the hand lab, the flying-knot motion family, its score and search, and the
-``flyknot demo`` commands (flyknot_sim.hand, flyknot_sim.demo_synth, flyknot_sim.demo_cli)."""
+``flyknot demo`` commands (flyknot_sim.hand, flyknot_tools.demo_synth, flyknot_app.demo_cli)."""
 
 from __future__ import annotations
 
@@ -16,8 +16,7 @@ from hypothesis import strategies as st
 from flyknot.constants import DEMOS_DIR
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, RecordError
-from flyknot_sim import demo_cli
-from flyknot_sim import demo_synth as ds
+from flyknot_app import demo_cli
 from flyknot_sim.aero import AeroParams
 from flyknot_sim.hand import (
     HandLab,
@@ -29,6 +28,7 @@ from flyknot_sim.hand import (
 )
 from flyknot_sim.mocap import MocapParams
 from flyknot_sim.rope import get_rope, load_sim_settings
+from flyknot_tools import demo_synth as ds
 
 SHIPPED = ("fast", "slow", "swipe", "inverse")
 FAST = ds.VARIANTS["fast"]
@@ -535,7 +535,7 @@ def test_cli_replay_json_and_saved_replays(tmp_path, capsys):
 
 
 def test_cli_is_wired_into_flyknot(capsys):
-    from flyknot import cli
+    from flyknot_app import cli
 
     assert cli.build_parser().parse_args(["demo", "replay", "x.npz"]).file == "x.npz"
     code = cli.main(["demo", "synthesize", "--variant", "loop", "--out", "x.npz"])

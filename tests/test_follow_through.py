@@ -10,15 +10,12 @@ from scipy.spatial.transform import Rotation
 
 from flyknot.constants import XARM7_XML
 from flyknot.errors import ConfigError
+from flyknot.geometry import right_jacobian_inv, skew, so3_exp, so3_log
 from learner.bezier import sample_command
 from learner.follow_through import (
     fingertip_errors,
     follow_through_terms,
     matched_reference,
-    right_jacobian_inv,
-    skew,
-    so3_exp,
-    so3_log,
     tip_angular_jacobian,
 )
 from learner.kinematics import RobotModel

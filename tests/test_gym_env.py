@@ -6,7 +6,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import flyknot.gym_env  # noqa: F401 - registers the environment
+import flyknot_app.gym_env  # noqa: F401 - registers the environment
 
 
 @pytest.fixture(scope="module")

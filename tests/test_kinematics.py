@@ -18,7 +18,8 @@ from hypothesis.extra.numpy import arrays
 
 from flyknot.constants import XARM7_XML
 from flyknot.errors import ConfigError
-from learner.kinematics import RobotModel, quat_to_mat
+from flyknot.geometry import quat_to_matrix
+from learner.kinematics import RobotModel
 
 CHAIN7 = Path(__file__).parent / "data" / "chain7.xml"
 FD_STEP = 1e-6
@@ -242,7 +243,7 @@ def test_quat_to_mat_matches_mujoco():
         quat /= np.linalg.norm(quat)
         ref = np.zeros(9)
         mujoco.mju_quat2Mat(ref, quat)
-        np.testing.assert_allclose(quat_to_mat(quat), ref.reshape(3, 3), atol=1e-15)
+        np.testing.assert_allclose(quat_to_matrix(quat), ref.reshape(3, 3), atol=1e-15)
 
 
 def test_bad_shapes_and_names_raise_with_exact_messages():

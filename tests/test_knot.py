@@ -1,4 +1,4 @@
-"""Knot classification of open rope centrelines (flyknot_sim.knot).
+"""Knot classification of open rope centrelines (flyknot.knot).
 
 Curves are built here from explicit geometry: analytic knots (trefoil, figure-eight, torus
 knots), hanging ropes made of waypoints whose crossings are placed by hand, and ropes lying on
@@ -20,7 +20,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import flyknot_sim.knot as kn
+import flyknot.knot as kn
 from flyknot.errors import ConfigError, RecordError
 
 DATA = Path(__file__).parent / "data" / "knots"

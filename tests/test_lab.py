@@ -8,9 +8,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from flyknot.cli import main
 from flyknot.errors import ConfigError
 from flyknot.record import Cell, TrialRecord
+from flyknot_app.cli import main
 from flyknot_sim.commands import swing_command
 from flyknot_sim.lab import LabParams, SimLab, VariationParams
 from flyknot_sim.mocap import MocapParams

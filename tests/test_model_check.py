@@ -1,4 +1,4 @@
-"""Tests of flyknot/model_check.py: the agreement measures, the directions, the evaluation
+"""Tests of flyknot_app/model_check.py: the agreement measures, the directions, the evaluation
 instant, and one tiny end-to-end check through the command line."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from flyknot import cli
 from flyknot.errors import ConfigError, RecordError
-from flyknot.model_check import agreement, evaluation_time, random_directions
+from flyknot_app import cli
+from flyknot_app.model_check import agreement, evaluation_time, random_directions
 
 
 def _responses(seed: int, n: int = 5) -> np.ndarray:

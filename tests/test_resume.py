@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flyknot.experiment import initial_knots
-from flyknot.scenario import load_scenario
+from flyknot_app.runner import initial_knots
+from flyknot_app.scenario import load_scenario
 from flyknot_sim.scene import SceneParams, robot_base_pose
 
 ARGS = [

@@ -1,4 +1,4 @@
-"""Tests of flyknot/robot_demo.py (robot demonstrations) and ``flyknot demo robot|record``."""
+"""Tests of flyknot_tools/robot_demo.py (robot demonstrations) and ``flyknot demo robot|record``."""
 
 from __future__ import annotations
 
@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 from flyknot.constants import DEMOS_DIR
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError
-from flyknot.robot_demo import (
+from flyknot_app import demo_cli
+from flyknot_tools.robot_demo import (
     CommandSearchConfig,
     command_score,
     free_from_knots,
@@ -20,7 +21,6 @@ from flyknot.robot_demo import (
     record_demonstration,
     search_command,
 )
-from flyknot_sim import demo_cli
 
 ROBOT_DEMO = DEMOS_DIR / "robot.npz"
 

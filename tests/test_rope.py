@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from flyknot.constants import MARKER_SPACING, N_MARKERS, ROPE_LENGTH
 from flyknot.errors import ConfigError
-from flyknot_sim import rope_measure as rm
+from flyknot.geometry import quat_from_x_to
 from flyknot_sim.rope import (
     RopeParams,
     SimSettings,
@@ -26,9 +26,9 @@ from flyknot_sim.rope import (
     parse_rope_table,
     points_at_arclength,
     polyline_length,
-    quat_from_x_to,
     sway_direction,
 )
+from flyknot_tools import rope_measure as rm
 
 # The paper's rope table (appendix "Rope Parameters"): id -> (name, material, diameter [mm],
 # density [kg/m], end weight [g]).
@@ -495,7 +495,7 @@ def test_count_crossings_synthetic():
 
 
 def test_resample_equal_chords_and_loose_knot():
-    from flyknot_sim.knot import classify_centreline
+    from flyknot.knot import classify_centreline
 
     for rid in (1, 5):
         p = get_rope(rid)

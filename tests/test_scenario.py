@@ -8,7 +8,7 @@ import pytest
 
 from flyknot.constants import SCENARIOS_DIR
 from flyknot.errors import ConfigError
-from flyknot.scenario import limit_runs, load_scenario, parse_overrides, parse_scenario
+from flyknot_app.scenario import limit_runs, load_scenario, parse_overrides, parse_scenario
 
 FILES = sorted(SCENARIOS_DIR.glob("*.toml"))
 
@@ -156,7 +156,7 @@ def test_demo_window_fields():
 
 
 def test_guess_cache_name_separates_windows():
-    from flyknot.experiment import guess_cache_name
+    from flyknot_app.runner import guess_cache_name
 
     assert guess_cache_name("fast", (0.035, 0.05)) == "fast.npz"
     assert guess_cache_name("/x/robot.npz", (0.25, 0.0)) == "robot_ft0.25_p0.npz"
@@ -170,7 +170,7 @@ def test_bad_override():
 
 
 def test_window_changes_the_target():
-    from flyknot.experiment import prepare_target
+    from flyknot_app.runner import prepare_target
 
     _, paper = prepare_target("fast", 0.005)
     _, longer = prepare_target("fast", 0.005, (0.25, 0.0))
@@ -180,7 +180,7 @@ def test_window_changes_the_target():
 
 
 def test_outcome_line_for_learning_and_tracking():
-    from flyknot.report import outcome_line
+    from flyknot_app.report import outcome_line
 
     runs = [
         {"first_success_trial": 2, "repeats": ["trefoil", "unknot"]},
@@ -198,7 +198,7 @@ def test_outcome_line_for_learning_and_tracking():
 
 
 def test_wilson_interval_known_values():
-    from flyknot.report import wilson_interval
+    from flyknot_app.report import wilson_interval
 
     # the bounds solve |p - k/n| = z sqrt(p (1 - p) / n) (z = 1.96)
     for k, n in [(15, 40), (1, 10), (7, 20), (39, 40)]:
@@ -215,7 +215,7 @@ def test_wilson_interval_known_values():
 def test_confirm_field_from_toml_and_command_line():
     scen = load_scenario("quick", parse_overrides(["confirm=19/20"]))
     assert scen.runs[0].confirm == (19, 20)
-    from flyknot.scenario import RunSpec
+    from flyknot_app.scenario import RunSpec
 
     assert RunSpec(name="a", confirm=[2, 3]).confirm == (2, 3)
     with pytest.raises(ConfigError) as e:

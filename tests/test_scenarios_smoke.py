@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from flyknot.constants import SCENARIOS_DIR
-from flyknot.experiment import guess_cache_name, initial_knots, run_scenario
-from flyknot.scenario import load_scenario, parse_overrides
+from flyknot_app.runner import guess_cache_name, initial_knots, run_scenario
+from flyknot_app.scenario import load_scenario, parse_overrides
 from flyknot_sim.scene import SceneParams, robot_base_pose
 
 FILES = sorted(SCENARIOS_DIR.glob("*.toml"))

@@ -7,7 +7,7 @@ import socket
 import numpy as np
 import pytest
 
-from flyknot.viewer import build_scene, trial_frames
+from flyknot_app.viewer import build_scene, trial_frames
 from flyknot_sim.commands import swing_command
 from flyknot_sim.lab import LabParams, SimLab
 

@@ -1,7 +1,7 @@
 """``flyknot demo``: synthesize a flying-knot demonstration with the simulated hand, replay one.
 
-The lead's ``flyknot/cli.py`` adds these with one call, ``add_demo_parser(sub)``; this module
-also runs alone as ``python -m flyknot_sim.demo_cli demo ...`` (same parser, same errors).
+The lead's ``flyknot_app/cli.py`` adds these with one call, ``add_demo_parser(sub)``; this module
+also runs alone as ``python -m flyknot_app.demo_cli demo ...`` (same parser, same errors).
 
 * ``flyknot demo synthesize --variant NAME --seed S --out FILE`` searches a motion of the
   variant (progress on stderr), saves the nominal trial as a demonstration (``.npz``) and
@@ -22,7 +22,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from flyknot.errors import ConfigError, SolverError
-from flyknot.scenario import parse_rope_arg
+from flyknot_app.scenario import parse_rope_arg
 
 
 def _positive_int(name: str, value: int, minimum: int = 1) -> int:
@@ -34,7 +34,7 @@ def _positive_int(name: str, value: int, minimum: int = 1) -> int:
 def _cmd_synthesize(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from flyknot_sim import demo_synth as ds
+    from flyknot_tools import demo_synth as ds
 
     variant = ds.get_variant(args.variant)
     pace = {}
@@ -75,7 +75,7 @@ def _cmd_synthesize(args: argparse.Namespace) -> int:
 
 def _cmd_replay(args: argparse.Namespace) -> int:
     from flyknot.demo import Demonstration
-    from flyknot_sim import demo_synth as ds
+    from flyknot_tools import demo_synth as ds
 
     _positive_int("--repeats", args.repeats)
     _positive_int("--seed", args.seed, 0)
@@ -133,7 +133,7 @@ def _print_summary(summary: dict, as_json: bool) -> None:
 
 
 def _save_robot_demo(args: argparse.Namespace, knots, T: float, extra: dict) -> dict:
-    from flyknot.robot_demo import record_demonstration
+    from flyknot_tools.robot_demo import record_demonstration
 
     out = Path(args.out)
     if out.suffix != ".npz":
@@ -146,9 +146,9 @@ def _save_robot_demo(args: argparse.Namespace, knots, T: float, extra: dict) -> 
 def _cmd_robot(args: argparse.Namespace) -> int:
     import tempfile
 
-    from flyknot.experiment import initial_knots, prepare_target
-    from flyknot.robot_demo import CommandSearchConfig, search_command
+    from flyknot_app.runner import initial_knots, prepare_target
     from flyknot_sim.scene import SceneParams, robot_base_pose
+    from flyknot_tools.robot_demo import CommandSearchConfig, search_command
     from learner.kinematics import RobotModel
     from learner.rope_model import RopeModelParams
 
@@ -203,7 +203,7 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
     Returns:
         The ``demo`` parser.
     """
-    from flyknot_sim.demo_synth import VARIANTS
+    from flyknot_tools.demo_synth import VARIANTS
 
     d = subparsers.add_parser("demo", help="synthesize or replay a flying-knot demonstration")
     dsub = d.add_subparsers(dest="demo_cmd", required=True, metavar="ACTION")
@@ -302,7 +302,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``flyknot demo ...`` (errors as ``flyknot`` prints them, exit status 2)."""
-    from flyknot.cli import dispatch
+    from flyknot_app.cli import dispatch
 
     return dispatch(build_parser().parse_args(argv))
 

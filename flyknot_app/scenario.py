@@ -41,9 +41,9 @@ from typing import Any
 
 from flyknot.constants import FOLLOW_THROUGH_S, PATH_FRAC, SCENARIOS_DIR
 from flyknot.errors import ConfigError, check_choice, check_nonnegative, check_positive
+from learner.update import OBJECTIVES
 
 KINDS = ("learn", "track", "transfer", "sensitivity", "objectives", "demos")
-OBJECTIVES = ("critical", "equal")
 ROPE_MODEL_KEYS = ("stiffness", "damping", "link_mass", "end_mass", "link_length", "n_links", "dt")
 WEIGHT_KEYS = (
     "w_control",

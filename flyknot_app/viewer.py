@@ -16,15 +16,10 @@ import mujoco
 import numpy as np
 
 from flyknot.constants import XARM7_XML
+from flyknot.geometry import quat_to_matrix
 from flyknot.record import TrialRecord
 
 CHAIN = ("link_base", "link1", "link2", "link3", "link4", "link5", "link6", "link7")
-
-
-def _quat_matrix(q: np.ndarray) -> np.ndarray:
-    m = np.empty(9)
-    mujoco.mju_quat2Mat(m, np.asarray(q, dtype=float))
-    return m.reshape(3, 3)
 
 
 def trial_frames(record: TrialRecord, rate_hz: float = 50.0) -> dict[str, np.ndarray]:
@@ -39,7 +34,7 @@ def trial_frames(record: TrialRecord, rate_hz: float = 50.0) -> dict[str, np.nda
     t = np.arange(0.0, t_end + 1e-9, 1.0 / rate_hz)
     model = mujoco.MjModel.from_xml_path(str(XARM7_XML))
     data = mujoco.MjData(model)
-    R_b = _quat_matrix(record.base_pose[3:])
+    R_b = quat_to_matrix(record.base_pose[3:])
     p_b = record.base_pose[:3]
     ids = [model.body(n).id for n in CHAIN]
     tip = model.site("fingertip").id

@@ -91,7 +91,7 @@ def main(what: str, *, as_json: bool = False, ropes=None, repeats: int = 1) -> i
                     )
         return 0
     if what == "learner":
-        from learner.bench import bench_learner, format_learner
+        from flyknot_app.bench_learner import bench_learner, format_learner
 
         res = bench_learner(repeats=repeats, progress=not as_json)
         print(json.dumps(res) if as_json else format_learner(res))

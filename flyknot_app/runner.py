@@ -12,7 +12,7 @@ Output layout of ``flyknot run SCENARIO --out DIR``::
     DIR/runs/<run>/repeats/...     records of the repeated final command, if any
     DIR/runs/<run>/result.json     this run's summary
     DIR/summary.json               every run's summary
-    DIR/*.png, DIR/report.md       figures and the report (flyknot.report)
+    DIR/*.png, DIR/report.md       figures and the report (flyknot_app.report)
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from flyknot.constants import DEMOS_DIR, FOLLOW_THROUGH_S, PATH_FRAC
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, FlyknotError
 from flyknot.progress import bar_disable
-from flyknot.scenario import RunSpec, Scenario, find_named_file
+from flyknot_app.scenario import RunSpec, Scenario, find_named_file
 
 
 def demo_path(demo: str) -> Path:
@@ -355,7 +355,7 @@ def run_scenario(
         "runs": [results[r.name] for r in scen.runs],
     }
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    from flyknot.report import write_report
+    from flyknot_app.report import write_report
 
     write_report(out_dir, summary)
     return summary

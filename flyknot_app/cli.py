@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 
 from flyknot.errors import ConfigError, FlyknotError
-from flyknot.scenario import parse_rope_arg
+from flyknot_app.scenario import parse_rope_arg
 
 
 def _cmd_knot(args: argparse.Namespace) -> int:
-    from flyknot_sim.knot import classify_centreline, load_centreline
+    from flyknot.knot import classify_centreline, load_centreline
 
     print(classify_centreline(load_centreline(args.file)))
     return 0
@@ -54,7 +54,7 @@ def _cmd_showcase(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     path = record.save(out / "trial")
     swing_command().save(out / "command.csv")
-    from flyknot_sim.plots import plot_trial
+    from flyknot_app.plots import plot_trial
 
     fig_path = plot_trial(record, out / "trial.png")
     print(f"fault: {record.fault}")
@@ -88,22 +88,22 @@ def _default_run_dir(name: str, resume: bool) -> Path:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from flyknot.experiment import run_scenario
-    from flyknot.scenario import load_scenario, parse_overrides
+    from flyknot_app.runner import run_scenario
+    from flyknot_app.scenario import load_scenario, parse_overrides
 
     overrides = parse_overrides(args.set)
     scen = load_scenario(args.scenario, overrides, ropes=args.ropes)
     out = Path(args.out) if args.out else _default_run_dir(scen.name, args.resume)
     print(f"scenario {scen.name!r} ({scen.kind}, {len(scen.runs)} runs) -> {out}")
     summary = run_scenario(scen, out, workers=args.workers, resume=args.resume, overrides=overrides)
-    from flyknot.report import outcome_line
+    from flyknot_app.report import outcome_line
 
     print(f"{outcome_line(scen.kind, summary['runs'])} Report: {out / 'report.md'}")
     return 0
 
 
 def _cmd_view(args: argparse.Namespace) -> int:
-    from flyknot.viewer import serve
+    from flyknot_app.viewer import serve
 
     serve(args.record, host=args.host, port=args.port)
     return 0
@@ -112,8 +112,8 @@ def _cmd_view(args: argparse.Namespace) -> int:
 def _cmd_explain(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from flyknot.anatomy import explain_directory, format_table, plot_anatomy
     from flyknot.errors import check_nonnegative
+    from flyknot_app.anatomy import explain_directory, format_table, plot_anatomy
 
     def progress(files):
         return tqdm(
@@ -136,7 +136,7 @@ def _cmd_explain(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from flyknot import bench
+    from flyknot_app import bench
 
     return bench.main(args.what, as_json=args.json, ropes=args.ropes, repeats=args.repeats)
 
@@ -154,7 +154,7 @@ def _parse_model(text: str) -> tuple[float, float]:
 
 
 def _cmd_model_check(args: argparse.Namespace) -> int:
-    from flyknot.model_check import check_models, format_table
+    from flyknot_app.model_check import check_models, format_table
 
     knots = None
     if args.knots is not None:
@@ -240,7 +240,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default="runs/showcase", help="output directory")
     s.set_defaults(func=_cmd_showcase)
 
-    from flyknot_sim.demo_cli import add_demo_parser
+    from flyknot_app.demo_cli import add_demo_parser
 
     add_demo_parser(sub)
 

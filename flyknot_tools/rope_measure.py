@@ -1,6 +1,6 @@
 """Measurements that chose the rope model: stretch, tunnelling, knot-pull, speed, flying knot.
 
-Run ``python -m flyknot_sim.rope_measure`` (a few minutes on one core) to print the table of
+Run ``python -m flyknot_tools.rope_measure`` (a few minutes on one core) to print the table of
 ``docs/rope-model.md``; ``--help`` lists the options.
 
 The harness is a "holder" body with three slide and three hinge joints (about y, then x,
@@ -40,6 +40,7 @@ import numpy as np
 
 from flyknot.constants import REPO_ROOT
 from flyknot.errors import ConfigError
+from flyknot.geometry import min_rotation
 from flyknot_sim.rope import (
     ROPE_CONAFFINITY,
     ROPE_CONTYPE,
@@ -173,7 +174,7 @@ class CapsuleChain:
         parent_r = data.xmat[model.body(self.bodies[0]).id].reshape(3, 3).copy()
         for k, jn in enumerate(self.joints, start=1):
             d = x[k + 1] - x[k]
-            r_world = _min_rotation(parent_r @ self.axis, d) @ parent_r
+            r_world = min_rotation(parent_r @ self.axis, d) @ parent_r
             q = np.empty(4)
             mujoco.mju_mat2Quat(q, (parent_r.T @ r_world).ravel())
             j = model.joint(jn)
@@ -181,20 +182,6 @@ class CapsuleChain:
             data.qvel[j.dofadr[0] : j.dofadr[0] + 3] = 0.0
             parent_r = r_world
         mujoco.mj_kinematics(model, data)
-
-
-def _min_rotation(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Rotation matrix of the smallest rotation taking direction u to direction v."""
-    u = u / np.linalg.norm(u)
-    v = v / np.linalg.norm(v)
-    c = float(u @ v)
-    w = np.cross(u, v)
-    if c < -1 + 1e-12:  # opposite: any perpendicular axis
-        p = np.cross(u, [1.0, 0, 0]) if abs(u[0]) < 0.9 else np.cross(u, [0, 1.0, 0])
-        p /= np.linalg.norm(p)
-        return 2 * np.outer(p, p) - np.eye(3)
-    wx = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
-    return np.eye(3) + wx + wx @ wx / (1 + c)
 
 
 def add_capsule_chain(
@@ -770,7 +757,7 @@ def measure_fast_motion(
         "crossings": count_run_crossings(run.vertices),
     }
     if judge_knot and not run.diverged:
-        from flyknot_sim.knot import classify_centreline
+        from flyknot.knot import classify_centreline
 
         out["knot_end"] = classify_centreline(run.vertices[-1])
         out["knot_any"] = any(
@@ -835,7 +822,7 @@ def measure_knot_pull(
         self_collide: False disables all contacts (to show that the crossing check works).
         knot_length: Rope length in the initial loose knot [m].
     """
-    from flyknot_sim.knot import classify_centreline
+    from flyknot.knot import classify_centreline
 
     p = cfg.rope_params()
     if force_cap is None:

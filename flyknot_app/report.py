@@ -12,7 +12,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from flyknot.anatomy import report_section
+from flyknot_app.anatomy import report_section
 
 # The paper's results (Suresh & Atkeson), quoted per scenario kind.
 PAPER = {

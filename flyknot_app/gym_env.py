@@ -57,7 +57,7 @@ class FlyknotEnv(gym.Env):
         """``rope``: a paper rope id 1..7 or a rope's name (the paper's, or one of ``ropes``,
         a user's ropes file; see ``assets/ropes_example.toml``)."""
         super().__init__()
-        from flyknot.experiment import prepare_target
+        from flyknot_app.runner import prepare_target
         from flyknot_sim.lab import LabParams, SimLab
         from learner.inverse_qp import InverseModelWeights
         from learner.kinematics import RobotModel
@@ -89,7 +89,7 @@ class FlyknotEnv(gym.Env):
             import tempfile
             from pathlib import Path
 
-            from flyknot.experiment import initial_knots
+            from flyknot_app.runner import initial_knots
 
             with tempfile.TemporaryDirectory() as tmp:
                 k0, _ = initial_knots(
@@ -148,4 +148,4 @@ class FlyknotEnv(gym.Env):
         return obs, reward, success, truncated, info
 
 
-gym.register(id="flyknot/FlyingKnot-v0", entry_point="flyknot.gym_env:FlyknotEnv")
+gym.register(id="flyknot/FlyingKnot-v0", entry_point="flyknot_app.gym_env:FlyknotEnv")

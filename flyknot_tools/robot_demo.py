@@ -1,6 +1,6 @@
 """Robot demonstrations: a command the simulated arm ties the knot with, recorded as a demo.
 
-The hand demonstrations (``flyknot_sim.demo_synth``) flick the wrist far faster than the arm
+The hand demonstrations (``flyknot_tools.demo_synth``) flick the wrist far faster than the arm
 can turn (``docs/learning.md``), so the learner's target lies out of the arm's reach. A robot
 demonstration is what a person would record by guiding the arm (kinesthetic teaching): a
 motion the arm can make. It is made in two steps:
@@ -186,7 +186,7 @@ class CommandSearchResult:
 
 def command_score(record: TrialRecord, T: float, frame_s: float = 0.05) -> float:
     """Shaped score of one trial (module docstring); needs the record's simulator truth."""
-    from flyknot_sim.knot import TREFOIL, closure_votes, plurality
+    from flyknot.knot import TREFOIL, closure_votes, plurality
 
     during = record.first_contact_time is not None and record.first_contact_time <= T
     contact = 3.0 if during else 0.0
@@ -409,7 +409,7 @@ def record_demonstration(
     rot = Rotation.from_quat(rec.fingertip_quat, scalar_first=True)
     quat = Slerp(rec.t_joint, rot)(t_pose).as_quat(scalar_first=True)
     meta = {
-        "generator": "flyknot.robot_demo",
+        "generator": "flyknot_tools.robot_demo",
         "source": "robot lab, nominal trial (kinesthetic demonstration)",
         "command_T": float(T),
         "command_knots": np.asarray(knots, dtype=float).tolist(),

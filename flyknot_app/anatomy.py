@@ -23,9 +23,9 @@ A trial labelled ``markers_lost`` also keeps the label its outcome alone gives
 **Knot history.** ``not_through``, ``slipped_out`` and ``shaken_loose`` need the knot type of
 the rope over time. It comes from the simulator's truth centreline when the record has one:
 frames from the first contact on, every ``HISTORY_STEP_S`` (and the last frame), each judged
-by :func:`flyknot_sim.knot.classify_centreline`. That classifier votes over ray closures in
+by :func:`flyknot.knot.classify_centreline`. That classifier votes over ray closures in
 31 directions rather than closing the rope "held end up, free end down", which is the closure
-that invents knots while the free end is above the held end (``flyknot_sim/knot.py``); so
+that invents knots while the free end is above the held end (``flyknot/knot.py``); so
 frames are judged whatever the height of the free end and none is dropped. Without truth, the
 lab's own verdict history is used if the record has one (``metadata["knot_history"]`` or
 ``metadata["settle"]["knot_history"]``: ``{"t": [...], "verdict": [...]}``). It shows a knot
@@ -405,7 +405,7 @@ def knot_history_from_truth(
     Returns:
         The history (``source="truth"``); empty if no finite frame is in range.
     """
-    from flyknot_sim.knot import classify_centreline
+    from flyknot.knot import classify_centreline
 
     check_positive("step", step)
     t = np.asarray(t_truth, dtype=float)
@@ -464,7 +464,7 @@ def _end_verdict(ev: TrialEvidence, n_directions: int) -> str | None:
     if ev.knot is not None:
         return ev.knot
     if ev.fault is None and ev.has_truth:
-        from flyknot_sim.knot import classify_centreline
+        from flyknot.knot import classify_centreline
 
         for frame in ev.centreline[::-1]:
             if np.all(np.isfinite(frame)):
@@ -1104,7 +1104,7 @@ def markdown_section(anatomy: Anatomy, figure: str | None = None) -> list[str]:
     n = len(anatomy.diagnoses)
     lines = ["## Failure anatomy", ""]
     lines.append(
-        f"Why each of the {n} trials ended as it did (`flyknot.anatomy`; a trefoil lasting "
+        f"Why each of the {n} trials ended as it did (`flyknot_app.anatomy`; a trefoil lasting "
         f"{PERSIST_S:g} s or more was tied, a shorter one slipped out)."
     )
     lines += ["", "| class | meaning | count | share |", "|---|---|---|---|"]

@@ -53,6 +53,7 @@ import numpy as np
 from flyknot.constants import DEMOS_DIR
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, RecordError, check_choice, check_positive
+from flyknot.knot import TREFOIL
 from flyknot.progress import bar_disable
 from flyknot_sim.hand import (
     HandLab,
@@ -62,10 +63,9 @@ from flyknot_sim.hand import (
     hand_rotation,
     trial_demonstration,
 )
-from flyknot_sim.knot import TREFOIL
 from flyknot_sim.mocap import MocapParams
 
-GENERATOR = "flyknot_sim.demo_synth"
+GENERATOR = "flyknot_tools.demo_synth"
 GENERATOR_VERSION = 1
 """Bump when a change alters what a given (variant, seed) produces."""
 

@@ -171,7 +171,7 @@ def check_models(
 
     from tqdm import tqdm
 
-    from flyknot.experiment import initial_knots, prepare_target
+    from flyknot_app.runner import initial_knots, prepare_target
     from flyknot_sim.lab import LabParams, SimLab, VariationParams
     from learner.bezier import BezierCommand
     from learner.critical_state import critical_state_from_record

@@ -1,3 +1,0 @@
-from flyknot.cli import main
-
-raise SystemExit(main())

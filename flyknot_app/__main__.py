@@ -1,0 +1,3 @@
+from flyknot_app.cli import main
+
+raise SystemExit(main())
