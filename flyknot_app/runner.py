@@ -32,6 +32,7 @@ from flyknot.constants import DEMOS_DIR, FOLLOW_THROUGH_S, PATH_FRAC
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, FlyknotError
 from flyknot.progress import bar_disable
+from flyknot_app.cells import open_cell
 from flyknot_app.scenario import RunSpec, Scenario, find_named_file
 
 
@@ -125,7 +126,6 @@ def execute_run(
     from tqdm import tqdm
 
     from flyknot.record import TrialRecord
-    from flyknot_sim.lab import LabParams, SimLab
     from learner.bezier import BezierCommand
     from learner.ilc import ILCParams, learn
     from learner.inverse_qp import InverseModelWeights
@@ -140,9 +140,7 @@ def execute_run(
     rope_model = _rope_model(spec)
     _, target = prepare_target(spec.demo, rope_model.dt, spec.window)
     ig_info: dict[str, Any] = {}
-    lab = SimLab(
-        LabParams(rope=spec.rope, seed=spec.seed, settle_s=spec.settle_s, ropes=spec.ropes)
-    )
+    lab = open_cell(spec.cell, spec.cell_spec())
     if knots0 is None:
         knots0, ig_info = initial_knots(
             spec.demo, out_dir, robot, rope_model.dt, float(lab.base_pose[2]), spec.window
@@ -214,7 +212,7 @@ def execute_run(
         "name": spec.name,
         "label": spec.label,
         "rope": spec.rope,
-        **_custom_rope_summary(lab),
+        **(_custom_rope_summary(lab) if spec.cell == "sim" else {}),
         "demo": spec.demo,
         "objective": spec.objective,
         "rope_model": asdict(rope_model),
@@ -252,7 +250,7 @@ def execute_run(
 
 def _custom_rope_summary(lab) -> dict[str, Any]:
     """A custom rope's parameters and file for a run's summary (nothing for the paper's)."""
-    from flyknot_sim.rope import rope_record
+    from flyknot_sim.rope_custom import rope_record
 
     rec = rope_record(lab.rope_params, lab.params.ropes)
     return {k: rec[k] for k in ("rope_name", "rope_params", "ropes_file") if "rope_params" in rec}
@@ -260,7 +258,7 @@ def _custom_rope_summary(lab) -> dict[str, Any]:
 
 def _ropes_manifest(scen: Scenario) -> dict[str, Any]:
     """The custom ropes the scenario's runs use: ``{"ropes": {file: {name: params}}}``."""
-    from flyknot_sim.rope import resolve_rope
+    from flyknot_sim.rope_custom import resolve_rope
 
     used: dict[str, dict[str, Any]] = {}
     for r in scen.runs:

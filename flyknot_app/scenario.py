@@ -41,6 +41,7 @@ from typing import Any
 
 from flyknot.constants import FOLLOW_THROUGH_S, PATH_FRAC, SCENARIOS_DIR
 from flyknot.errors import ConfigError, check_choice, check_nonnegative, check_positive
+from flyknot_app.cells import cell_kind, cell_spec
 from learner.update import OBJECTIVES
 
 KINDS = ("learn", "track", "transfer", "sensitivity", "objectives", "demos")
@@ -95,6 +96,9 @@ class RunSpec:
         label: Free text for figures (e.g. "k=1e3, m_e=5").
         ropes: A user's ropes file (absolute path; set from the scenario's top-level
             ``ropes``), or None.
+        cell: Kind of cell the run plays on (:data:`flyknot_app.cells.CELLS`; set by the
+            scenario's ``[cell] kind``): ``rope``, ``seed``, ``settle_s`` and ``ropes`` are
+            that cell's fields.
     """
 
     name: str
@@ -119,15 +123,17 @@ class RunSpec:
     path_frac: float = PATH_FRAC
     label: str = ""
     ropes: str | None = None
+    cell: str = "sim"
 
     def __post_init__(self) -> None:
+        cell_kind(self.cell)
         if not isinstance(self.name, str) or not self.name or "/" in self.name:
             raise ConfigError(
                 "run.name", f"must be a non-empty name without '/', got {self.name!r}"
             )
         rope = parse_rope_arg(self.rope) if isinstance(self.rope, str) else self.rope
         if isinstance(rope, str) or self.ropes is not None:
-            from flyknot_sim.rope import resolve_rope
+            from flyknot_sim.rope_custom import resolve_rope
 
             params = resolve_rope(rope, self.ropes)
             rope = params.name if params.custom else params.id
@@ -184,14 +190,20 @@ class RunSpec:
         if not (isinstance(self.path_frac, (int, float)) and 0.0 <= self.path_frac < 1.0):
             raise ConfigError("path_frac", f"must lie in [0, 1), got {self.path_frac!r}")
 
+    def cell_spec(self) -> Any:
+        """The validated spec of the run's cell (:func:`flyknot_app.cells.cell_spec`)."""
+        values = {"rope": self.rope, "seed": self.seed, "settle_s": self.settle_s}
+        return cell_spec(self.cell, {**values, "ropes": self.ropes})
+
     @property
     def window(self) -> tuple[float, float]:
         """(follow_through_s, path_frac): what selects the demonstration window."""
         return (float(self.follow_through_s), float(self.path_frac))
 
 
-RUN_KEYS = tuple(f.name for f in fields(RunSpec) if f.name != "ropes")
-"""Fields a scenario's runs, defaults, grid and ``--set`` may give (``ropes`` is top-level)."""
+RUN_KEYS = tuple(f.name for f in fields(RunSpec) if f.name not in ("ropes", "cell"))
+"""Fields a scenario's runs, defaults, grid and ``--set`` may give (``ropes`` and the cell's
+kind are top-level)."""
 
 
 def parse_rope_arg(text: str) -> int | str:
@@ -298,12 +310,14 @@ def _name_part(value: Any) -> str:
     return "_".join(value.replace("/", " ").split()) if isinstance(value, str) else str(value)
 
 
-def _make_run(raw: Mapping[str, Any], where: str, ropes: str | None = None) -> RunSpec:
+def _make_run(
+    raw: Mapping[str, Any], where: str, ropes: str | None = None, cell: str = "sim"
+) -> RunSpec:
     for k in raw:
         if k not in RUN_KEYS:
             raise ConfigError(f"{where}.{k}", "unknown field", RUN_KEYS)
     try:
-        return RunSpec(**raw, ropes=ropes)
+        return RunSpec(**raw, ropes=ropes, cell=cell)
     except TypeError as e:
         raise ConfigError(where, str(e)) from None
 
@@ -321,7 +335,7 @@ def parse_scenario(
     ``ropes`` (``flyknot run --ropes FILE``) replaces the document's top-level ``ropes``; a
     relative path in the document is looked up beside ``source`` first.
     """
-    allowed = ("name", "description", "kind", "paper", "ropes", "defaults", "run", "grid")
+    allowed = ("name", "description", "kind", "paper", "ropes", "cell", "defaults", "run", "grid")
     for k in doc:
         if k not in allowed:
             raise ConfigError(k, "unknown top-level field", allowed)
@@ -331,7 +345,14 @@ def parse_scenario(
         if not isinstance(doc["ropes"], str) or not doc["ropes"]:
             raise ConfigError("ropes", f"must be a file path, got {doc['ropes']!r}")
         ropes = find_ropes_file(doc["ropes"], Path(source).parent if source else None)
-    defaults = dict(doc.get("defaults", {}))
+    cell = dict(doc.get("cell", {}))
+    kind = cell.pop("kind", "sim")
+    cell_kind(kind)
+    settable = tuple(f for f in cell_kind(kind).fields if f != "ropes")
+    for k in cell:
+        if k not in settable:
+            raise ConfigError(f"cell.{k}", f"not a field of a {kind!r} cell", settable)
+    defaults = {**cell, **dict(doc.get("defaults", {}))}
     overrides = dict(overrides or {})
     max_runs = overrides.pop("max_runs", None)
     rope_model = {**dict(defaults.pop("rope_model", {})), **dict(overrides.pop("rope_model", {}))}
@@ -359,7 +380,7 @@ def parse_scenario(
         }
         merged["weights"] = {**weights, **dict(entry.get("weights", {}))}
         merged.setdefault("name", f"run{i}")
-        runs.append(_make_run(merged, f"run[{i}]", ropes))
+        runs.append(_make_run(merged, f"run[{i}]", ropes, kind))
     scen = Scenario(
         name=str(doc.get("name", name)),
         kind=str(doc.get("kind", "learn")),

@@ -1,7 +1,18 @@
-"""The learner sees only what the real lab measures.
+"""The layout is the architecture: who may import whom, checked statically on the source.
 
-``learner/`` must not import the simulated lab nor read the simulator-only ``truth`` part of
-a record. Checked statically on the source, so a new file cannot slip past.
+- ``flyknot/`` (core: records, errors, constants, limits, demonstrations, knot topology,
+  geometry, rest criterion) imports none of the other packages, nor MuJoCo or CasADi.
+- ``flyknot_sim/`` (the simulated lab) and ``flyknot_hw/`` (the real lab) import the core
+  only: neither imports the other, the learner or the application.
+- ``learner/`` imports the core only and never reads the simulator-only ``truth`` of a record.
+- ``flyknot_app/`` (CLI, runner, reports, gym env, viewer, benchmarks) alone imports every
+  runtime package.
+- ``flyknot_tools/`` (offline demonstration searches, rope-model studies) may import anything;
+  no runtime package imports it.
+- No runtime module reads the tests' data; no module is longer than :data:`MAX_LINES`.
+
+A new top-level package fails :func:`test_every_package_has_a_rule` until it gets a rule, so a
+new file or package cannot slip past. Imports inside functions count too.
 """
 
 from __future__ import annotations
@@ -11,28 +22,106 @@ from pathlib import Path
 
 import pytest
 
-LEARNER = Path(__file__).resolve().parents[1] / "learner"
-FILES = sorted(LEARNER.rglob("*.py"))
+ROOT = Path(__file__).resolve().parents[1]
+
+CORE, SIM, HW, LEARNER, APP, TOOLS = (
+    "flyknot",
+    "flyknot_sim",
+    "flyknot_hw",
+    "learner",
+    "flyknot_app",
+    "flyknot_tools",
+)
+ALLOWED = {
+    CORE: {CORE},
+    SIM: {CORE, SIM},
+    HW: {CORE, HW},
+    LEARNER: {CORE, LEARNER},
+    APP: {CORE, SIM, HW, LEARNER, APP},
+    TOOLS: {CORE, SIM, HW, LEARNER, APP, TOOLS},
+}
+"""For each package: the packages of ours it may import."""
+RUNTIME = (CORE, SIM, HW, LEARNER, APP)
+FORBIDDEN_THIRD_PARTY = {CORE: {"mujoco", "casadi"}}
+"""Heavy dependencies a package must not pull in (the real lab's core needs no simulator)."""
+MAX_LINES = 600
+"""No module longer than this (the layout issue's "no module over ~600 lines")."""
 
 
-def test_there_is_learner_code():
-    assert FILES, "learner/ holds no Python files"
+def _packages() -> list[str]:
+    return sorted(
+        p.name
+        for p in ROOT.iterdir()
+        if p.is_dir() and (p / "__init__.py").is_file() and not p.name.startswith(".")
+    )
 
 
-@pytest.mark.parametrize("path", FILES, ids=lambda p: p.name)
-def test_learner_does_not_import_the_simulator(path):
+def _files(pkg: str) -> list[Path]:
+    return sorted((ROOT / pkg).rglob("*.py"))
+
+
+ALL_FILES = [(pkg, f) for pkg in _packages() for f in _files(pkg)]
+
+
+def _imported(path: Path, pkg: str) -> list[tuple[int, str]]:
+    """(line, top-level module) of every import in the file; relative ones are ``pkg``."""
     tree = ast.parse(path.read_text())
+    out = []
     for node in ast.walk(tree):
-        names = []
         if isinstance(node, ast.Import):
-            names = [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.module:
-            names = [node.module]
-        for n in names:
-            assert not n.startswith("flyknot_sim"), f"{path.name} imports {n}"
+            out += [(node.lineno, a.name.split(".")[0]) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                out.append((node.lineno, pkg))
+            elif node.module:
+                out.append((node.lineno, node.module.split(".")[0]))
+    return out
 
 
-@pytest.mark.parametrize("path", FILES, ids=lambda p: p.name)
+def _rel(path: Path) -> str:
+    return str(path.relative_to(ROOT))
+
+
+def test_every_package_has_a_rule():
+    pkgs = _packages()
+    assert {CORE, SIM, LEARNER, APP, TOOLS} <= set(pkgs)
+    unknown = [p for p in pkgs if p not in ALLOWED]
+    assert not unknown, f"packages without an import rule in tests/test_boundary.py: {unknown}"
+    for pkg in pkgs:
+        assert _files(pkg), f"{pkg}/ holds no Python files"
+
+
+@pytest.mark.parametrize(("pkg", "path"), ALL_FILES, ids=lambda x: getattr(x, "name", x))
+def test_imports_follow_the_layout(pkg, path):
+    ours = set(ALLOWED)
+    for line, mod in _imported(path, pkg):
+        if mod in ours:
+            assert mod in ALLOWED[pkg], f"{_rel(path)}:{line} ({pkg}) imports {mod}"
+        assert mod not in FORBIDDEN_THIRD_PARTY.get(pkg, ()), f"{_rel(path)}:{line} imports {mod}"
+
+
+@pytest.mark.parametrize(("pkg", "path"), ALL_FILES, ids=lambda x: getattr(x, "name", x))
+def test_modules_stay_small(pkg, path):
+    n = len(path.read_text().splitlines())
+    assert n <= MAX_LINES, f"{_rel(path)} has {n} lines (at most {MAX_LINES})"
+
+
+RUNTIME_FILES = [(pkg, f) for pkg, f in ALL_FILES if pkg in RUNTIME]
+
+
+@pytest.mark.parametrize(("pkg", "path"), RUNTIME_FILES, ids=lambda x: getattr(x, "name", x))
+def test_runtime_code_reads_no_test_or_shared_data(pkg, path):
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Constant) and isinstance(node.value, str):
+            v = node.value
+            assert "tests/data" not in v, f"{_rel(path)}:{node.lineno} names tests/data"
+            assert "../shared" not in v, f"{_rel(path)}:{node.lineno} names ../shared"
+
+
+LEARNER_FILES = [f for pkg, f in ALL_FILES if pkg == LEARNER]
+
+
+@pytest.mark.parametrize("path", LEARNER_FILES, ids=lambda p: p.name)
 def test_learner_never_reads_truth(path):
     tree = ast.parse(path.read_text())
     for node in ast.walk(tree):
@@ -42,3 +131,16 @@ def test_learner_never_reads_truth(path):
             assert node.value != "truth", f"{path.name}:{node.lineno} names 'truth'"
         if isinstance(node, ast.keyword):
             assert node.arg != "with_truth", f"{path.name}:{node.lineno} loads truth"
+
+
+def test_the_checker_sees_hidden_and_relative_imports(tmp_path):
+    probe = tmp_path / "probe.py"
+    probe.write_text(
+        "import numpy\n"
+        "def f():\n"
+        "    from flyknot_sim import lab\n"
+        "    import learner.ilc\n"
+        "    from . import sibling\n"
+        "    return lab\n"
+    )
+    assert _imported(probe, APP) == [(1, "numpy"), (3, "flyknot_sim"), (4, "learner"), (5, APP)]

@@ -1,0 +1,99 @@
+"""The registry of cells: a scenario's ``[cell]`` table names a kind, the registry opens it.
+
+A cell is where a command is tried (:class:`flyknot.record.Cell`): the simulated lab
+(``kind = "sim"``, :mod:`flyknot_sim`) today, the real xArm 7 with motion capture
+(``kind = "xarm"``, :mod:`flyknot_hw`) when that package exists. Each kind has a small frozen
+spec, validated on construction, and a factory that opens the cell from it::
+
+    [cell]
+    kind = "sim"      # the default
+    rope = 1          # the cell's fields may also be given per run, in a grid or by --set
+    seed = 0
+
+The runner never names a cell class; it calls :func:`open_cell` with the run's spec.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, fields
+from typing import Any
+
+from flyknot.errors import ConfigError, check_nonnegative
+from flyknot.record import Cell
+
+
+@dataclass(frozen=True)
+class SimCellSpec:
+    """The simulated lab (:class:`flyknot_sim.lab.SimLab`) as a run opens it.
+
+    Attributes:
+        rope: Rope id (1..7) or a rope's name (the paper's, or one of ``ropes``).
+        seed: Seed of the lab's trial-to-trial variation (trial i uses (seed, i)).
+        settle_s: A fixed wait before the knot is judged [s]; None: until the rope is at rest.
+        ropes: A user's ropes file (absolute path), or None.
+    """
+
+    rope: int | str = 1
+    seed: int = 0
+    settle_s: float | None = None
+    ropes: str | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
+            raise ConfigError("seed", f"must be an integer >= 0, got {self.seed!r}")
+        if self.settle_s is not None:
+            check_nonnegative("settle_s", self.settle_s)
+
+
+def _open_sim(spec: SimCellSpec) -> Cell:
+    from flyknot_sim.lab import LabParams, SimLab
+
+    return SimLab(
+        LabParams(rope=spec.rope, seed=spec.seed, settle_s=spec.settle_s, ropes=spec.ropes)
+    )
+
+
+@dataclass(frozen=True)
+class CellKind:
+    """One registered kind of cell: its spec class and the factory opening it."""
+
+    name: str
+    spec: type
+    open: Callable[[Any], Cell]
+    description: str
+
+    @property
+    def fields(self) -> tuple[str, ...]:
+        """Names of the spec's fields (what a ``[cell]`` table may set)."""
+        return tuple(f.name for f in fields(self.spec))
+
+
+CELLS: dict[str, CellKind] = {
+    "sim": CellKind("sim", SimCellSpec, _open_sim, "the simulated lab (MuJoCo)"),
+}
+"""Every kind of cell, by the name a scenario's ``[cell] kind`` gives."""
+
+
+def cell_kind(name: object) -> CellKind:
+    """The registered kind ``name``; the error lists the valid kinds."""
+    if not isinstance(name, str) or name not in CELLS:
+        raise ConfigError("cell.kind", f"unknown cell kind {name!r}", sorted(CELLS))
+    return CELLS[name]
+
+
+def cell_spec(kind: str, values: Mapping[str, Any]) -> Any:
+    """A validated spec of ``kind`` from ``values`` (unknown fields are named, valid listed)."""
+    k = cell_kind(kind)
+    for key in values:
+        if key not in k.fields:
+            raise ConfigError(f"cell.{key}", f"not a field of a {kind!r} cell", k.fields)
+    return k.spec(**values)
+
+
+def open_cell(kind: str, spec: Any) -> Cell:
+    """Open the cell ``spec`` of ``kind`` (a spec made by :func:`cell_spec`)."""
+    k = cell_kind(kind)
+    if not isinstance(spec, k.spec):
+        raise ConfigError("cell", f"a {kind!r} cell needs a {k.spec.__name__}, got {spec!r}")
+    return k.open(spec)

@@ -1,0 +1,56 @@
+"""The cell registry and a scenario's ``[cell]`` table."""
+
+from __future__ import annotations
+
+import pytest
+
+from flyknot.errors import ConfigError
+from flyknot.record import Cell
+from flyknot_app.cells import CELLS, SimCellSpec, cell_spec, open_cell
+from flyknot_app.scenario import parse_scenario
+
+
+def test_the_sim_cell_opens_from_its_spec():
+    lab = open_cell("sim", cell_spec("sim", {"rope": 3, "seed": 5}))
+    assert isinstance(lab, Cell)
+    assert lab.params.seed == 5 and lab.rope_params.id == 3
+    assert lab.trial_index == 0
+
+
+def test_unknown_kind_and_field_list_the_valid_ones():
+    with pytest.raises(
+        ConfigError, match=r"^cell\.kind: unknown cell kind 'xarm' \(valid choices: sim\)$"
+    ):
+        cell_spec("xarm", {})
+    with pytest.raises(
+        ConfigError,
+        match=r"^cell\.ip: not a field of a 'sim' cell "
+        r"\(valid choices: rope, seed, settle_s, ropes\)$",
+    ):
+        cell_spec("sim", {"ip": "10.0.0.1"})
+    with pytest.raises(ConfigError, match=r"^seed: must be an integer >= 0, got -1$"):
+        SimCellSpec(seed=-1)
+    with pytest.raises(ConfigError, match=r"^cell: a 'sim' cell needs a SimCellSpec"):
+        open_cell("sim", {"rope": 1})
+    assert sorted(CELLS) == ["sim"]
+
+
+def test_a_scenarios_cell_table_sets_the_kind_and_the_cells_defaults():
+    scen = parse_scenario(
+        {
+            "cell": {"kind": "sim", "rope": 3, "seed": 2},
+            "run": [{"name": "a"}, {"name": "b", "rope": 4}],
+        },
+        name="x",
+    )
+    assert [(r.cell, r.rope, r.seed) for r in scen.runs] == [("sim", 3, 2), ("sim", 4, 2)]
+    assert scen.runs[1].cell_spec() == SimCellSpec(rope=4, seed=2)
+    with pytest.raises(ConfigError, match=r"^cell\.kind: unknown cell kind 'robot'"):
+        parse_scenario({"cell": {"kind": "robot"}, "run": [{"name": "a"}]}, name="x")
+    with pytest.raises(
+        ConfigError,
+        match=r"^cell\.gain: not a field of a 'sim' cell \(valid choices: rope, seed, settle_s\)$",
+    ):
+        parse_scenario({"cell": {"gain": 0.5}, "run": [{"name": "a"}]}, name="x")
+    with pytest.raises(ConfigError, match=r"^run\[0\]\.cell: unknown field"):
+        parse_scenario({"run": [{"name": "a", "cell": "sim"}]}, name="x")
