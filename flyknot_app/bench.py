@@ -37,7 +37,7 @@ def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bo
 
     from flyknot_sim.commands import swing_command
     from flyknot_sim.lab import SimLab
-    from flyknot_sim.rope import load_rope_table
+    from flyknot_sim.rope_table import load_rope_table
 
     table = load_rope_table()
     ropes = sorted(table) if not ropes else list(ropes)

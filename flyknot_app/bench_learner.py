@@ -31,8 +31,9 @@ from flyknot.errors import ConfigError
 from flyknot.progress import bar_disable
 from learner.bezier import BezierCommand
 from learner.follow_through import follow_through_terms
-from learner.inverse_qp import InverseModelWeights, build_inverse_qp, limit_rows, solve_qp
+from learner.inverse_qp import InverseModelWeights, build_inverse_qp, solve_qp
 from learner.kinematics import RobotModel
+from learner.limit_rows import initial_active_rows, limit_rows, subset_rows
 from learner.rope_model import RopeModelParams
 from learner.system_model import (
     critical_step,
@@ -42,7 +43,8 @@ from learner.system_model import (
     rollout_from_joints,
     simulate_command,
 )
-from learner.update import DemoTarget, ilc_update, initial_active_rows, subset_rows
+from learner.target import DemoTarget
+from learner.update import UpdateSettings, ilc_update
 
 HOME = np.array([0.0, -0.247, 0.0, 0.909, 0.0, 1.15644, 0.0])  # [rad]
 BASE = np.array([0.0, 0.0, 1.0])  # [m]
@@ -138,7 +140,8 @@ def bench_learner(repeats: int = 1, progress: bool = True) -> dict:
     res["qp_clarabel_s"], _ = _best(lambda: solve_qp(qp, "clarabel"), repeats)
     bar.update()
     res["update_s"], upd = _best(
-        lambda: ilc_update(record, command, target, robot, params, weights), repeats
+        lambda: ilc_update(record, command, target, robot, params, UpdateSettings(weights=weights)),
+        repeats,
     )
     bar.update()
 

@@ -113,7 +113,7 @@ def _cmd_explain(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from flyknot.errors import check_nonnegative
-    from flyknot_app.anatomy import explain_directory, format_table, plot_anatomy
+    from flyknot_app.anatomy_report import explain_directory, format_table, plot_anatomy
 
     def progress(files):
         return tqdm(

@@ -12,7 +12,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from flyknot_app.anatomy import report_section
+from flyknot_app.anatomy_report import report_section
 
 # The paper's results (Suresh & Atkeson), quoted per scenario kind.
 PAPER = {
@@ -162,7 +162,7 @@ def plot_critical_overlays(run_dir: Path, run: dict[str, Any], path: Path) -> Pa
     """
     from flyknot.record import TrialRecord
     from learner.critical_state import critical_state_from_record
-    from learner.ilc import RunDirectory
+    from learner.run_directory import RunDirectory
 
     rd = RunDirectory(run_dir / "learning")
     ups = sorted((run_dir / "learning").glob("update_*.json"))

@@ -8,7 +8,7 @@ Output layout of ``flyknot run SCENARIO --out DIR``::
 
     DIR/manifest.json              scenario, overrides, versions, start time
     DIR/initial_guess/<demo>.npz   kappa_0 per demonstration (cached)
-    DIR/runs/<run>/learning/...    the ILC run directory (learner.ilc.RunDirectory)
+    DIR/runs/<run>/learning/...    the ILC run directory (learner.run_directory.RunDirectory)
     DIR/runs/<run>/repeats/...     records of the repeated final command, if any
     DIR/runs/<run>/result.json     this run's summary
     DIR/summary.json               every run's summary
@@ -49,7 +49,7 @@ def prepare_target(
     """Trim the demonstration (paper's timing selection with ``window`` =
     (follow-through t_f - t_c [s], path fraction at t_0)) and build the learner's target."""
     from learner.demo_timing import select_demo_window, trim_demonstration
-    from learner.update import DemoTarget
+    from learner.target import DemoTarget
 
     demo = Demonstration.load(demo_path(demo_name))
     follow_through, path_frac = window

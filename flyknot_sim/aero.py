@@ -183,7 +183,7 @@ class RopeDrag:
     """
 
     def __init__(self, rope, params: AeroParams, end_radius: float | None = None):
-        """Bind to ``rope`` (a :class:`flyknot_sim.rope.BoundRope`)."""
+        """Bind to ``rope`` (a :class:`flyknot_sim.rope_handle.BoundRope`)."""
         self.rope = rope
         self.params = params
         self.diameter = rope.params.diameter

@@ -315,7 +315,7 @@ class RopeBendFriction:
     """
 
     def __init__(self, rope, moment: float, rate0: float = RATE0):
-        """Bind to ``rope`` (a :class:`flyknot_sim.rope.BoundRope`) with M_0 = ``moment``
+        """Bind to ``rope`` (a :class:`flyknot_sim.rope_handle.BoundRope`) with M_0 = ``moment``
         [N m] (0 = off) and regularisation rate ``rate0`` [rad/s]."""
         check_nonnegative("moment", moment)
         check_positive("rate0", rate0)

@@ -44,7 +44,9 @@ from flyknot_sim import faults as faults_mod
 from flyknot_sim import mocap, robot
 from flyknot_sim.aero import DRAG_HOLD_S, AeroParams, RopeDrag
 from flyknot_sim.bend_friction import BendFrictionParams, RopeBendFriction
-from flyknot_sim.rope import RopeParams, add_rope, configure_options, resolve_rope, rope_record
+from flyknot_sim.rope import add_rope, configure_options
+from flyknot_sim.rope_custom import resolve_rope, rope_record
+from flyknot_sim.rope_table import RopeParams
 from flyknot_sim.scene import ROBOT_PREFIX, SceneParams, robot_base_pose, scene_spec
 
 _BAR = "{desc}: {percentage:3.0f}%|{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}]"
@@ -89,8 +91,8 @@ class LabParams:
 
     Attributes:
         rope: Rope id (1..7, see ``assets/ropes.toml``), a rope's name (the paper's, or one of
-            ``ropes``), or a :class:`flyknot_sim.rope.RopeParams`
-            (:func:`flyknot_sim.rope.resolve_rope`); a paper rope's name becomes its id.
+            ``ropes``), or a :class:`flyknot_sim.rope_table.RopeParams`
+            (:func:`flyknot_sim.rope_custom.resolve_rope`); a paper rope's name becomes its id.
         seed: Seed of the trial-to-trial variation and the mocap noise; trial ``i`` of a
             lab uses ``(seed, i)``.
         settle: When the knot is judged after the command: until the rope is at rest, capped

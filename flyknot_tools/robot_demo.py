@@ -1,6 +1,6 @@
 """Robot demonstrations: a command the simulated arm ties the knot with, recorded as a demo.
 
-The hand demonstrations (``flyknot_tools.demo_synth``) flick the wrist far faster than the arm
+The hand demonstrations (``flyknot_tools.hand_demos``) flick the wrist far faster than the arm
 can turn (``docs/learning.md``), so the learner's target lies out of the arm's reach. A robot
 demonstration is what a person would record by guiding the arm (kinesthetic teaching): a
 motion the arm can make. It is made in two steps:
@@ -247,7 +247,7 @@ def search_command(
     from flyknot_sim.lab import LabParams, SimLab, VariationParams
     from learner.bezier import BezierCommand
     from learner.kinematics import RobotModel
-    from learner.update import sampled_violation
+    from learner.limit_rows import sampled_violation
 
     check_int("seed", seed, 0)
     tic = time.perf_counter()

@@ -17,13 +17,13 @@ Handling of what a lab throws at the loop:
   the previous one (or, on the first trial, the run stops: the initial command is unusable).
 * A QP that fails leaves the command unchanged and the status is recorded.
 
-Everything is written to the run directory as it happens (see :class:`RunDirectory`), so a
-run interrupted at any point resumes without losing or repeating a trial.
+Everything is written to the run directory as it happens (see
+:class:`learner.run_directory.RunDirectory`), so a run interrupted at any point resumes without
+losing or repeating a trial.
 """
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -38,8 +38,11 @@ from flyknot.record import Cell, TrialRecord
 from learner.bezier import BezierCommand
 from learner.inverse_qp import BACKENDS, InverseModelWeights
 from learner.kinematics import RobotModel
+from learner.limit_rows import sampled_violation
 from learner.rope_model import RopeModelParams
-from learner.update import OBJECTIVES, DemoTarget, ilc_update, sampled_violation
+from learner.run_directory import RunDirectory, TrialSummary
+from learner.target import DemoTarget
+from learner.update import OBJECTIVES, UpdateSettings, ilc_update
 
 
 @dataclass(frozen=True)
@@ -111,29 +114,16 @@ class ILCParams:
                 raise ConfigError("confirm", "needs stop_at_success = true")
             object.__setattr__(self, "confirm", c)
 
-
-@dataclass(frozen=True)
-class TrialSummary:
-    """One trial of a learning run, as written to ``ledger.jsonl``."""
-
-    trial: int
-    attempt: int
-    fault: str | None
-    knot: str | None
-    tracking_lost: bool
-    cost: float | None
-    update_solved: bool | None
-    update_status: str | None
-    predicted_cost_after: float | None
-    action: str
-    wall_s: float
-    t_eff: float | None = None
-    confirm: int | None = None
-    average: int | None = None
-
-    @property
-    def success(self) -> bool:
-        return self.fault is None and self.knot == "trefoil"
+    def update_settings(self, limits: JointLimits | None) -> UpdateSettings:
+        """The settings of every update of the run, with ``limits`` on the updated commands."""
+        return UpdateSettings(
+            objective=self.objective,
+            weights=self.weights,
+            limits=limits,
+            follow_through=self.follow_through,
+            trust_region=self.trust_region,
+            backend=self.backend,
+        )
 
 
 @dataclass(frozen=True)
@@ -161,61 +151,6 @@ def _counted(trials: tuple[TrialSummary, ...]) -> list[TrialSummary]:
     for s in trials:
         last[s.trial] = s
     return [last[k] for k in sorted(last)]
-
-
-class RunDirectory:
-    """Files of one learning run, written as they happen.
-
-    Layout::
-
-        manifest.json              what was run (free-form, written once)
-        knots_0000.npy             kappa_k before trial k (10, 8)
-        trial_0000_a0.{npz,json,truth.npz}   the record of trial k, attempt a
-        update_0000.json           the update computed after trial k
-        ledger.jsonl               one line per attempt (TrialSummary), the resume point
-    """
-
-    def __init__(self, path: str | Path):
-        self.path = Path(path)
-        self.path.mkdir(parents=True, exist_ok=True)
-
-    def knots_path(self, k: int) -> Path:
-        return self.path / f"knots_{k:04d}.npy"
-
-    def record_stem(self, k: int, attempt: int) -> Path:
-        return self.path / f"trial_{k:04d}_a{attempt}"
-
-    def write_manifest(self, manifest: dict[str, Any]) -> None:
-        (self.path / "manifest.json").write_text(json.dumps(manifest, indent=2, sort_keys=True))
-
-    def save_knots(self, k: int, knots: np.ndarray) -> None:
-        tmp = self.path / f".knots_{k:04d}.tmp.npy"
-        np.save(tmp, np.asarray(knots))
-        tmp.replace(self.knots_path(k))
-
-    def load_knots(self, k: int) -> np.ndarray:
-        return np.load(self.knots_path(k))
-
-    def append_ledger(self, summary: TrialSummary) -> None:
-        with open(self.path / "ledger.jsonl", "a") as f:
-            f.write(json.dumps(asdict(summary)) + "\n")
-
-    def ledger(self) -> list[TrialSummary]:
-        p = self.path / "ledger.jsonl"
-        if not p.is_file():
-            return []
-        out = []
-        for line in p.read_text().splitlines():
-            if line.strip():
-                out.append(TrialSummary(**json.loads(line)))
-        return out
-
-    def save_update(self, k: int, info: dict[str, Any]) -> None:
-        (self.path / f"update_{k:04d}.json").write_text(json.dumps(info, indent=2))
-
-    def load_update(self, k: int) -> dict[str, Any] | None:
-        p = self.path / f"update_{k:04d}.json"
-        return json.loads(p.read_text()) if p.is_file() else None
 
 
 def critical_cost(err: np.ndarray, weights: InverseModelWeights) -> float:
@@ -582,12 +517,7 @@ def _assess(
             target,
             robot,
             params.rope_model,
-            params.weights,
-            objective=params.objective,
-            backend=params.backend,
-            limits=limits,
-            follow_through=params.follow_through,
-            trust_region=params.trust_region,
+            params.update_settings(limits),
             extra_records=extra_records,
         )
     except RecordError as e:

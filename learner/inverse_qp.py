@@ -43,13 +43,14 @@ Constraints ``l <= A x <= u``, row blocks in order:
     * limit blocks (``pos``, ``vel``, ``acc``, ``tau``): ``lo <= b - J x <= hi`` with ``b`` the
       current value and ``J`` its knot Jacobian, i.e. the limit holds for the *updated* command
       (exactly for pos/vel/acc, which are linear in the knots, to first order for torque).
+      The rows are built, selected and checked in :mod:`learner.limit_rows`.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from types import MappingProxyType
 from typing import TYPE_CHECKING
 
@@ -70,17 +71,14 @@ from flyknot.errors import (
     check_positive,
 )
 from flyknot.geometry import readonly
-from flyknot.limits import JointLimits
-from learner.bezier import sample_command, sample_jacobian
 
 if TYPE_CHECKING:
-    from learner.kinematics import RobotModel
+    from learner.limit_rows import LimitRows
 
 N_VARS = N_ROWS * N_KNOTS  # 80
 FT_DIM = 9  # follow-through error: position (3), rotation log (3), velocity (3)
 BACKENDS = ("osqp", "clarabel")
 BASE_UPDATES = ("constant", "zero")
-LIMIT_KINDS = ("pos", "vel", "acc", "tau")
 ROW_NAMES = (*JOINT_NAMES, "base_x", "base_y", "base_z")
 COLUMNS = tuple(f"{r}[{j}]" for r in ROW_NAMES for j in range(N_KNOTS))
 ARM_COLUMNS = np.arange(N_JOINTS * N_KNOTS)  # the 56 arm-joint knot entries
@@ -183,134 +181,6 @@ class FollowThrough:
         object.__setattr__(self, "e", readonly(e))
         object.__setattr__(self, "J", readonly(J))
         object.__setattr__(self, "is_tc", readonly(is_tc, bool))
-
-
-@dataclass(frozen=True)
-class LimitRows:
-    """Linearised limits ``lo <= b - J dkappa <= hi`` on the updated command.
-
-    Attributes:
-        J: Knot Jacobians of the limited quantities (r, 80).
-        b: Their values at the current knots (r,).
-        lo: Lower bounds (r,) (may be -inf).
-        hi: Upper bounds (r,) (may be +inf).
-        blocks: Named row ranges ``name -> (start, stop)``.
-    """
-
-    J: np.ndarray
-    b: np.ndarray
-    lo: np.ndarray
-    hi: np.ndarray
-    blocks: Mapping[str, tuple[int, int]] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        J = np.asarray(self.J, dtype=float)
-        if J.ndim != 2 or J.shape[1] != N_VARS:
-            raise ConfigError("J", f"must have shape (r, {N_VARS}), got {J.shape}")
-        r = J.shape[0]
-        for name in ("b", "lo", "hi"):
-            a = np.asarray(getattr(self, name), dtype=float)
-            if a.shape != (r,):
-                raise ConfigError(name, f"must have shape ({r},), got {a.shape}")
-            if np.any(np.isnan(a)):
-                raise ConfigError(name, "must not contain NaN")
-            object.__setattr__(self, name, readonly(a))
-        _finite("J", J)
-        _finite("b", self.b)
-        if np.any(self.lo > self.hi):
-            raise ConfigError("lo", "must be <= hi in every row")
-        blocks = dict(self.blocks) if self.blocks else {"limits": (0, r)}
-        for name, (a, z) in blocks.items():
-            if not 0 <= a <= z <= r:
-                raise ConfigError("blocks", f"range {name!r} = ({a}, {z}) outside 0..{r}")
-        object.__setattr__(self, "J", readonly(J))
-        object.__setattr__(self, "blocks", MappingProxyType(blocks))
-
-    @property
-    def n_rows(self) -> int:
-        """Number of limit rows."""
-        return int(self.J.shape[0])
-
-
-def limit_rows(
-    knots: np.ndarray,
-    T: float,
-    t_samples: np.ndarray,
-    robot_model: RobotModel | None,
-    limits: JointLimits | None = None,
-    kinds: Sequence[str] = LIMIT_KINDS,
-) -> LimitRows:
-    """Joint position, velocity, acceleration and torque limits at sample times.
-
-    For sample a and joint j (row ``a * 7 + j`` of each block) with Bezier basis
-    ``B_r(t)`` (8,) of time-derivative order r::
-
-        q^(r)_j(t_a) = B_r(t_a) . kappa[j],   d q^(r)_j(t_a) / d kappa[j, :] = B_r(t_a)
-        tau(t_a) = ID(q, qd, qdd)(t_a)
-        d tau / d kappa = dID/dq S_0 + dID/dqd S_1 + dID/dqdd S_2,   S_r = d q^(r) / d kappa
-
-    Bounds: ``q_min <= q <= q_max``, ``|qd| <= qd_max``, ``|qdd| <= qdd_max``,
-    ``|tau| <= tau_max``.
-
-    Args:
-        knots: Current knots (10, 8) (rows 0-6 [rad], rows 7-9 [m]).
-        T: Command duration [s].
-        t_samples: Sample times (m,) [s] in [0, T].
-        robot_model: Inverse dynamics for the torque rows; None leaves torque out.
-        limits: Bounds (default: the paper's).
-        kinds: Which blocks to build, a subset of ("pos", "vel", "acc", "tau").
-
-    Returns:
-        The stacked rows: J (r, 80), b (r,), lo, hi, with blocks named by ``kinds``.
-    """
-    limits = JointLimits() if limits is None else limits
-    kinds = list(kinds)
-    for k in kinds:
-        check_choice("kinds", k, LIMIT_KINDS)
-    if "tau" in kinds and robot_model is None:
-        raise ConfigError("robot_model", "is needed for torque limits (kind 'tau')")
-    t = np.asarray(t_samples, dtype=float)
-    derivs = {r: sample_command(knots, T, t, r)[:, :N_JOINTS] for r in (0, 1, 2)}  # (m, 7)
-    jacs = {r: sample_jacobian(t, T, r) for r in (0, 1, 2)}  # (m * 7, 80)
-    m = derivs[0].shape[0]
-    bounds = {
-        "pos": (limits.q_min, limits.q_max),
-        "vel": (-limits.qd_max, limits.qd_max),
-        "acc": (-limits.qdd_max, limits.qdd_max),
-        "tau": (-limits.tau_max, limits.tau_max),
-    }
-    Js, bs, los, his, blocks = [], [], [], [], {}
-    start = 0
-    for kind in kinds:
-        if kind == "tau":
-            q, qd, qdd = derivs[0], derivs[1], derivs[2]
-            b = robot_model.torques(q, qd, qdd)  # type: ignore[union-attr]
-            dq, dqd, dqdd = robot_model.torque_jacobians(q, qd, qdd)  # type: ignore[union-attr]
-            S = [jacs[r].reshape(m, N_JOINTS, N_VARS) for r in (0, 1, 2)]
-            J = (
-                np.einsum("aij,ajc->aic", dq, S[0])
-                + np.einsum("aij,ajc->aic", dqd, S[1])
-                + np.einsum("aij,ajc->aic", dqdd, S[2])
-            ).reshape(m * N_JOINTS, N_VARS)
-        else:
-            r = LIMIT_KINDS.index(kind)
-            b, J = derivs[r], jacs[r]
-        lo, hi = bounds[kind]
-        Js.append(J)
-        bs.append(np.asarray(b).ravel())
-        los.append(np.tile(lo, m))
-        his.append(np.tile(hi, m))
-        blocks[kind] = (start, start + m * N_JOINTS)
-        start += m * N_JOINTS
-    if not Js:
-        raise ConfigError("kinds", "must name at least one limit", LIMIT_KINDS)
-    return LimitRows(
-        J=np.vstack(Js),
-        b=np.concatenate(bs),
-        lo=np.concatenate(los),
-        hi=np.concatenate(his),
-        blocks=blocks,
-    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -684,16 +554,12 @@ __all__ = [
     "BACKENDS",
     "BASE_UPDATES",
     "COLUMNS",
-    "LIMIT_KINDS",
     "FollowThrough",
     "InverseModelWeights",
-    "JointLimits",
-    "LimitRows",
     "QPData",
     "QPResult",
     "base_equality_rows",
     "build_inverse_qp",
-    "limit_rows",
     "require_solved",
     "rest_equality_rows",
     "solve_qp",

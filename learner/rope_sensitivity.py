@@ -16,6 +16,10 @@ dz~/du~ = -(df~/dz~)^-1 df~/du~ over the whole horizon. dR/dz' is the KKT matrix
     dR1s/dp_tip' += (mu'_0 / l) I on point 1,  dR2s_0/dp_tip' = -(p'_1 - p_tip')^T / l,
 
 with A = (p_tip - l d_tip, p_tip), kappa = k dt^2 / l^2, beta = b dt / l^2 (all kron I3).
+
+The chain starts from dx_0: the rope at rest in its hanging equilibrium, whose derivative with
+respect to the first fingertip pose is :func:`hanging_sensitivity` (the same theorem on the
+static equilibrium).
 """
 
 from __future__ import annotations
@@ -190,3 +194,91 @@ def fd_sensitivity(
             xs.append(tr.x[steps])
         out[:, :, j] = (xs[0] - xs[1]) / (2.0 * eps)
     return out
+
+
+# --------------------------------------------------------------------------------------------
+# the initial hanging state
+# --------------------------------------------------------------------------------------------
+
+
+def _static_multipliers(
+    p: np.ndarray, p_tip: np.ndarray, d_tip: np.ndarray, params: RopeModelParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Multipliers of the static equilibrium and the pieces of its residual.
+
+    F(p, lam; u) = -(k / l^2) Df^T (Din A + Df p) + M g_vec + G(p, p_tip)^T lam = 0, with
+    (G^T lam)_i = 2 lam_i d_i - 2 lam_{i+1} d_{i+1}, d_i = p_i - p_{i-1} (p_0 := p_tip).
+    lam is the least-squares solution of F = 0 (exact at the equilibrium).
+
+    Returns:
+        lam (N,) [N/m], G^T as a (3N, N) matrix [m], d (N, 3) link vectors [m].
+    """
+    ops = _ops(params)
+    n, ell = params.n_links, params.link_length
+    A = np.stack([p_tip - ell * d_tip, p_tip])
+    e = ops.Din @ A + ops.Df @ p
+    gvec = np.array([0.0, 0.0, -params.gravity])
+    c = -(params.stiffness / ell**2) * (ops.Df.T @ e) + ops.m[:, None] * gvec  # (N, 3)
+    d = link_vectors(p, p_tip)
+    GT = np.zeros((3 * n, n))
+    for i in range(n):
+        GT[3 * i : 3 * i + 3, i] = 2.0 * d[i]
+        if i > 0:
+            GT[3 * (i - 1) : 3 * i, i] = -2.0 * d[i]
+    lam, *_ = np.linalg.lstsq(GT, -c.ravel(), rcond=None)
+    return lam, GT, d
+
+
+def hanging_sensitivity(
+    p: np.ndarray, p_tip: np.ndarray, d_tip: np.ndarray, params: RopeModelParams
+) -> np.ndarray:
+    """Derivative of the hanging equilibrium with respect to the fingertip pose.
+
+    The equilibrium (p, lam) solves F(p, lam; u) = 0, g(p, p_tip) = 0 with u = (p_tip, d_tip),
+    F as in :func:`_static_multipliers` and g_i = |d_i|^2 - l^2. The implicit function theorem:
+
+        [dF/dp  G^T] [dp  ]     [dF/du]
+        [G      0  ] [dlam] = - [dg/du] du,
+
+        dF/dp = -(k / l^2) kron(Df^T Df, I3) + kron(L(2 lam), I3)
+        dF/dp_tip = -(k / l^2) kron(Df^T Din 1, I3) - 2 lam_1 E_1,
+        dF/dd_tip = (k / l) kron(Df^T Din e_1, I3),   dg_1/dp_tip = -2 d_1^T,
+
+    with L(w) the Laplacian of the links weighted by w (the tip link only on the diagonal) and
+    E_1 selecting point 1. Because the model is translation invariant, dp_i/dp_tip = I_3.
+
+    Args:
+        p: Equilibrium positions, shape (N, 3) [m] (from
+            :func:`learner.system_model.initial_state`).
+        p_tip: Fingertip, shape (3,) [m].
+        d_tip: Tube direction, shape (3,) (unit).
+        params: Rope model parameters.
+
+    Returns:
+        dp / du, shape (3N, 6): columns 0-2 per metre of p_tip, 3-5 per unit of d_tip.
+    """
+    p = np.asarray(p, dtype=float)
+    p_tip = np.asarray(p_tip, dtype=float)
+    d_tip = np.asarray(d_tip, dtype=float)
+    ops = _ops(params)
+    n, ell = params.n_links, params.link_length
+    kl2 = params.stiffness / ell**2
+    lam, GT, d = _static_multipliers(p, p_tip, d_tip, params)
+    w = 2.0 * lam
+    L = np.diag(w.copy())
+    L[np.arange(n - 1), np.arange(n - 1)] += w[1:]
+    L[np.arange(1, n), np.arange(n - 1)] -= w[1:]
+    L[np.arange(n - 1), np.arange(1, n)] -= w[1:]
+    eye3 = np.eye(3)
+    Fp = np.kron(-kl2 * ops.DtD + L, eye3)
+    kkt = np.zeros((4 * n, 4 * n))
+    kkt[: 3 * n, : 3 * n] = Fp
+    kkt[: 3 * n, 3 * n :] = GT
+    kkt[3 * n :, : 3 * n] = GT.T
+    rhs = np.zeros((4 * n, 6))
+    # Bending: dA = (dp_tip - l dd, dp_tip); dF = -(k / l^2) DtDin dA.
+    rhs[: 3 * n, :3] = np.kron(-kl2 * (ops.DtDin[:, :1] + ops.DtDin[:, 1:]), eye3)
+    rhs[: 3 * n, 3:] = np.kron(kl2 * ell * ops.DtDin[:, :1], eye3)
+    rhs[:3, :3] -= w[0] * eye3
+    rhs[3 * n, :3] = -2.0 * d[0]
+    return -np.linalg.solve(kkt, rhs)[: 3 * n]

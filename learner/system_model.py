@@ -27,9 +27,9 @@ These input derivatives dU (K+1, 6, 80) are chained through the rope model by th
 function theorem (:func:`learner.rope_sensitivity.state_sensitivity`). The initial state also
 moves with the command: the rope starts at rest in the hanging equilibrium of the first
 fingertip pose, so dx_0/dkappa = [dp_0/du_0 dU_0; 0] with dp_0/du_0 from the implicit function
-theorem on the static equilibrium (:func:`hanging_sensitivity`). For a rope hanging straight
-down this is exactly "every point shifts with the tip" (dp_i/dp_tip = I; the model is
-translation invariant) plus the rope's response to tilting the tube.
+theorem on the static equilibrium (:func:`learner.rope_sensitivity.hanging_sensitivity`). For a
+rope hanging straight down this is exactly "every point shifts with the tip" (dp_i/dp_tip = I;
+the model is translation invariant) plus the rope's response to tilting the tube.
 
 Everything here returns plain derivatives with respect to the knots, flattened row-major
 (knot (row r, j) at column 8 r + j), the convention of :mod:`learner.inverse_qp`.
@@ -63,12 +63,10 @@ from learner.rope_model import (
     NEWTON_TOL,
     RopeModelParams,
     RopeTrajectory,
-    _ops,
     hanging_state,
-    link_vectors,
     rollout,
 )
-from learner.rope_sensitivity import check_steps, state_sensitivity
+from learner.rope_sensitivity import check_steps, hanging_sensitivity, state_sensitivity
 
 N_VARS = N_ROWS * N_KNOTS  # 80
 INTERPOLATIONS = ("cubic", "linear")
@@ -152,88 +150,6 @@ def initial_state(
         (p_0 (N, 3) [m], v_0 = 0 (N, 3) [m/s]), converged to :data:`HANG_TOL`.
     """
     return hanging_state(p_tip0, d_tip0, params, tol=HANG_TOL)
-
-
-def _static_multipliers(
-    p: np.ndarray, p_tip: np.ndarray, d_tip: np.ndarray, params: RopeModelParams
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Multipliers of the static equilibrium and the pieces of its residual.
-
-    F(p, lam; u) = -(k / l^2) Df^T (Din A + Df p) + M g_vec + G(p, p_tip)^T lam = 0, with
-    (G^T lam)_i = 2 lam_i d_i - 2 lam_{i+1} d_{i+1}, d_i = p_i - p_{i-1} (p_0 := p_tip).
-    lam is the least-squares solution of F = 0 (exact at the equilibrium).
-
-    Returns:
-        lam (N,) [N/m], G^T as a (3N, N) matrix [m], d (N, 3) link vectors [m].
-    """
-    ops = _ops(params)
-    n, ell = params.n_links, params.link_length
-    A = np.stack([p_tip - ell * d_tip, p_tip])
-    e = ops.Din @ A + ops.Df @ p
-    gvec = np.array([0.0, 0.0, -params.gravity])
-    c = -(params.stiffness / ell**2) * (ops.Df.T @ e) + ops.m[:, None] * gvec  # (N, 3)
-    d = link_vectors(p, p_tip)
-    GT = np.zeros((3 * n, n))
-    for i in range(n):
-        GT[3 * i : 3 * i + 3, i] = 2.0 * d[i]
-        if i > 0:
-            GT[3 * (i - 1) : 3 * i, i] = -2.0 * d[i]
-    lam, *_ = np.linalg.lstsq(GT, -c.ravel(), rcond=None)
-    return lam, GT, d
-
-
-def hanging_sensitivity(
-    p: np.ndarray, p_tip: np.ndarray, d_tip: np.ndarray, params: RopeModelParams
-) -> np.ndarray:
-    """Derivative of the hanging equilibrium with respect to the fingertip pose.
-
-    The equilibrium (p, lam) solves F(p, lam; u) = 0, g(p, p_tip) = 0 with u = (p_tip, d_tip),
-    F as in :func:`_static_multipliers` and g_i = |d_i|^2 - l^2. The implicit function theorem:
-
-        [dF/dp  G^T] [dp  ]     [dF/du]
-        [G      0  ] [dlam] = - [dg/du] du,
-
-        dF/dp = -(k / l^2) kron(Df^T Df, I3) + kron(L(2 lam), I3)
-        dF/dp_tip = -(k / l^2) kron(Df^T Din 1, I3) - 2 lam_1 E_1,
-        dF/dd_tip = (k / l) kron(Df^T Din e_1, I3),   dg_1/dp_tip = -2 d_1^T,
-
-    with L(w) the Laplacian of the links weighted by w (the tip link only on the diagonal) and
-    E_1 selecting point 1. Because the model is translation invariant, dp_i/dp_tip = I_3.
-
-    Args:
-        p: Equilibrium positions, shape (N, 3) [m] (from :func:`initial_state`).
-        p_tip: Fingertip, shape (3,) [m].
-        d_tip: Tube direction, shape (3,) (unit).
-        params: Rope model parameters.
-
-    Returns:
-        dp / du, shape (3N, 6): columns 0-2 per metre of p_tip, 3-5 per unit of d_tip.
-    """
-    p = np.asarray(p, dtype=float)
-    p_tip = np.asarray(p_tip, dtype=float)
-    d_tip = np.asarray(d_tip, dtype=float)
-    ops = _ops(params)
-    n, ell = params.n_links, params.link_length
-    kl2 = params.stiffness / ell**2
-    lam, GT, d = _static_multipliers(p, p_tip, d_tip, params)
-    w = 2.0 * lam
-    L = np.diag(w.copy())
-    L[np.arange(n - 1), np.arange(n - 1)] += w[1:]
-    L[np.arange(1, n), np.arange(n - 1)] -= w[1:]
-    L[np.arange(n - 1), np.arange(1, n)] -= w[1:]
-    eye3 = np.eye(3)
-    Fp = np.kron(-kl2 * ops.DtD + L, eye3)
-    kkt = np.zeros((4 * n, 4 * n))
-    kkt[: 3 * n, : 3 * n] = Fp
-    kkt[: 3 * n, 3 * n :] = GT
-    kkt[3 * n :, : 3 * n] = GT.T
-    rhs = np.zeros((4 * n, 6))
-    # Bending: dA = (dp_tip - l dd, dp_tip); dF = -(k / l^2) DtDin dA.
-    rhs[: 3 * n, :3] = np.kron(-kl2 * (ops.DtDin[:, :1] + ops.DtDin[:, 1:]), eye3)
-    rhs[: 3 * n, 3:] = np.kron(kl2 * ell * ops.DtDin[:, :1], eye3)
-    rhs[:3, :3] -= w[0] * eye3
-    rhs[3 * n, :3] = -2.0 * d[0]
-    return -np.linalg.solve(kkt, rhs)[: 3 * n]
 
 
 # --------------------------------------------------------------------------------------------
@@ -499,9 +415,9 @@ def input_jacobian(rollout_: ModelRollout, T: float, upto: int | None = None) ->
 def linearise(rollout: ModelRollout, T: float, steps: Iterable[int]) -> np.ndarray:
     """M(t_k) = dx(t_k)/dkappa at the given model steps (paper eq. dyn).
 
-    dx_0 = [dp_0/du_0 dU_0; 0] (:func:`hanging_sensitivity`), then per step the implicit
-    function theorem on the rope step (:func:`learner.rope_sensitivity.state_sensitivity`)
-    with dU from :func:`input_jacobian`.
+    dx_0 = [dp_0/du_0 dU_0; 0] (:func:`learner.rope_sensitivity.hanging_sensitivity`), then per
+    step the implicit function theorem on the rope step
+    (:func:`learner.rope_sensitivity.state_sensitivity`) with dU from :func:`input_jacobian`.
 
     Args:
         rollout: The linearisation point (:func:`rollout_from_joints` or
@@ -627,7 +543,6 @@ __all__ = [
     "INTERPOLATIONS",
     "ModelRollout",
     "critical_step",
-    "hanging_sensitivity",
     "initial_state",
     "input_jacobian",
     "linearise",

@@ -21,7 +21,8 @@ from flyknot_sim.aero import (
     rope_drag_forces,
     sphere_cd,
 )
-from flyknot_sim.rope import add_rope, configure_options, get_rope
+from flyknot_sim.rope import add_rope, configure_options
+from flyknot_sim.rope_table import get_rope
 
 
 def test_cd_curves_at_known_points():

@@ -1,4 +1,4 @@
-"""Failure anatomy (flyknot_app.anatomy): labels on constructed records, a real trial, files, CLI.
+"""Failure anatomy (flyknot_app.anatomy, _trials, _report): labels, a real trial, files, CLI.
 
 Constructed records carry a truth centreline history written as a string, one character per
 10 ms frame: ``l`` a straight hanging rope (unknot), ``T`` the hanging overhand knot of
@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import flyknot_app.anatomy as an
+import flyknot_app.anatomy_report as ar
 from flyknot.errors import ConfigError, RecordError
 from flyknot.knot import load_centreline
 from flyknot.record import TrialRecord
@@ -276,7 +277,7 @@ def test_real_sim_trial(tmp_path):
     command = BezierCommand(z["knots"], float(z["T"])).joint_command()
     rec = SimLab(LabParams(rope=1, seed=0, settle_s=0.3)).run(command)
     rec.save(tmp_path / "trial")
-    anatomy = an.explain_directory(tmp_path, t_c=0.65)
+    anatomy = ar.explain_directory(tmp_path, t_c=0.65)
     (d,) = anatomy.diagnoses
     assert d.name == "trial" and d.group == "rope 1" and d.t_c == 0.65
     assert (d.label == an.SUCCESS) == rec.succeeded
@@ -289,7 +290,7 @@ def test_real_sim_trial(tmp_path):
         assert d.outcome in (an.NOT_THROUGH, an.SLIPPED_OUT, an.SHAKEN_LOOSE, an.OTHER_KNOT)
     # Without truth the same record still gets a label; only history-based ones degrade.
     (tmp_path / "trial.truth.npz").unlink()
-    (bare,) = an.explain_directory(tmp_path, t_c=0.65).diagnoses
+    (bare,) = ar.explain_directory(tmp_path, t_c=0.65).diagnoses
     if d.outcome in (an.SUCCESS, an.FAULTED, an.NO_CONTACT, an.OTHER_KNOT):
         assert bare.label == d.label
     else:
@@ -352,7 +353,7 @@ def test_replay_directory(tmp_path):
     write_replay(out / "replay_001.npz", "l" * 30, contact=None, outcome="unknot", source=str(demo))
     # First contact 0.05 s: markers lost at 0.07 s, before the demonstration's t_c 0.2 s.
     write_replay(out / "replay_002.npz", "l" * 30, contact=0.05, outcome="unknot", source=str(demo))
-    anatomy = an.explain_directory(out)
+    anatomy = ar.explain_directory(out)
     labels = [(d.name, d.label, d.outcome) for d in anatomy.diagnoses]
     assert labels == [
         ("replay_000", an.SUCCESS, an.SUCCESS),
@@ -393,7 +394,7 @@ def test_run_directory_groups_by_run(tmp_path):
     (root / "runs" / "rope2" / "result.json").unlink()
     summary = {"runs": [{"name": "rope1", "t_c": 0.5}, {"name": "rope2", "t_c": 0.25}]}
     (root / "summary.json").write_text(json.dumps(summary))
-    anatomy = an.explain_directory(root)
+    anatomy = ar.explain_directory(root)
     assert anatomy.groups() == ("rope1", "rope2")
     assert [d.label for d in anatomy.diagnoses] == [
         an.SUCCESS,
@@ -404,7 +405,7 @@ def test_run_directory_groups_by_run(tmp_path):
     assert [d.t_c for d in anatomy.diagnoses] == [0.15, 0.15, 0.25, 0.25]
     assert anatomy.t_c_sources == ("rope1: 0.150 s", "rope2: 0.250 s")
     # A run's own learning folder finds the run's result.json one level up.
-    (d,) = an.explain_directory(root / "runs" / "rope1" / "learning").diagnoses[1:]
+    (d,) = ar.explain_directory(root / "runs" / "rope1" / "learning").diagnoses[1:]
     assert (d.t_c, d.group) == (0.15, "rope 1")
     assert anatomy.counts("rope2")[an.FAULTED] == 1
     with pytest.raises(
@@ -416,17 +417,17 @@ def test_run_directory_groups_by_run(tmp_path):
 def test_bad_directories_name_the_path(tmp_path):
     missing = tmp_path / "missing"
     with pytest.raises(ConfigError) as e:
-        an.explain_directory(missing)
+        ar.explain_directory(missing)
     assert str(e.value) == f"directory: {str(missing)!r} does not exist"
     a_file = tmp_path / "f.txt"
     a_file.write_text("x")
     with pytest.raises(ConfigError) as e:
-        an.explain_directory(a_file)
+        ar.explain_directory(a_file)
     assert str(e.value) == f"directory: {str(a_file)!r} is not a directory"
     empty = tmp_path / "empty"
     empty.mkdir()
     with pytest.raises(ConfigError) as e:
-        an.explain_directory(empty)
+        ar.explain_directory(empty)
     assert str(e.value) == (
         f"directory: {str(empty)!r} holds no trial records (<stem>.json with <stem>.npz) "
         "and no replay files (replay_*.npz)"
@@ -437,13 +438,13 @@ def test_malformed_files_name_the_file(tmp_path):
     bad = tmp_path / "replay_000.npz"
     np.savez(bad, t=np.zeros(3), meta=np.array("{}"))
     with pytest.raises(RecordError) as e:
-        an.explain_directory(tmp_path)
+        ar.explain_directory(tmp_path)
     assert str(e.value) == f"replay file {str(bad)!r} lacks arrays: markers"
     bad.unlink()
     (tmp_path / "trial.npz").write_bytes(b"")
     (tmp_path / "trial.json").write_text("{not json")
     with pytest.raises(RecordError, match=r"^trial record '.*trial.json' is not readable: "):
-        an.explain_directory(tmp_path)
+        ar.explain_directory(tmp_path)
 
 
 # ------------------------------------------------------------------------------------------
@@ -483,10 +484,10 @@ def test_cli_explain_prints_the_table_and_writes_the_figure(tmp_path, capsys):
 
 
 def test_format_table_lists_trials_on_request(tmp_path):
-    anatomy = an.explain_directory(run_directory(tmp_path))
-    text = an.format_table(anatomy, trials=True)
+    anatomy = ar.explain_directory(run_directory(tmp_path))
+    text = ar.format_table(anatomy, trials=True)
     assert "runs/rope2/learning/trial_0001_a0  faulted       fault: joint 4 torque limit" in text
-    assert "trials:" not in an.format_table(anatomy)
+    assert "trials:" not in ar.format_table(anatomy)
 
 
 def test_cli_explain_errors_are_one_line(tmp_path, capsys):
@@ -530,7 +531,7 @@ def test_report_has_an_anatomy_section(tmp_path):
 
 
 def test_report_section_without_trials_says_why(tmp_path):
-    lines = an.report_section(tmp_path)
+    lines = ar.report_section(tmp_path)
     assert lines[0] == "## Failure anatomy"
     assert lines[2].startswith("Not available: directory: ")
     assert not (tmp_path / "anatomy.png").exists()

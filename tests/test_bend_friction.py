@@ -19,7 +19,8 @@ from flyknot_sim.bend_friction import (
     bend_rates,
     rope_bend_friction_forces,
 )
-from flyknot_sim.rope import add_rope, configure_options, get_rope
+from flyknot_sim.rope import add_rope, configure_options
+from flyknot_sim.rope_table import get_rope
 
 N = 10
 L = 0.04

@@ -10,10 +10,11 @@ import pytest
 
 from flyknot.errors import ConfigError
 from learner.bezier import BezierCommand
-from learner.ilc import ILCParams, RunDirectory, learn
+from learner.ilc import ILCParams, learn
 from learner.kinematics import RobotModel
+from learner.run_directory import RunDirectory
 from learner.system_model import model_demonstration
-from learner.update import DemoTarget
+from learner.target import DemoTarget
 from tests.test_ilc import ROPE, T_C, ModelCell, T, _knots
 
 

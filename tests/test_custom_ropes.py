@@ -16,15 +16,14 @@ from flyknot_app.scenario import RunSpec, load_scenario, parse_rope_arg, parse_s
 from flyknot_sim.aero import AeroParams, rope_drag_forces
 from flyknot_sim.commands import swing_command
 from flyknot_sim.lab import LabParams, SimLab
-from flyknot_sim.rope import (
+from flyknot_sim.rope_custom import (
     CUSTOM_KEYS,
-    get_rope,
     load_custom_ropes,
-    load_rope_table,
     parse_custom_ropes,
     resolve_rope,
     rope_record,
 )
+from flyknot_sim.rope_table import get_rope, load_rope_table
 
 ROPES = """
 [[rope]]
@@ -240,7 +239,8 @@ def test_cd_changes_the_drag_force(ropes_file):
 
 
 def test_hand_lab_takes_a_custom_rope_and_its_cd(ropes_file):
-    from flyknot_sim.hand import HandLab, HandParams
+    from flyknot_sim.hand import HandLab
+    from flyknot_sim.hand_params import HandParams
 
     hand = HandParams(rope="heavy chain", ropes=str(ropes_file))
     assert hand.rope_params.segments == 26
@@ -335,11 +335,13 @@ def test_demo_replay_on_a_custom_rope(ropes_file, tmp_path, capsys):
         assert z["centreline"].shape[1:] == (31, 3)
     assert meta["rope"] == "my cord" and meta["metadata"]["rope_params"]["cd"] == 1.5
     # making a demonstration needs one of the paper's ropes (Demonstration.rope is an id)
-    from flyknot_sim.hand import HandParams
-    from flyknot_tools import demo_synth as ds
+    from flyknot.demo import Demonstration
+    from flyknot_sim.hand_params import HandParams
+    from flyknot_sim.hand_replay import motion_from_demo
+    from flyknot_tools.hand_demos.synthesis import make_demonstration
 
-    motion = ds.motion_from_demo(ds.Demonstration.load(DEMOS_DIR / "fast.npz"))
+    motion = motion_from_demo(Demonstration.load(DEMOS_DIR / "fast.npz"))
     with pytest.raises(ConfigError, match=r"^rope: a demonstration records one of the paper"):
-        ds.make_demonstration(
+        make_demonstration(
             motion, variant="fast", seed=0, hand=HandParams(rope="my cord", ropes=str(ropes_file))
         )

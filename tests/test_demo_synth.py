@@ -1,5 +1,7 @@
-"""Tests of the hand lab, the flying-knot motion family, its score and search, and the
-``flyknot demo`` commands (flyknot_sim.hand, flyknot_tools.demo_synth, flyknot_app.demo_cli)."""
+"""Tests of the hand lab, the flying-knot motion family and its replay, the demonstration
+search (score, variants, search, synthesis) and the ``flyknot demo replay`` and
+``flyknot-tools demo synthesize`` commands (flyknot_sim.hand*, flyknot_tools.hand_demos,
+flyknot_app.demo_cli, flyknot_tools.cli)."""
 
 from __future__ import annotations
 
@@ -18,30 +20,60 @@ from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, RecordError
 from flyknot_app import demo_cli
 from flyknot_sim.aero import AeroParams
-from flyknot_sim.hand import (
-    HandLab,
-    HandParams,
-    HandVariation,
-    hand_rotation,
-    judged_frames,
-    trial_demonstration,
+from flyknot_sim.hand import HandLab, judged_frames, trial_demonstration
+from flyknot_sim.hand_motion import BLEND, N_PARAMS, KnotMotion, bernstein, windup_warp
+from flyknot_sim.hand_params import HandParams, HandVariation, hand_rotation
+from flyknot_sim.hand_replay import (
+    REPLAY_GENERATOR,
+    hand_from_demo,
+    motion_from_demo,
+    replay,
 )
 from flyknot_sim.mocap import MocapParams
-from flyknot_sim.rope import get_rope, load_sim_settings
-from flyknot_tools import demo_synth as ds
+from flyknot_sim.rope_table import get_rope, load_sim_settings
+from flyknot_tools import cli as tools_cli
+from flyknot_tools.hand_demos.reference import (
+    REFERENCE_MOTION,
+    angles_from_quat,
+    fit_motion,
+    load_reference_motion,
+)
+from flyknot_tools.hand_demos.score import (
+    EXCURSION_LIMIT,
+    SPEED_LIMIT,
+    ScoreWeights,
+    TrialSummary,
+    score,
+    writhe,
+)
+from flyknot_tools.hand_demos.search import SearchConfig, motion_summary, search, within_limits
+from flyknot_tools.hand_demos.synthesis import (
+    GENERATOR,
+    GENERATOR_VERSION,
+    LEGACY_GENERATORS,
+    pace_metadata,
+    rope_metadata,
+)
+from flyknot_tools.hand_demos.variants import (
+    ANGLE_BOUND,
+    PACE_WEIGHT,
+    VARIANTS,
+    VIA_BOUND,
+    Variant,
+    get_variant,
+    param_bounds,
+)
 
 SHIPPED = ("fast", "slow", "swipe", "inverse")
-FAST = ds.VARIANTS["fast"]
+FAST = VARIANTS["fast"]
 
 
-def _motion_from_unit(u: np.ndarray, variant: ds.Variant = FAST) -> ds.KnotMotion:
-    lo, hi = ds.param_bounds(variant)
-    return ds.KnotMotion(lo + (hi - lo) * np.asarray(u))
+def _motion_from_unit(u: np.ndarray, variant: Variant = FAST) -> KnotMotion:
+    lo, hi = param_bounds(variant)
+    return KnotMotion(lo + (hi - lo) * np.asarray(u))
 
 
-unit_params = st.lists(
-    st.floats(0.0, 1.0, allow_nan=False), min_size=ds.N_PARAMS, max_size=ds.N_PARAMS
-)
+unit_params = st.lists(st.floats(0.0, 1.0, allow_nan=False), min_size=N_PARAMS, max_size=N_PARAMS)
 
 
 # ----------------------------------------------------------------------------------------
@@ -50,37 +82,37 @@ unit_params = st.lists(
 def test_bernstein_partition_of_unity_and_derivatives_match_finite_differences():
     s = np.linspace(0.05, 0.95, 13)
     h = 1e-6
-    b0 = ds.bernstein(s)
+    b0 = bernstein(s)
     np.testing.assert_allclose(b0.sum(axis=1), 1.0, atol=1e-12)
     for order in (1, 2):
-        fd = (ds.bernstein(s + h, order=order - 1) - ds.bernstein(s - h, order=order - 1)) / (2 * h)
-        np.testing.assert_allclose(ds.bernstein(s, order=order), fd, atol=1e-5 * 8**order)
+        fd = (bernstein(s + h, order=order - 1) - bernstein(s - h, order=order - 1)) / (2 * h)
+        np.testing.assert_allclose(bernstein(s, order=order), fd, atol=1e-5 * 8**order)
     with pytest.raises(ConfigError, match=r"^order: must lie in 0\.\.8, got 9$"):
-        ds.bernstein(s, order=9)
+        bernstein(s, order=9)
 
 
 @pytest.mark.parametrize("p, r", [(0.0, 1.0), (0.3, 0.3), (0.05, 0.2), (0.5, 0.1), (0.45, 1.0)])
 def test_windup_warp_is_monotone_with_exact_ends_and_derivatives(p, r):
     u = np.linspace(0.0, 1.0, 2001)
-    s0, s1, s2 = (ds.windup_warp(u, p, r, k) for k in range(3))
+    s0, s1, s2 = (windup_warp(u, p, r, k) for k in range(3))
     assert s0[0] == 0.0 and s0[-1] == pytest.approx(1.0, abs=1e-12)
     assert np.all(np.diff(s0) > 0) and s1.min() > 0
     assert s2[0] == 0.0 and s2[-1] == 0.0
     h = 1e-6
     # away from the kinks of s'' (the ends of the speed change) central differences are exact
     # to O(h^2)
-    d = min(ds.BLEND, p, 1 - p)
+    d = min(BLEND, p, 1 - p)
     uu = u[(np.abs(u - (p - d)) > 1e-3) & (np.abs(u - (p + d)) > 1e-3) & (u > h) & (u < 1 - h)]
-    fd1 = (ds.windup_warp(uu + h, p, r) - ds.windup_warp(uu - h, p, r)) / (2 * h)
-    fd2 = (ds.windup_warp(uu + h, p, r, 1) - ds.windup_warp(uu - h, p, r, 1)) / (2 * h)
-    np.testing.assert_allclose(ds.windup_warp(uu, p, r, 1), fd1, atol=1e-6)
-    np.testing.assert_allclose(ds.windup_warp(uu, p, r, 2), fd2, atol=1e-5)
+    fd1 = (windup_warp(uu + h, p, r) - windup_warp(uu - h, p, r)) / (2 * h)
+    fd2 = (windup_warp(uu + h, p, r, 1) - windup_warp(uu - h, p, r, 1)) / (2 * h)
+    np.testing.assert_allclose(windup_warp(uu, p, r, 1), fd1, atol=1e-6)
+    np.testing.assert_allclose(windup_warp(uu, p, r, 2), fd2, atol=1e-5)
     if p == 0.0 or r == 1.0:
         np.testing.assert_allclose(s0, u, atol=1e-15)
 
 
 def test_motion_curve_derivatives_match_finite_differences():
-    m = ds.load_reference_motion().with_windup(0.95, 0.2)
+    m = load_reference_motion().with_windup(0.95, 0.2)
     t = np.linspace(0.01, m.duration - 0.01, 157)
     h = 1e-6
     for order in (1, 2):
@@ -104,32 +136,32 @@ def test_every_motion_starts_and_ends_at_rest_and_keeps_its_bounds(u):
     np.testing.assert_array_equal(qd_out, 0.0)
     # Bezier curves stay in the convex hull of their control points
     y = m.curves(np.linspace(0.0, m.duration, 301))
-    assert np.abs(y[:, 3:]).max() <= ds.ANGLE_BOUND + 1e-12
-    assert np.abs(y[:, :3]).max() <= ds.VIA_BOUND + 1e-12
+    assert np.abs(y[:, 3:]).max() <= ANGLE_BOUND + 1e-12
+    assert np.abs(y[:, :3]).max() <= VIA_BOUND + 1e-12
     assert q[1, 5] == 0.0  # no turn about z
 
 
 def test_motion_validation_messages():
-    x = ds.load_reference_motion().x.copy()
+    x = load_reference_motion().x.copy()
     with pytest.raises(ConfigError, match=r"^KnotMotion\.x: must hold 23 numbers, got 22$"):
-        ds.KnotMotion(x[:-1])
+        KnotMotion(x[:-1])
     bad = x.copy()
     bad[0] = 0.05
     with pytest.raises(ConfigError, match=r"^KnotMotion\.T: must lie in \[0\.1, 5\] s"):
-        ds.KnotMotion(bad)
+        KnotMotion(bad)
     bad = x.copy()
     bad[1] = 0.7
     with pytest.raises(ConfigError, match=r"^KnotMotion\.p: must lie in \[0, 0\.6\], got 0\.7$"):
-        ds.KnotMotion(bad)
+        KnotMotion(bad)
     with pytest.raises(RecordError, match=r"^motion parameters lack T, p$"):
-        ds.KnotMotion.from_dict(
-            {k: v for k, v in ds.load_reference_motion().to_dict().items() if k not in ("T", "p")}
+        KnotMotion.from_dict(
+            {k: v for k, v in load_reference_motion().to_dict().items() if k not in ("T", "p")}
         )
 
 
 def test_to_dict_round_trip_and_mirror_image():
-    m = ds.load_reference_motion()
-    back = ds.KnotMotion.from_dict(json.loads(json.dumps(m.to_dict())))
+    m = load_reference_motion()
+    back = KnotMotion.from_dict(json.loads(json.dumps(m.to_dict())))
     np.testing.assert_array_equal(back.x, m.x)
     mm = m.mirrored()
     np.testing.assert_array_equal(mm.mirrored().x, m.x)
@@ -143,17 +175,17 @@ def test_to_dict_round_trip_and_mirror_image():
 
 
 def test_fit_recovers_a_family_member_and_the_reference_fits_closely():
-    m = ds.load_reference_motion()
+    m = load_reference_motion()
     t = np.arange(0, 1.0, 0.005)
     y = m.curves(t - 0.05)
     from scipy.spatial.transform import Rotation
 
     quat = Rotation.from_matrix(hand_rotation(y[:, 4], y[:, 3])).as_quat(scalar_first=True)
-    fit, t0, err = ds.fit_motion(t, y[:, :3], quat, durations=[m.duration], starts=[0.05])
+    fit, t0, err = fit_motion(t, y[:, :3], quat, durations=[m.duration], starts=[0.05])
     assert t0 == 0.05 and err < 1e-9
     np.testing.assert_allclose(fit.x, m.x, atol=1e-7)
-    a = np.loadtxt(ds.REFERENCE_MOTION, delimiter=",", comments="#", skiprows=2)
-    _, _, err_ref = ds.fit_motion(a[:, 0], a[:, 1:4], a[:, 4:8], durations=[m.duration])
+    a = np.loadtxt(REFERENCE_MOTION, delimiter=",", comments="#", skiprows=2)
+    _, _, err_ref = fit_motion(a[:, 0], a[:, 1:4], a[:, 4:8], durations=[m.duration])
     assert err_ref < 0.005  # the study's motion is a member up to rounding (0.4 mm, 0.2 deg)
 
 
@@ -163,7 +195,7 @@ def test_angles_from_quat_inverts_the_hinge_chain(a, b):
     from scipy.spatial.transform import Rotation
 
     q = Rotation.from_matrix(hand_rotation(np.array([b]), np.array([a]))).as_quat(scalar_first=True)
-    a2, b2, res = ds.angles_from_quat(q)
+    a2, b2, res = angles_from_quat(q)
     np.testing.assert_allclose(
         hand_rotation(b2, a2), hand_rotation(np.array([b]), np.array([a])), atol=1e-12
     )
@@ -181,15 +213,15 @@ def _helix(turns: float = 2.0, n: int = 60) -> np.ndarray:
 def test_writhe_is_zero_for_planar_curves_and_odd_under_reflection():
     t = np.linspace(0, 3 * np.pi, 50)
     planar = np.column_stack([np.cos(t) * t, np.sin(t) * t, np.zeros_like(t)])
-    assert ds.writhe(planar) == pytest.approx(0.0, abs=1e-12)
+    assert writhe(planar) == pytest.approx(0.0, abs=1e-12)
     h = _helix()
-    w = ds.writhe(h)
+    w = writhe(h)
     assert abs(w) > 0.1
-    assert ds.writhe(h * np.array([1.0, -1.0, 1.0])) == pytest.approx(-w, rel=1e-12)
+    assert writhe(h * np.array([1.0, -1.0, 1.0])) == pytest.approx(-w, rel=1e-12)
     with pytest.raises(
         RecordError, match=r"^points must have shape \(n, 3\) with n >= 2, got \(5,\)$"
     ):
-        ds.writhe(np.zeros(5))
+        writhe(np.zeros(5))
 
 
 @settings(max_examples=25, deadline=None)
@@ -207,77 +239,75 @@ def test_writhe_is_invariant_under_rigid_motion_and_scaling(scale, q, shift):
     h = _helix(1.5, 40)
     moved = scale * h @ r.T + np.array(shift)
     # asin of dot products near +-1 loses half the digits: agreement to ~sqrt(eps)
-    assert ds.writhe(moved) == pytest.approx(ds.writhe(h), abs=1e-6)
+    assert writhe(moved) == pytest.approx(writhe(h), abs=1e-6)
 
 
 def test_score_orders_outcomes_and_penalises_limits():
-    w = ds.ScoreWeights()
-    knotted = ds.TrialSummary(
-        tied=True, settle_fraction=1.0, knot_any=True, contact=True, writhe=3.2
-    )
-    slid_off = ds.TrialSummary(
+    w = ScoreWeights()
+    knotted = TrialSummary(tied=True, settle_fraction=1.0, knot_any=True, contact=True, writhe=3.2)
+    slid_off = TrialSummary(
         tied=False, settle_fraction=0.4, knot_any=True, contact=True, writhe=3.2
     )
-    touched = ds.TrialSummary(contact=True, writhe=1.0)
-    nothing = ds.TrialSummary()
-    scores = [ds.score(s, w) for s in (knotted, slid_off, touched, nothing)]
+    touched = TrialSummary(contact=True, writhe=1.0)
+    nothing = TrialSummary()
+    scores = [score(s, w) for s in (knotted, slid_off, touched, nothing)]
     assert scores == sorted(scores, reverse=True)
     assert scores[0] == pytest.approx(100 + 30 + 10 + 5 + 5)
     assert scores[1] == pytest.approx(0.4 * 30 + 10 + 5 + 5)
     assert scores[3] == 0.0
     # a knotted settle beats any unknotted one, whatever the shaping terms
-    best_unknotted = ds.TrialSummary(
+    best_unknotted = TrialSummary(
         tied=False, settle_fraction=1.0, knot_any=True, contact=True, writhe=99.0
     )
-    assert ds.score(knotted, w) > ds.score(best_unknotted, w)
+    assert score(knotted, w) > score(best_unknotted, w)
     fast = replace(knotted, peak_speed=9.0, excursion=0.8)
-    assert ds.score(fast, w) == pytest.approx(scores[0] - 20 * 1.0 - 100 * 0.1)
+    assert score(fast, w) == pytest.approx(scores[0] - 20 * 1.0 - 100 * 0.1)
     rejected = replace(nothing, simulated=False, peak_speed=8.5)
-    assert ds.score(rejected, w) == pytest.approx(-10 - 20 * 0.5)
-    assert ds.score(rejected, w) < ds.score(nothing, w)
+    assert score(rejected, w) == pytest.approx(-10 - 20 * 0.5)
+    assert score(rejected, w) < score(nothing, w)
 
 
 def test_summary_and_weights_validation_messages():
     with pytest.raises(
         ConfigError, match=r"^TrialSummary\.settle_fraction: must lie in \[0, 1\], got 1\.5$"
     ):
-        ds.TrialSummary(settle_fraction=1.5)
+        TrialSummary(settle_fraction=1.5)
     with pytest.raises(
         ConfigError, match=r"^TrialSummary\.writhe: must be a finite number >= 0, got -1\.0$"
     ):
-        ds.TrialSummary(writhe=-1.0)
+        TrialSummary(writhe=-1.0)
     with pytest.raises(ConfigError, match=r"^ScoreWeights\.tied: must be a finite number >= 0"):
-        ds.ScoreWeights(tied=-1.0)
+        ScoreWeights(tied=-1.0)
 
 
 def test_variants_limits_and_stages():
     with pytest.raises(ConfigError) as e:
-        ds.get_variant("loop")
+        get_variant("loop")
     assert str(e.value) == (
         "variant: unknown value 'loop' (valid choices: fast, slow, swipe, inverse)"
     )
-    kinds = {name: [k for k, _ in v.stages()] for name, v in ds.VARIANTS.items()}
+    kinds = {name: [k for k, _ in v.stages()] for name, v in VARIANTS.items()}
     assert kinds["fast"] == ["throw"]
     assert kinds["slow"] == ["throw", "windup"]
     assert kinds["inverse"] == ["throw", "windup"]
     assert kinds["swipe"] == ["throw", "windup"]
-    assert ds.VARIANTS["inverse"].seed_motion().x[1 + 2 + 4] == pytest.approx(
-        -ds.load_reference_motion().x[1 + 2 + 4]
+    assert VARIANTS["inverse"].seed_motion().x[1 + 2 + 4] == pytest.approx(
+        -load_reference_motion().x[1 + 2 + 4]
     )  # y3 mirrored
-    ref = ds.load_reference_motion()
-    dz, dh = ds.VARIANTS["swipe"].strike(ref)
+    ref = load_reference_motion()
+    dz, dh = VARIANTS["swipe"].strike(ref)
     assert dz > dh > 0  # the reference strikes mostly downwards...
-    assert ds.VARIANTS["swipe"].violation(ref) == pytest.approx(dz - dh)  # ...so it violates
-    assert ds.VARIANTS["fast"].violation(ref) == 0.0
+    assert VARIANTS["swipe"].violation(ref) == pytest.approx(dz - dh)  # ...so it violates
+    assert VARIANTS["fast"].violation(ref) == 0.0
     speed, excursion = ref.hand_limits()
-    assert 3.0 < speed < ds.SPEED_LIMIT and 0.4 < excursion < ds.EXCURSION_LIMIT
+    assert 3.0 < speed < SPEED_LIMIT and 0.4 < excursion < EXCURSION_LIMIT
     slow = ref.with_windup(1.04, 0.2)
     assert slow.duration == 1.04 and slow.core_duration == pytest.approx(ref.duration)
     assert slow.hand_limits()[0] == pytest.approx(speed, rel=1e-3)
 
 
 def test_pace_matches_finite_differences_of_the_exit_axis():
-    ref = ds.load_reference_motion()
+    ref = load_reference_motion()
     speed, rate = FAST.pace(ref, dt=1e-4)
     t = np.arange(0.0, ref.duration, 1e-4)
     y = ref.curves(t)
@@ -290,18 +320,16 @@ def test_pace_matches_finite_differences_of_the_exit_axis():
 
 
 def test_pace_limits_count_in_the_violation():
-    ref = ds.load_reference_motion()
+    ref = load_reference_motion()
     speed, rate = FAST.pace(ref)
     paced = replace(FAST, axis_rate_limit=rate / 2, speed_limit=speed * 2)
-    assert paced.violation(ref) == pytest.approx(ds.PACE_WEIGHT * 1.0)
+    assert paced.violation(ref) == pytest.approx(PACE_WEIGHT * 1.0)
     both = replace(FAST, axis_rate_limit=rate / 2, speed_limit=speed / 4)
-    assert both.violation(ref) == pytest.approx(ds.PACE_WEIGHT * 4.0)
+    assert both.violation(ref) == pytest.approx(PACE_WEIGHT * 4.0)
     assert replace(FAST, axis_rate_limit=2 * rate).violation(ref) == 0.0
-    assert not ds.within_limits(ds.motion_summary(ref, paced))
-    assert ds.pace_metadata(paced) == {
-        "pace": {"speed_limit": speed * 2, "axis_rate_limit": rate / 2}
-    }
-    assert ds.pace_metadata(FAST) == {}
+    assert not within_limits(motion_summary(ref, paced))
+    assert pace_metadata(paced) == {"pace": {"speed_limit": speed * 2, "axis_rate_limit": rate / 2}}
+    assert pace_metadata(FAST) == {}
     with pytest.raises(ConfigError) as e:
         replace(FAST, axis_rate_limit=0.0)
     assert str(e.value) == "Variant.axis_rate_limit: must be a number > 0 (inf: none), got 0.0"
@@ -317,7 +345,7 @@ def lab() -> HandLab:
 
 @pytest.fixture(scope="module")
 def ref_trial(lab):
-    return lab.run(ds.load_reference_motion())
+    return lab.run(load_reference_motion())
 
 
 def test_hand_follows_its_target_closely(ref_trial):
@@ -394,17 +422,19 @@ def _shipped(name: str) -> Demonstration:
 def test_shipped_demo_is_current_and_described(name):
     demo = _shipped(name)
     m = demo.metadata
-    assert m["generator"] == ds.GENERATOR and m["generator_version"] == ds.GENERATOR_VERSION
+    # the shipped demos were made before the search moved to flyknot_tools (the old name)
+    assert m["generator"] in (GENERATOR, *LEGACY_GENERATORS)
+    assert m["generator_version"] == GENERATOR_VERSION
     assert m["variant"] == name and demo.rope == 1
     # stale if the rope table changed since: regenerate with the command in the README
-    assert m["rope"] == ds.rope_metadata(1)["rope"], "rope 1 changed: regenerate assets/demos"
-    assert m["simulation"] == ds.rope_metadata(1)["simulation"]
-    lo, hi = ds.VARIANTS[name].duration
+    assert m["rope"] == rope_metadata(1)["rope"], "rope 1 changed: regenerate assets/demos"
+    assert m["simulation"] == rope_metadata(1)["simulation"]
+    lo, hi = VARIANTS[name].duration
     assert lo <= m["motion_duration"] <= hi
     assert m["settle_outcome"] == "trefoil"
     assert m["check"]["repeats"] >= 20
     assert demo.rate_hz == pytest.approx(200.0)
-    assert ds.VARIANTS[name].violation(ds.motion_from_demo(demo)) == 0.0
+    assert VARIANTS[name].violation(motion_from_demo(demo)) == 0.0
     readme = (DEMOS_DIR / "README.md").read_text()
     assert f"--variant {name} --seed {m['seed']}" in readme
 
@@ -414,10 +444,10 @@ def test_replaying_stored_parameters_reproduces_the_demo_exactly():
     # rule (issue 10): under those conditions the replay is the demonstration, bit for bit.
     demo = _shipped("fast")
     made_in = replace(
-        ds.hand_from_demo(demo, 1, vary=False), aero=AeroParams(enabled=False), settle_s=1.5
+        hand_from_demo(demo, 1, vary=False), aero=AeroParams(enabled=False), settle_s=1.5
     )
     lab = HandLab(made_in)
-    trial = lab.run(ds.motion_from_demo(demo))
+    trial = lab.run(motion_from_demo(demo))
     assert trial.first_contact == demo.t_c
     assert trial.knot == "trefoil"
     again = trial_demonstration(
@@ -434,14 +464,14 @@ def test_replaying_stored_parameters_reproduces_the_demo_exactly():
 
 def test_a_shipped_demo_ties_under_variation_with_a_short_settle():
     demo = _shipped("fast")
-    res = ds.replay(demo, repeats=2, seed=11, settle_s=0.8)
+    res = replay(demo, repeats=2, seed=11, settle_s=0.8)
     assert res.knots >= 1
     assert all(t is not None and t < 1.5 for t in res.t_c)
 
 
 def test_replay_on_another_rope_runs():
     demo = _shipped("fast")
-    res = ds.replay(demo, rope=4, repeats=1, settle_s=0.2)
+    res = replay(demo, rope=4, repeats=1, settle_s=0.2)
     assert res.rope == 4 and res.outcomes[0] is not None
 
 
@@ -449,37 +479,37 @@ def test_replay_refuses_a_demo_without_motion(tmp_path):
     demo = _shipped("fast")
     bare = replace(demo, metadata={})
     with pytest.raises(RecordError, match=r"^demonstration: no motion parameters"):
-        ds.replay(bare)
+        replay(bare)
 
 
 # ----------------------------------------------------------------------------------------
 # search (tiny budgets: checks the machinery, not the hit rate)
 # ----------------------------------------------------------------------------------------
 def test_search_runs_reproducibly_within_its_budget():
-    cfg = ds.SearchConfig(
+    cfg = SearchConfig(
         budget=6, popsize=3, confirm_trials=2, hand=HandParams(settle_s=0.1, judge_rate_hz=5.0)
     )
-    a = ds.search("fast", 5, cfg)
-    b = ds.search("fast", 5, cfg)
+    a = search("fast", 5, cfg)
+    b = search("fast", 5, cfg)
     assert 6 <= a.trials <= 6 + cfg.confirm_trials
     np.testing.assert_array_equal(a.history, b.history)
     assert a.history.shape[1] == 3 and a.stopped in ("budget", "target")
     with pytest.raises(
         ConfigError, match=r"^SearchConfig\.budget: must be an integer >= 1, got 0$"
     ):
-        ds.SearchConfig(budget=0)
+        SearchConfig(budget=0)
 
 
 # ----------------------------------------------------------------------------------------
 # command line
 # ----------------------------------------------------------------------------------------
 def test_cli_unknown_variant_lists_choices(tmp_path, capsys):
-    code = demo_cli.main(
+    code = tools_cli.main(
         ["demo", "synthesize", "--variant", "loop", "--out", str(tmp_path / "x.npz")]
     )
     assert code == 2
     assert capsys.readouterr().err == (
-        "flyknot: error: variant: unknown value 'loop' "
+        "flyknot-tools: error: variant: unknown value 'loop' "
         "(valid choices: fast, slow, swipe, inverse)\n"
     )
 
@@ -487,8 +517,10 @@ def test_cli_unknown_variant_lists_choices(tmp_path, capsys):
 def test_cli_bad_pace_limit(tmp_path, capsys):
     out = str(tmp_path / "x.npz")
     args = ["demo", "synthesize", "--variant", "fast", "--out", out, "--max-axis-rate", "-1"]
-    assert demo_cli.main(args) == 2
-    assert capsys.readouterr().err == "flyknot: error: --max-axis-rate: must be > 0, got -1.0\n"
+    assert tools_cli.main(args) == 2
+    assert capsys.readouterr().err == (
+        "flyknot-tools: error: --max-axis-rate: must be > 0, got -1.0\n"
+    )
 
 
 def test_cli_missing_file(tmp_path, capsys):
@@ -532,17 +564,63 @@ def test_cli_replay_json_and_saved_replays(tmp_path, capsys):
     assert saved.t_c == result["t_c"][0]
     with np.load(out / "replay_000.npz") as z:
         assert z["centreline"].shape[1:] == (get_rope(1).segments + 1, 3)
+        meta = json.loads(str(z["meta"]))
+    assert meta["metadata"]["generator"] == REPLAY_GENERATOR
+    assert meta["metadata"]["kind"] == "replay"
 
 
 def test_cli_is_wired_into_flyknot(capsys):
     from flyknot_app import cli
 
     assert cli.build_parser().parse_args(["demo", "replay", "x.npz"]).file == "x.npz"
-    code = cli.main(["demo", "synthesize", "--variant", "loop", "--out", "x.npz"])
+    # making demonstrations is the offline tools' work, not the application's
+    with pytest.raises(SystemExit) as e:
+        cli.main(["demo", "synthesize", "--variant", "fast", "--out", "x.npz"])
+    assert e.value.code == 2
+    assert "invalid choice: 'synthesize'" in capsys.readouterr().err
+    code = tools_cli.main(["demo", "synthesize", "--variant", "loop", "--out", "x.npz"])
     assert code == 2
     assert "valid choices: fast, slow, swipe, inverse" in capsys.readouterr().err
 
 
+def _help(main, argv: list[str], capsys) -> str:
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 0
+    return capsys.readouterr().out
+
+
+def _actions(help_text: str) -> set[str]:
+    """The sub-command names a help text lists (first word of each line indented by 4; the
+    wrapped help is indented deeper)."""
+    lines = help_text.split("positional arguments:")[1].split("options:")[0].splitlines()
+    return {ln.split()[0] for ln in lines if ln.startswith("    ") and ln[4] != " "}
+
+
+def test_demo_commands_are_split_between_flyknot_and_flyknot_tools(capsys):
+    from flyknot_app import cli
+
+    assert _actions(_help(tools_cli.main, ["demo", "--help"], capsys)) == {
+        "synthesize",
+        "robot",
+        "record",
+    }
+    assert _actions(_help(cli.main, ["demo", "--help"], capsys)) == {"replay"}
+    assert _actions(_help(demo_cli.main, ["demo", "--help"], capsys)) == {"replay"}
+    assert _actions(_help(tools_cli.main, ["--help"], capsys)) == {"demo", "rope-study"}
+
+
+def test_rope_study_takes_its_own_options(capsys):
+    out = _help(tools_cli.main, ["rope-study", "--help"], capsys)
+    assert "--variants" in out and "--shape" in out
+
+
 def test_sim_settings_are_recorded():
-    assert ds.rope_metadata(1)["simulation"]["integrator"] == load_sim_settings().integrator
-    assert isinstance(Path(ds.REFERENCE_MOTION), Path) and ds.REFERENCE_MOTION.is_file()
+    assert rope_metadata(1)["simulation"]["integrator"] == load_sim_settings().integrator
+    assert isinstance(Path(REFERENCE_MOTION), Path) and REFERENCE_MOTION.is_file()
+
+
+def test_the_search_seed_is_found_from_any_directory(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert REFERENCE_MOTION.is_absolute() and REFERENCE_MOTION.is_file()
+    assert load_reference_motion().duration == pytest.approx(0.70, abs=0.01)

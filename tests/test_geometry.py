@@ -20,9 +20,7 @@ from flyknot.geometry import (
     skew,
 )
 
-unit = st.lists(st.floats(-1, 1), min_size=3, max_size=3).filter(
-    lambda v: np.linalg.norm(v) > 1e-3
-)
+unit = st.lists(st.floats(-1, 1), min_size=3, max_size=3).filter(lambda v: np.linalg.norm(v) > 1e-3)
 
 
 def test_quat_to_matrix_matches_scipy_in_batches():

@@ -10,12 +10,13 @@ import pytest
 from flyknot.errors import ConfigError
 from flyknot.record import JointCommand, TrialRecord
 from learner.bezier import BezierCommand
-from learner.ilc import ILCParams, RunDirectory, critical_cost, learn
+from learner.ilc import ILCParams, critical_cost, learn
 from learner.inverse_qp import InverseModelWeights
 from learner.kinematics import RobotModel
 from learner.rope_model import RopeModelParams
+from learner.run_directory import RunDirectory
 from learner.system_model import model_demonstration, model_record
-from learner.update import DemoTarget
+from learner.target import DemoTarget
 
 HOME = np.array([0.0, -0.247, 0.0, 0.909, 0.0, 1.15644, 0.0])
 T = 0.6
@@ -144,7 +145,7 @@ def test_params_validation():
 def test_safe_step_halves_a_step_that_would_break_a_limit(robot):
     from flyknot.limits import JointLimits
     from learner.ilc import _safe_step
-    from learner.update import sampled_violation
+    from learner.limit_rows import sampled_violation
 
     knots = _knots(np.zeros(7))
     dk = np.zeros((10, 8))

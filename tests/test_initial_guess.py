@@ -1,4 +1,5 @@
-"""Tests of learner/initial_guess.py: kernels, the NLP's assembly and derivatives, and solves.
+"""Tests of the initial guess (learner/initial_guess*.py): kernels, the NLP's assembly and
+derivatives, and solves.
 
 The solves are small (T = 0.3-0.6 s); each takes a few seconds on two cores.
 """
@@ -17,24 +18,22 @@ from flyknot.constants import XARM7_XML, Z_MIN_TIP
 from flyknot.errors import ConfigError, SolverError
 from flyknot.limits import JointLimits
 from learner.bezier import BezierCommand, bernstein_basis, sample_command
-from learner.initial_guess import (
+from learner.initial_guess import IPOPT_SUCCESS, initial_guess, require_success
+from learner.initial_guess_params import (
     COST_TERMS,
     HOME_Q,
-    IPOPT_SUCCESS,
     N_X,
     POSITION_MARGIN,
     InitialGuessParams,
-    build_problem,
     cost_samples,
     hand_velocity,
-    initial_guess,
     knots_from_x,
     limit_sample_times,
-    require_success,
     rotation_error_sq,
     rotation_log,
     x_from_knots,
 )
+from learner.initial_guess_problem import build_problem
 
 pytestmark = pytest.mark.skipif(not XARM7_XML.is_file(), reason=f"{XARM7_XML} is absent")
 

@@ -1,4 +1,5 @@
-"""Tests of learner/inverse_qp.py: the builder's math without a solver, then both backends."""
+"""Tests of learner/inverse_qp.py (the builder's math without a solver, then both backends)
+and of the limit rows it takes (learner/limit_rows.py)."""
 
 from __future__ import annotations
 
@@ -11,21 +12,20 @@ from hypothesis import strategies as st
 
 from flyknot.constants import QD_MAX, XARM7_XML
 from flyknot.errors import ConfigError, SolverError
+from flyknot.limits import JointLimits
 from learner.bezier import sample_command
 from learner.inverse_qp import (
     BACKENDS,
     FollowThrough,
     InverseModelWeights,
-    JointLimits,
-    LimitRows,
     base_equality_rows,
     build_inverse_qp,
-    limit_rows,
     require_solved,
     rest_equality_rows,
     solve_qp,
 )
 from learner.kinematics import RobotModel
+from learner.limit_rows import LimitRows, limit_rows
 
 CHAIN7 = Path(__file__).parent / "data" / "chain7.xml"
 N_MARK = 11

@@ -1,4 +1,4 @@
-"""Knot classification of open rope centrelines (flyknot.knot).
+"""Knot classification of open rope centrelines (flyknot.knot, flyknot.knot_diagram).
 
 Curves are built here from explicit geometry: analytic knots (trefoil, figure-eight, torus
 knots), hanging ropes made of waypoints whose crossings are placed by hand, and ropes lying on
@@ -21,6 +21,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import flyknot.knot as kn
+import flyknot.knot_diagram as kd
 from flyknot.errors import ConfigError, RecordError
 
 DATA = Path(__file__).parent / "data" / "knots"
@@ -212,14 +213,14 @@ def updown_closure(p: np.ndarray, reach: float = 10.0) -> np.ndarray:
 def test_closed_analytic_knots(curve, poly, name):
     assert kn.classify_polygon(curve) == name
     if poly is not None:
-        diagram = kn.project_diagram(kn.normalise(curve), np.array([0.3, 0.5, 0.8]), closure="edge")
-        assert kn.alexander_polynomial(diagram) == poly
+        diagram = kd.project_diagram(kd.normalise(curve), np.array([0.3, 0.5, 0.8]), closure="edge")
+        assert kd.alexander_polynomial(diagram) == poly
 
 
 def test_alexander_rows_sum_to_zero_and_minor_choice_does_not_matter():
-    p = kn.normalise(torus_knot(2, 5, 100))
-    diagram = kn.project_diagram(p, np.array([0.2, -0.4, 0.9]), closure="edge")
-    m0, m1 = kn.alexander_matrix(diagram)
+    p = kd.normalise(torus_knot(2, 5, 100))
+    diagram = kd.project_diagram(p, np.array([0.2, -0.4, 0.9]), closure="edge")
+    m0, m1 = kd.alexander_matrix(diagram)
     c = diagram.n_crossings
     assert c >= 5 and m0.shape == (c, c)
     np.testing.assert_array_equal((m0 + m1).sum(axis=1), 0)  # row sums at t = 1
@@ -244,14 +245,14 @@ def test_merging_kinks_keeps_the_polynomial():
     curves += [rng.normal(size=(20, 3)) for _ in range(6)]
     shrunk = 0
     for curve in curves:
-        q = kn.normalise(curve)
+        q = kd.normalise(curve)
         for d in kn.closure_directions(5):
-            diagram = kn.project_diagram(q, d)
+            diagram = kd.project_diagram(q, d)
             if diagram is None or not 3 <= diagram.n_crossings <= 60:
                 continue
-            full = kn.alexander_polynomial(diagram, merge_kinks=False)
-            assert kn.alexander_polynomial(diagram) == full
-            m0, m1 = kn.alexander_matrix(diagram, merge_kinks=True)
+            full = kd.alexander_polynomial(diagram, merge_kinks=False)
+            assert kd.alexander_polynomial(diagram) == full
+            m0, m1 = kd.alexander_matrix(diagram, merge_kinks=True)
             np.testing.assert_array_equal((m0 + m1).sum(axis=1), 0)
             shrunk += len(m0) < diagram.n_crossings
     assert shrunk >= 5
@@ -265,10 +266,10 @@ def test_alexander_polynomial_with_aliasing_above_32_crossings():
     x = np.linspace(3.5, -3.5, 120)
     wiggle = np.stack([x, 0.3 * rng.standard_normal(120), np.linspace(1.7, 2.2, 120)], 1)
     wiggle[:, 1] += 2.5 * np.sin(np.linspace(0, 12 * np.pi, 120))
-    p = kn.normalise(np.vstack([tre, tre[:1] + np.array([0.4, 0.2, 1.6]), wiggle]))
-    diagram = kn.project_diagram(p, np.array([0.0, 0.0, 1.0]))
+    p = kd.normalise(np.vstack([tre, tre[:1] + np.array([0.4, 0.2, 1.6]), wiggle]))
+    diagram = kd.project_diagram(p, np.array([0.0, 0.0, 1.0]))
     assert diagram.n_crossings > 32
-    assert kn.alexander_polynomial(diagram) == (1, -1, 1)
+    assert kd.alexander_polynomial(diagram) == (1, -1, 1)
 
 
 def test_matches_topoly_on_random_closed_polygons():
@@ -296,7 +297,7 @@ def test_over_chord_equals_explicit_ray_closure():
     checked = {}
     for trial in range(12):
         walk = np.cumsum(rng.normal(size=(int(rng.integers(15, 40)), 3)), axis=0)
-        p = kn.normalise(walk)
+        p = kd.normalise(walk)
         for d in kn.closure_directions(7):
             explicit = np.vstack([p[0] + 5 * d, p, p[-1] + 5 * d])
             name = kn.classify_closure(p, d)
@@ -307,7 +308,7 @@ def test_over_chord_equals_explicit_ray_closure():
 
 def test_projection_frame_is_right_handed():
     for d in kn.closure_directions(17):
-        f = kn.projection_frame(3 * d)
+        f = kd.projection_frame(3 * d)
         np.testing.assert_allclose(f @ f.T, np.eye(3), atol=1e-12)
         np.testing.assert_allclose(np.cross(f[0], f[1]), d, atol=1e-12)
 
@@ -326,12 +327,12 @@ def test_closure_directions_cover_the_sphere():
 def test_degenerate_projections_fall_back():
     # A straight vertical rope: every projection is a line with the chord along it.
     line = np.stack([0 * np.arange(20), 0 * np.arange(20), 1.5 - 0.05 * np.arange(20)], 1)
-    assert kn.project_diagram(kn.normalise(line), np.array([1.0, 0, 0])) is None
+    assert kd.project_diagram(kd.normalise(line), np.array([1.0, 0, 0])) is None
     assert kn.classify_centreline(line) == "unknot"
     # An exactly planar spiral seen edge-on (one lattice direction is horizontal).
     th = np.linspace(0, 6 * np.pi, 200)
     spiral = np.stack([0.02 * th * np.cos(th), 0.02 * th * np.sin(th), 0 * th], 1)
-    assert kn.project_diagram(kn.normalise(spiral), np.array([1.0, 0.3, 0])) is None
+    assert kd.project_diagram(kd.normalise(spiral), np.array([1.0, 0.3, 0])) is None
     assert kn.classify_centreline(spiral) == "unknot"
 
 
@@ -353,7 +354,7 @@ def test_degenerate_projections_fall_back():
     ],
 )
 def test_knot_name(poly, name):
-    assert kn.knot_name(poly) == name
+    assert kd.knot_name(poly) == name
 
 
 def test_plurality_and_ties():
@@ -366,7 +367,7 @@ def test_plurality_and_ties():
         kn.plurality({})
     assert str(err.value) == "votes: no votes to count"
     with pytest.raises(ConfigError) as err:
-        kn.Diagram(n_edges=4, over=np.zeros(2), under=np.zeros(3), sign=np.ones(2, int))
+        kd.Diagram(n_edges=4, over=np.zeros(2), under=np.zeros(3), sign=np.ones(2, int))
     assert str(err.value) == "Diagram: over, under and sign need the same shape (c,)"
 
 
@@ -441,7 +442,7 @@ def test_free_end_above_the_hand_is_not_a_false_knot(turns):
 def test_rope_lying_on_a_table_with_crossings_is_unknotted(builder):
     p = builder(150)
     assert np.ptp(p[:, 2]) <= 0.0091
-    seen_from_above = kn.project_diagram(kn.normalise(p), np.array([0.0, 0.0, 1.0]))
+    seen_from_above = kd.project_diagram(kd.normalise(p), np.array([0.0, 0.0, 1.0]))
     assert seen_from_above.n_crossings >= 3
     assert kn.classify_centreline(p) == "unknot"
 
@@ -545,7 +546,7 @@ def test_bad_n_directions(bad):
 
 def test_bad_closure_name():
     with pytest.raises(ConfigError) as err:
-        kn.project_diagram(np.eye(3), np.array([0, 0, 1.0]), closure="rays")
+        kd.project_diagram(np.eye(3), np.array([0, 0, 1.0]), closure="rays")
     assert str(err.value) == "closure: unknown value 'rays' (valid choices: over, edge)"
 
 

@@ -81,7 +81,7 @@ def test_twist_and_torsional_friction_switches():
     import mujoco
 
     from flyknot.errors import ConfigError
-    from flyknot_sim.rope import get_rope
+    from flyknot_sim.rope_table import get_rope
 
     lab = SimLab(LabParams(rope=1, settle_s=0.1, twist=True))
     assert len(lab._bound.twist_dof) == get_rope(1).segments

@@ -15,7 +15,7 @@ def test_bar_disable():
 
 def test_no_bar_codes_in_a_log():
     out = subprocess.run(
-        [sys.executable, "-m", "flyknot", "bench", "sim", "--ropes", "6"],
+        [sys.executable, "-m", "flyknot_app", "bench", "sim", "--ropes", "6"],
         capture_output=True,
         text=True,
         timeout=600,

@@ -31,7 +31,7 @@ ARGS = [
 
 
 def _run(out: Path, *extra: str) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "flyknot", "run", "quick", "--out", str(out), *ARGS, *extra]
+    cmd = [sys.executable, "-m", "flyknot_app", "run", "quick", "--out", str(out), *ARGS, *extra]
     return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
 

@@ -1,4 +1,5 @@
-"""Tests of flyknot_tools/robot_demo.py (robot demonstrations) and ``flyknot demo robot|record``."""
+"""Tests of flyknot_tools/robot_demo.py (robot demonstrations) and
+``flyknot-tools demo robot|record``."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from hypothesis import strategies as st
 from flyknot.constants import DEMOS_DIR
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError
-from flyknot_app import demo_cli
+from flyknot_tools import cli as tools_cli
 from flyknot_tools.robot_demo import (
     CommandSearchConfig,
     command_score,
@@ -110,19 +111,19 @@ def test_cli_record_round_trip_and_errors(shipped, tmp_path, capsys):
     cmd = tmp_path / "cmd.npz"
     np.savez(cmd, knots=knots, T=T)
     out = tmp_path / "demo.npz"
-    assert demo_cli.main(["demo", "record", "--command", str(cmd), "--out", str(out)]) == 0
+    assert tools_cli.main(["demo", "record", "--command", str(cmd), "--out", str(out)]) == 0
     assert Demonstration.load(out).metadata["knot"] == "trefoil"
     capsys.readouterr()
     assert (
-        demo_cli.main(["demo", "record", "--command", str(tmp_path / "no.npz"), "--out", str(out)])
+        tools_cli.main(["demo", "record", "--command", str(tmp_path / "no.npz"), "--out", str(out)])
         == 2
     )
     assert capsys.readouterr().err == (
-        f"flyknot: error: --command: no file {str(tmp_path / 'no.npz')!r}\n"
+        f"flyknot-tools: error: --command: no file {str(tmp_path / 'no.npz')!r}\n"
     )
     bad = tmp_path / "bad.npz"
     np.savez(bad, q=np.zeros(3))
-    assert demo_cli.main(["demo", "record", "--command", str(bad), "--out", str(out)]) == 2
+    assert tools_cli.main(["demo", "record", "--command", str(bad), "--out", str(out)]) == 2
     assert "needs arrays 'knots' and 'T'" in capsys.readouterr().err
 
 
@@ -132,9 +133,9 @@ def test_cli_robot_reports_a_search_without_a_knot(shipped, tmp_path, capsys):
     np.savez(start, knots=knots, T=T)
     args = ["demo", "robot", "--start", str(start), "--evaluations", "1", "--local-evaluations"]
     args += ["0", "--seed", "1", "--quiet", "--out", str(tmp_path / "d.npz")]
-    assert demo_cli.main(args) == 2  # seed 1's single candidate does not tie (measured)
+    assert tools_cli.main(args) == 2  # seed 1's single candidate does not tie (measured)
     assert capsys.readouterr().err == (
-        "flyknot: error: robot demo search failed with status 'no knot': no command tied the "
+        "flyknot-tools: error: robot demo search failed with status 'no knot': no command tied the "
         "knot in 1 evaluations; try another --seed or more --evaluations\n"
     )
     assert not (tmp_path / "d.npz").exists()

@@ -1,4 +1,5 @@
-"""Tests of the rope model (flyknot_sim.rope) and its measurement kernels (rope_measure)."""
+"""Tests of the rope model (flyknot_sim.rope, rope_table, rope_handle) and the rope study's
+measurement kernels (flyknot_tools.rope_study)."""
 
 from __future__ import annotations
 
@@ -14,21 +15,22 @@ from hypothesis import strategies as st
 from flyknot.constants import MARKER_SPACING, N_MARKERS, ROPE_LENGTH
 from flyknot.errors import ConfigError
 from flyknot.geometry import quat_from_x_to
-from flyknot_sim.rope import (
-    RopeParams,
-    SimSettings,
-    add_rope,
-    configure_options,
-    get_rope,
+from flyknot_sim.rope import add_rope, configure_options
+from flyknot_sim.rope_handle import (
     hanging_vertices,
-    load_rope_table,
-    load_sim_settings,
-    parse_rope_table,
     points_at_arclength,
     polyline_length,
     sway_direction,
 )
-from flyknot_tools import rope_measure as rm
+from flyknot_sim.rope_table import (
+    RopeParams,
+    SimSettings,
+    get_rope,
+    load_rope_table,
+    load_sim_settings,
+    parse_rope_table,
+)
+from flyknot_tools.rope_study import crossings, harness, measures
 
 # The paper's rope table (appendix "Rope Parameters"): id -> (name, material, diameter [mm],
 # density [kg/m], end weight [g]).
@@ -335,7 +337,7 @@ def test_self_contact_true_for_a_rope_pressed_on_itself():
     helix = np.column_stack(
         [r * np.cos(t), r * np.sin(t), 1.0 - 0.6 * p.diameter * t / (2 * math.pi)]
     )
-    x = rm.resample_equal_chords(helix, p.segment_length, p.segments)
+    x = crossings.resample_equal_chords(helix, p.segment_length, p.segments)
     b.set_vertices(model, data, x)
     assert b.self_contact(model, data)
     with pytest.raises(ConfigError) as e:
@@ -345,7 +347,7 @@ def test_self_contact_true_for_a_rope_pressed_on_itself():
 
 def test_stretch_below_two_percent_in_a_fast_motion():
     """The reference hand motion (peak 3.9 m/s, wrist turns of 180+ degrees), no settling."""
-    out = rm.measure_fast_motion(rm.Config(rope=1), settle_s=0.0, judge_knot=False)
+    out = measures.measure_fast_motion(measures.Config(rope=1), settle_s=0.0, judge_knot=False)
     assert not out["diverged"]
     assert out["max_stretch"] < 0.02
     assert out["max_edge_strain"] < 0.05
@@ -355,7 +357,7 @@ def test_stretch_below_two_percent_in_a_fast_motion():
 def test_knot_pull_without_contact_shows_crossings():
     """With contacts off, pulling the loose knot passes the rope through itself: the crossing
     check sees it (and the knot is lost)."""
-    out = rm.measure_knot_pull(rm.Config(rope=6), self_collide=False)
+    out = measures.measure_knot_pull(measures.Config(rope=6), self_collide=False)
     assert out["knot_before"] == "trefoil"
     assert out["crossings"] >= 1
     assert out["knot_after"] != "trefoil"
@@ -415,7 +417,7 @@ def test_hand_angles_recover_ry_rx(a, b):
     q_a = np.array([math.cos(a / 2), math.sin(a / 2), 0, 0])
     q = np.zeros(4)
     mujoco.mju_mulQuat(q, q_b, q_a)  # R = Ry(b) Rx(a)
-    a2, b2 = rm.hand_angles(q[None])
+    a2, b2 = harness.hand_angles(q[None])
     r1, r2 = np.zeros(9), np.zeros(9)
     mujoco.mju_quat2Mat(r1, q)
     qa2 = np.array([math.cos(a2[0] / 2), math.sin(a2[0] / 2), 0, 0])
@@ -428,8 +430,8 @@ def test_hand_angles_recover_ry_rx(a, b):
 
 def test_hand_angles_fit_the_reference_motion():
     """The reference motion is a pure Ry(b) Rx(a) rotation and the angles are continuous."""
-    m = rm.HandMotion.load()
-    a, b = rm.hand_angles(m.quat)
+    m = harness.HandMotion.load()
+    a, b = harness.hand_angles(m.quat)
     assert np.abs(np.diff(a)).max() < 0.5 and np.abs(np.diff(b)).max() < 0.5
     q = np.zeros(4)
     for ai, bi, qi in zip(a, b, m.quat, strict=True):
@@ -447,7 +449,7 @@ pts = st.tuples(finite, finite, finite).map(np.array)
 @given(pts, pts, pts, pts, pts, pts, pts, pts, st.floats(0, 1))
 @settings(max_examples=60)
 def test_coplanarity_cubic_matches_determinant(a, b, c, d, da, db, dc, dd, t):
-    coef = rm.coplanarity_cubic(a, b, c, d, da, db, dc, dd)
+    coef = crossings.coplanarity_cubic(a, b, c, d, da, db, dc, dd)
     at = [p + t * dp for p, dp in ((a, da), (b, db), (c, dc), (d, dd))]
     direct = np.linalg.det(np.array([at[1] - at[0], at[2] - at[0], at[3] - at[0]]))
     poly = coef[0] + coef[1] * t + coef[2] * t**2 + coef[3] * t**3
@@ -463,7 +465,7 @@ def test_cubic_roots_unit_finds_planted_roots(roots, scale):
     if len(roots) < 3:  # pad with roots outside [0, 1]
         p = p * np.poly1d(np.poly([1.7, -2.3][: 3 - len(roots)]))
     coef = p.coefficients[::-1][None, :4]
-    found = rm.cubic_roots_unit(coef)[0]
+    found = crossings.cubic_roots_unit(coef)[0]
     found = np.sort(found[~np.isnan(found)])
     assert found == pytest.approx(np.array(roots), abs=1e-9)
 
@@ -475,7 +477,7 @@ def test_segment_distance_matches_sampling(p1, q1, p2, q2):
     a = p1 + s[:, None] * (q1 - p1)
     b = p2 + s[:, None] * (q2 - p2)
     brute = np.linalg.norm(a[:, None] - b[None], axis=2).min()
-    dist = rm.segment_distance(p1, q1, p2, q2)
+    dist = crossings.segment_distance(p1, q1, p2, q2)
     assert dist <= brute + 1e-9
     step = max(np.linalg.norm(q1 - p1), np.linalg.norm(q2 - p2)) / 200
     assert dist >= brute - step - 1e-9
@@ -486,12 +488,12 @@ def test_count_crossings_synthetic():
     x0 = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 1], [0, 1, 1]], dtype=float)
     x1 = x0.copy()
     x1[2:, 2] = -1
-    assert rm.count_crossings(x0, x1) == 1
-    assert rm.count_crossings(x0, x1, min_gap=3) == 0  # pair (0, 2) not tested
+    assert crossings.count_crossings(x0, x1) == 1
+    assert crossings.count_crossings(x0, x1, min_gap=3) == 0  # pair (0, 2) not tested
     x1[2:, 0] = 3  # sweeps down beside segment 0 (x = 1.5 at z = 0), not through it
-    assert rm.count_crossings(x0, x1) == 0
-    assert rm.count_crossings(x0, x0) == 0
-    assert rm.count_run_crossings(np.stack([x0, x0, x0])) == 0
+    assert crossings.count_crossings(x0, x1) == 0
+    assert crossings.count_crossings(x0, x0) == 0
+    assert crossings.count_run_crossings(np.stack([x0, x0, x0])) == 0
 
 
 def test_resample_equal_chords_and_loose_knot():
@@ -499,19 +501,19 @@ def test_resample_equal_chords_and_loose_knot():
 
     for rid in (1, 5):
         p = get_rope(rid)
-        x = rm.overhand_knot_vertices(p)
+        x = crossings.overhand_knot_vertices(p)
         e = np.linalg.norm(np.diff(x, axis=0), axis=1)
         assert e == pytest.approx(np.full(p.segments, p.segment_length), rel=1e-9)
         assert classify_centreline(x) == "trefoil"
         n = p.segments
         gaps = [
-            rm.segment_distance(x[i], x[i + 1], x[j], x[j + 1])
+            crossings.segment_distance(x[i], x[i + 1], x[j], x[j + 1])
             for i in range(n)
             for j in range(i + 2, n)
         ]
         assert min(gaps) > p.diameter  # loose: nothing touches at the start
     with pytest.raises(ConfigError):
-        rm.resample_equal_chords(np.array([[0, 0, 0], [0, 0, 0.1]]), 0.05, 3)
+        crossings.resample_equal_chords(np.array([[0, 0, 0], [0, 0, 0.1]]), 0.05, 3)
 
 
 def test_twist_hinges_do_not_change_bending():

@@ -103,7 +103,7 @@ def test_limit_runs_keeps_dependencies():
         (
             {"runs": []},
             "runs: unknown top-level field (valid choices: name, description, kind, "
-            "paper, ropes, defaults, run, grid)",
+            "paper, ropes, cell, defaults, run, grid)",
         ),
         ({}, "run: the scenario defines no runs"),
     ],

@@ -11,9 +11,9 @@ from learner.bezier import BezierCommand, bernstein_basis
 from learner.critical_state import critical_state_from_record
 from learner.kinematics import RobotModel
 from learner.rope_model import RopeModelParams
+from learner.rope_sensitivity import hanging_sensitivity
 from learner.system_model import (
     critical_step,
-    hanging_sensitivity,
     initial_state,
     input_jacobian,
     linearise,

@@ -3,6 +3,8 @@ the sampled command), constraint generation, failed solves, the equal objective,
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -12,19 +14,20 @@ from flyknot.errors import ConfigError, RecordError
 from flyknot.limits import JointLimits
 from flyknot.record import TrialRecord
 from learner.bezier import BezierCommand
-from learner.critical_state import critical_state_from_record
-from learner.inverse_qp import InverseModelWeights, limit_rows
+from learner.critical_state import MarkerFitParams, critical_state_from_record
+from learner.inverse_qp import InverseModelWeights
 from learner.kinematics import RobotModel
-from learner.rope_model import RopeModelParams
-from learner.system_model import model_demonstration, model_record
-from learner.update import (
+from learner.limit_rows import (
     LIMIT_TOL,
-    DemoTarget,
-    ilc_update,
     initial_active_rows,
+    limit_rows,
     limit_violation,
     subset_rows,
 )
+from learner.rope_model import RopeModelParams
+from learner.system_model import model_demonstration, model_record
+from learner.target import DemoTarget
+from learner.update import UpdateSettings, ilc_update
 
 HOME = np.array([0.0, -0.247, 0.0, 0.909, 0.0, 1.15644, 0.0])
 T = 0.8
@@ -83,7 +86,12 @@ def _sampled(knots: np.ndarray, robot) -> dict[str, np.ndarray]:
 def test_no_mismatch_one_update_removes_the_critical_error(robot, problem):
     command, record, target, _ = problem
     res = ilc_update(
-        record, command, target, robot, PARAMS, SMALL_CONTROL, limits=None, follow_through=False
+        record,
+        command,
+        target,
+        robot,
+        PARAMS,
+        UpdateSettings(weights=SMALL_CONTROL, limits=None, follow_through=False),
     )
     assert res.solved and res.qp_status == "Solved"
     assert res.cost_before > 0.01  # a real error: ~4 cm over the markers
@@ -116,7 +124,7 @@ def test_default_update_with_follow_through_and_limits_reduces_the_error(robot, 
     after = _measured_cost(BezierCommand(res.new_knots, T), target, robot)
     assert after < 0.5 * res.cost_before
     # With base_update="zero" the base stays put.
-    res0 = ilc_update(record, command, target, robot, PARAMS, base_update="zero")
+    res0 = ilc_update(record, command, target, robot, PARAMS, UpdateSettings(base_update="zero"))
     assert res0.solved and np.all(res0.dkappa[7:] == 0.0)
 
 
@@ -152,14 +160,24 @@ def test_binding_limit_holds_on_the_sampled_command(robot, problem, kind):
     command, record, target, _ = problem
     weights = InverseModelWeights(w_control=1e-3)
     free = ilc_update(
-        record, command, target, robot, PARAMS, weights, limits=None, follow_through=False
+        record,
+        command,
+        target,
+        robot,
+        PARAMS,
+        UpdateSettings(weights=weights, limits=None, follow_through=False),
     )
     cur, unconstrained = _sampled(command.knots, robot), _sampled(free.new_knots, robot)
     lim, _ = _tightened(kind, cur, unconstrained)
     assert _excess(kind, cur, lim) < 0  # the current command respects the tightened limit
     assert _excess(kind, unconstrained, lim) > 1e-3  # ... the unconstrained update does not
     res = ilc_update(
-        record, command, target, robot, PARAMS, weights, limits=lim, follow_through=False
+        record,
+        command,
+        target,
+        robot,
+        PARAMS,
+        UpdateSettings(weights=weights, limits=lim, follow_through=False),
     )
     assert res.solved
     got = _sampled(res.new_knots, robot)
@@ -179,12 +197,28 @@ def test_binding_limit_holds_on_the_sampled_command(robot, problem, kind):
 def test_constraint_generation_adds_violated_rows_and_matches_the_full_qp(robot, problem):
     command, record, target, _ = problem
     weights = InverseModelWeights(w_control=1e-3)
-    free = ilc_update(record, command, target, robot, PARAMS, weights, limits=None)
+    free = ilc_update(
+        record, command, target, robot, PARAMS, UpdateSettings(weights=weights, limits=None)
+    )
     cur, unconstrained = _sampled(command.knots, robot), _sampled(free.new_knots, robot)
     lim, _ = _tightened("vel", cur, unconstrained)
     # margin = 1: the first QP has no limit rows; every row must be generated.
-    gen = ilc_update(record, command, target, robot, PARAMS, weights, limits=lim, margin=1.0)
-    full = ilc_update(record, command, target, robot, PARAMS, weights, limits=lim, margin=0.0)
+    gen = ilc_update(
+        record,
+        command,
+        target,
+        robot,
+        PARAMS,
+        UpdateSettings(weights=weights, limits=lim, margin=1.0),
+    )
+    full = ilc_update(
+        record,
+        command,
+        target,
+        robot,
+        PARAMS,
+        UpdateSettings(weights=weights, limits=lim, margin=0.0),
+    )
     assert gen.solved and full.solved
     assert gen.limit_rounds >= 2 and full.limit_rounds == 1
     assert full.n_limit_rows == full.n_limit_rows_total
@@ -196,7 +230,12 @@ def test_constraint_generation_adds_violated_rows_and_matches_the_full_qp(robot,
     np.testing.assert_allclose(gen.dkappa, full.dkappa, atol=5e-5)  # solver tolerance
     # A single round that cannot fix everything falls back to every row.
     one = ilc_update(
-        record, command, target, robot, PARAMS, weights, limits=lim, margin=1.0, max_rounds=1
+        record,
+        command,
+        target,
+        robot,
+        PARAMS,
+        UpdateSettings(weights=weights, limits=lim, margin=1.0, max_rounds=1),
     )
     assert one.limit_rounds == 2 and one.n_limit_rows == one.n_limit_rows_total
     assert one.qp_objective == pytest.approx(full.qp_objective, rel=1e-6)
@@ -230,7 +269,9 @@ def test_infeasible_qp_is_reported_and_not_applied(robot, problem):
         q_min=HOME - 1e-3, q_max=HOME + 1e-3, tau_max=np.array([130, 0.01, 40, 40, 40, 20, 20.0])
     )
     for backend, status in (("clarabel", "PrimalInfeasible"), ("osqp", "primal infeasible")):
-        res = ilc_update(record, command, target, robot, PARAMS, limits=lim, backend=backend)
+        res = ilc_update(
+            record, command, target, robot, PARAMS, UpdateSettings(limits=lim, backend=backend)
+        )
         assert not res.solved and res.qp_status == status
         np.testing.assert_array_equal(res.new_knots, command.knots)
         assert np.all(np.isnan(res.dkappa)) and np.isnan(res.predicted_cost_after)
@@ -239,7 +280,12 @@ def test_infeasible_qp_is_reported_and_not_applied(robot, problem):
 def test_solver_stopping_early_is_reported(robot, problem):
     command, record, target, _ = problem
     res = ilc_update(
-        record, command, target, robot, PARAMS, backend="osqp", solver_settings={"max_iter": 1}
+        record,
+        command,
+        target,
+        robot,
+        PARAMS,
+        UpdateSettings(backend="osqp", solver_settings={"max_iter": 1}),
     )
     assert not res.solved and res.qp_status == "maximum iterations reached"
     np.testing.assert_array_equal(res.new_knots, command.knots)
@@ -271,10 +317,7 @@ def test_equal_objective_uses_every_tracked_pre_collision_sample(robot, problem)
         target,
         robot,
         PARAMS,
-        SMALL_CONTROL,
-        objective="equal",
-        limits=None,
-        follow_through=False,
+        UpdateSettings(weights=SMALL_CONTROL, objective="equal", limits=None, follow_through=False),
     )
     assert res.solved and res.objective == "equal"
     assert res.n_error_samples == 91  # steps 0..90, t_k <= t_c
@@ -287,10 +330,7 @@ def test_equal_objective_uses_every_tracked_pre_collision_sample(robot, problem)
         target,
         robot,
         PARAMS,
-        SMALL_CONTROL,
-        objective="equal",
-        limits=None,
-        follow_through=False,
+        UpdateSettings(weights=SMALL_CONTROL, objective="equal", limits=None, follow_through=False),
     )
     assert res_gap.solved
     assert 91 - 21 <= res_gap.n_error_samples < 91 - 14
@@ -299,7 +339,7 @@ def test_equal_objective_uses_every_tracked_pre_collision_sample(robot, problem)
     assert after < 0.5 * res.cost_before
     lost = _with_lost_markers(record, -1.0, 1.0)
     with pytest.raises(RecordError, match="no pre-collision model step has markers in both"):
-        ilc_update(lost, command, target, robot, PARAMS, objective="equal")
+        ilc_update(lost, command, target, robot, PARAMS, UpdateSettings(objective="equal"))
     with pytest.raises(RecordError, match=r"tracking lost before t_c = 0\.450 s and no state"):
         ilc_update(lost, command, target, robot, PARAMS)
 
@@ -348,11 +388,11 @@ def test_update_input_errors(robot, problem):
     with pytest.raises(
         ConfigError, match=r"^objective: unknown value 'mean' \(valid choices: critical, equal\)$"
     ):
-        ilc_update(record, command, target, robot, PARAMS, objective="mean")
+        UpdateSettings(objective="mean")
     with pytest.raises(ConfigError, match=r"^margin: must be a number in \[0, 1\], got 1.5$"):
-        ilc_update(record, command, target, robot, PARAMS, margin=1.5)
+        UpdateSettings(margin=1.5)
     with pytest.raises(ConfigError, match=r"^max_rounds: must be an integer >= 1, got 0$"):
-        ilc_update(record, command, target, robot, PARAMS, max_rounds=0)
+        UpdateSettings(max_rounds=0)
     with pytest.raises(ConfigError, match=r"^t_c: must lie in \[0, T\) = \[0, 0.8\) s, got 0.8$"):
         DemoTarget(
             t_c=0.8,
@@ -377,17 +417,50 @@ def test_update_input_errors(robot, problem):
         )
 
 
+def test_update_settings_are_validated_and_frozen(robot, problem):
+    settings = UpdateSettings(margin=1, max_rounds=np.int64(2), solver_settings={"max_iter": 5})
+    assert settings.margin == 1.0 and isinstance(settings.margin, float)
+    assert settings.max_rounds == 2 and type(settings.max_rounds) is int
+    with pytest.raises(TypeError):
+        settings.solver_settings["max_iter"] = 6  # type: ignore[index]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        settings.margin = 0.2  # type: ignore[misc]
+    default = UpdateSettings()
+    assert default.weights == InverseModelWeights() and default.fit == MarkerFitParams()
+    assert default.limits == JointLimits() and default.objective == "critical"
+    for bad, match in (
+        ({"backend": "gurobi"}, r"^backend: unknown value 'gurobi'"),
+        ({"base_update": "free"}, r"^base_update: unknown value 'free'"),
+        ({"interpolation": "nearest"}, r"^interpolation: unknown value 'nearest'"),
+        ({"trust_region": 0.0}, r"^trust_region: must be a finite number > 0"),
+        ({"fallback_s": -1.0}, r"^fallback_s: must be a finite number >= 0"),
+        ({"follow_through": "yes"}, r"^follow_through: must be a bool"),
+        ({"weights": None}, r"^weights: must be an InverseModelWeights, got NoneType$"),
+        ({"limits": "paper"}, r"^limits: must be a JointLimits or None, got str$"),
+        ({"solver_settings": None}, r"^solver_settings: must be a mapping"),
+    ):
+        with pytest.raises(ConfigError, match=match):
+            UpdateSettings(**bad)
+    command, record, target, _ = problem
+    with pytest.raises(ConfigError, match=r"^settings: must be an UpdateSettings, got dict$"):
+        ilc_update(record, command, target, robot, PARAMS, {"objective": "critical"})
+
+
 def test_tracking_lost_before_tc_falls_back_to_the_last_tracked_step(robot, problem):
     command, record, target, _ = problem
     lost = _with_lost_markers(record, T_C - 0.06, 10.0)  # the rope "touched itself" early
-    res = ilc_update(lost, command, target, robot, PARAMS, limits=None, follow_through=False)
+    res = ilc_update(
+        lost, command, target, robot, PARAMS, UpdateSettings(limits=None, follow_through=False)
+    )
     assert res.solved
     # the latest step whose local fit still has a sample within 15 ms, before t_c
     assert T_C - 0.1 < res.t_eff <= T_C - 0.06 + 0.015
     k = round(res.t_eff / target.dt)
     x = critical_state_from_record(lost, res.t_eff, command.base_offset)
     np.testing.assert_allclose(res.err, x - target.x_pre[k], atol=1e-12)
-    full = ilc_update(record, command, target, robot, PARAMS, limits=None, follow_through=False)
+    full = ilc_update(
+        record, command, target, robot, PARAMS, UpdateSettings(limits=None, follow_through=False)
+    )
     assert full.t_eff == pytest.approx(T_C)
     with pytest.raises(RecordError, match="tracking lost before t_c"):
-        ilc_update(lost, command, target, robot, PARAMS, fallback_s=0.03)
+        ilc_update(lost, command, target, robot, PARAMS, UpdateSettings(fallback_s=0.03))

@@ -1,0 +1,296 @@
+"""A user's own ropes (a ropes file of ``[[rope]]`` tables) and the one resolver of ropes.
+
+:func:`resolve_rope` turns a paper rope id 1..7, a rope's name (the paper's or one of a ropes
+file's) or a :class:`~flyknot_sim.rope_table.RopeParams` into the rope; :func:`rope_record`
+says what a record stores about it. The paper's table is :mod:`flyknot_sim.rope_table`.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Mapping
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from flyknot.constants import MARKER_SPACING, N_MARKERS, ROPE_TABLE
+from flyknot.errors import ConfigError, check_choice, check_nonnegative, check_positive
+from flyknot_sim.rope_table import (
+    MATERIALS,
+    RopeParams,
+    _check_keys,
+    _default_table,
+    _read_toml,
+    get_rope,
+)
+
+try:  # Python >= 3.11
+    import tomllib as _toml
+except ModuleNotFoundError:  # pragma: no cover - Python 3.10 needs the tomli backport
+    import tomli as _toml  # type: ignore[no-redef]
+
+__all__ = [
+    "CUSTOM_KEYS",
+    "CUSTOM_OPTIONAL",
+    "CUSTOM_REQUIRED",
+    "DEFAULT_SEGMENTS",
+    "DEFAULT_TIMESTEP",
+    "MAX_TIMESTEP",
+    "REFERENCE_DIAMETER",
+    "load_custom_ropes",
+    "parse_custom_ropes",
+    "resolve_rope",
+    "rope_choices",
+    "rope_record",
+]
+
+# ----------------------------------------------------------------------------------------
+# custom ropes: a user's own ropes file
+# ----------------------------------------------------------------------------------------
+CUSTOM_REQUIRED = ("name", "material", "diameter", "density", "length", "end_weight")
+"""Keys every ``[[rope]]`` table of a custom ropes file must have."""
+CUSTOM_OPTIONAL = (
+    "bend_modulus",
+    "shear_modulus",
+    "damping",
+    "friction",
+    "cd",
+    "condim",
+    "torsional_friction",
+    "segments",
+    "timestep",
+)
+"""Keys a custom rope may give; missing ones come from its material (or the defaults below)."""
+CUSTOM_KEYS = CUSTOM_REQUIRED + CUSTOM_OPTIONAL
+
+REFERENCE_DIAMETER = {"cotton": 0.009}
+"""Diameter [m] at which a material's stiffness in ``assets/ropes.toml`` holds; for these
+materials a custom rope's default E and G scale as (D_ref / D)^2, as the table's cotton ropes
+do (free-slip fibre-bundle scaling, see the comments there). Other materials are not scaled:
+steel (chain) has no stiffness; latex's values are those of 3/8" surgical tubing."""
+DEFAULT_SEGMENTS = 30
+"""Flex elements of a custom rope unless it says, capped so that length / segments > D."""
+DEFAULT_TIMESTEP = 0.001
+"""Simulation step of a custom rope unless it says [s] (the thin ropes' validated step)."""
+MAX_TIMESTEP = 0.004
+"""Largest simulation step of a custom rope [s]: the robot's 4 ms command tick."""
+
+
+def _is_number(v: object) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _max_segments(length: float, diameter: float) -> int:
+    """The most elements n with length / n > diameter (at least 1)."""
+    n = max(1, int(length // diameter))
+    while n > 1 and length / n <= diameter:
+        n -= 1
+    return n
+
+
+@functools.lru_cache(maxsize=1)
+def _material_defaults() -> dict[str, dict[str, float]]:
+    mats = _read_toml(ROPE_TABLE).get("materials", {})
+    return {m: dict(mats.get(m, {})) for m in MATERIALS}
+
+
+def _custom_rope(entry: Mapping[str, Any], where: str, paper: Mapping[str, int]) -> RopeParams:
+    if not isinstance(entry, Mapping):
+        raise ConfigError(where, f"must be a table ([[rope]]), got {entry!r}")
+    _check_keys(where, entry, CUSTOM_KEYS)
+    missing = [k for k in CUSTOM_REQUIRED if k not in entry]
+    if missing:
+        raise ConfigError(where, f"missing key(s) {', '.join(missing)}")
+    name = entry["name"]
+    if not isinstance(name, str) or not name.strip():
+        raise ConfigError(f"{where}.name", f"must be a non-empty string, got {name!r}")
+    if name.strip().isdigit():
+        raise ConfigError(
+            f"{where}.name", f"must not be a number (1..7 are the paper's rope ids), got {name!r}"
+        )
+    if name in paper:
+        raise ConfigError(
+            f"{where}.name",
+            f"{name!r} is the paper's rope {paper[name]}; give your rope another name",
+        )
+    material = entry["material"]
+    check_choice(f"{where}.material", material, MATERIALS)
+    for k in ("diameter", "density", "length"):
+        check_positive(f"{where}.{k}", entry[k])
+    check_nonnegative(f"{where}.end_weight", entry["end_weight"])
+    diameter, length = float(entry["diameter"]), float(entry["length"])
+    span = MARKER_SPACING * (N_MARKERS - 1)
+    if length <= span:
+        raise ConfigError(
+            f"{where}.length",
+            f"must exceed {span:g} m (the {N_MARKERS} markers sit every {MARKER_SPACING:g} m "
+            f"from the held end, the last one at the free end), got {entry['length']!r}",
+        )
+    n_max = _max_segments(length, diameter)
+    if n_max < 2:
+        raise ConfigError(
+            f"{where}.diameter",
+            f"must be less than half the length ({length / 2:g} m), got {entry['diameter']!r}",
+        )
+    mat = _material_defaults()[material]
+    scale = (REFERENCE_DIAMETER[material] / diameter) ** 2 if material in REFERENCE_DIAMETER else 1
+    values: dict[str, Any] = {
+        "bend_modulus": mat["bend_modulus"] * scale,
+        "shear_modulus": mat["shear_modulus"] * scale,
+        "damping": mat["damping"],
+        "friction": mat["friction"],
+        "cd": None,
+        "condim": 3,
+        "torsional_friction": None,
+        "segments": min(DEFAULT_SEGMENTS, n_max),
+        "timestep": DEFAULT_TIMESTEP,
+    }
+    for k in CUSTOM_OPTIONAL:
+        if k in entry:
+            values[k] = entry[k]
+    if "timestep" in entry:
+        t = entry["timestep"]
+        if not (_is_number(t) and 0 < t <= MAX_TIMESTEP):
+            raise ConfigError(
+                f"{where}.timestep",
+                f"must lie in (0, {MAX_TIMESTEP:g}] s (the robot's command tick), got {t!r}",
+            )
+    try:
+        p = RopeParams(
+            id=name,
+            name=name,
+            material=material,
+            diameter=diameter,
+            density=entry["density"],
+            end_mass=entry["end_weight"],
+            length=length,
+            **values,
+        )
+    except ConfigError as e:  # name the rope's field (RopeParams' own names but end_mass)
+        field_name = "end_weight" if e.field == "end_mass" else e.field
+        raise ConfigError(f"{where}.{field_name}", e.problem, e.choices) from None
+    floats = ("density", "end_mass", "bend_modulus", "shear_modulus", "damping", "friction")
+    as_float = {k: float(getattr(p, k)) for k in (*floats, "timestep")}
+    if p.cd is not None:
+        as_float["cd"] = float(p.cd)
+    return replace(p, **as_float)
+
+
+def parse_custom_ropes(doc: Mapping[str, Any]) -> dict[str, RopeParams]:
+    """A user's ropes from a parsed TOML document: name -> :class:`RopeParams`.
+
+    The document holds ``[[rope]]`` tables with the keys :data:`CUSTOM_REQUIRED` (``name``,
+    ``material`` of :data:`MATERIALS`, ``diameter`` [m], ``density`` [kg/m], ``length`` [m],
+    ``end_weight`` [kg]) and optionally :data:`CUSTOM_OPTIONAL` (``bend_modulus``,
+    ``shear_modulus`` [Pa], ``damping`` [s], ``friction`` [-], ``cd`` [-], ``segments``,
+    ``timestep`` [s]). Missing optional values: the material's in ``assets/ropes.toml`` (E and
+    G of cotton scaled by (9 mm / D)^2, see :data:`REFERENCE_DIAMETER`), ``cd`` None (the
+    Re-dependent curve), ``segments`` 30 capped so that length / segments > D, ``timestep``
+    1 ms. Each rope's id is its name.
+
+    Raises:
+        ConfigError: Unknown key, missing key, bad value, duplicate name, or a name that is
+            a number or one of the paper's rope names (the message names the field, e.g.
+            ``rope[0].diameter``).
+    """
+    for k in doc:
+        if k != "rope":
+            raise ConfigError(k, "unknown top-level key of a ropes file", ["rope"])
+    ropes = doc.get("rope")
+    if not isinstance(ropes, list) or not ropes:
+        raise ConfigError("rope", "the ropes file needs at least one [[rope]] table")
+    paper = {p.name: rid for rid, p in _default_table().items()}
+    out: dict[str, RopeParams] = {}
+    for i, entry in enumerate(ropes):
+        p = _custom_rope(entry, f"rope[{i}]", paper)
+        if p.name in out:
+            raise ConfigError(f"rope[{i}].name", f"duplicate rope name {p.name!r}")
+        out[p.name] = p
+    return out
+
+
+def _ropes_path(path: str | Path) -> Path:
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise ConfigError("ropes", f"no ropes file {str(path)!r}")
+    return p.resolve()
+
+
+@functools.lru_cache(maxsize=16)
+def _load_custom_cached(path: str, mtime_ns: int, size: int) -> dict[str, RopeParams]:
+    try:
+        with open(path, "rb") as fh:
+            doc = _toml.load(fh)
+    except _toml.TOMLDecodeError as exc:
+        raise ConfigError("ropes", f"{path}: not valid TOML: {exc}") from None
+    return parse_custom_ropes(doc)
+
+
+def load_custom_ropes(path: str | Path) -> dict[str, RopeParams]:
+    """Read a user's ropes file (format: :func:`parse_custom_ropes`; example:
+    ``assets/ropes_example.toml``): name -> :class:`RopeParams`. Cached until the file
+    changes.
+
+    Raises:
+        ConfigError: No such file, not TOML, or a bad rope (see :func:`parse_custom_ropes`).
+    """
+    p = _ropes_path(path)
+    st = p.stat()
+    return dict(_load_custom_cached(str(p), st.st_mtime_ns, st.st_size))
+
+
+def rope_choices(ropes_file: str | Path | None = None) -> list[object]:
+    """Every valid rope: the paper's ids 1..7, then the quoted names of the paper's ropes and
+    of the ropes in ``ropes_file`` (for error messages)."""
+    table = _default_table()
+    names = [p.name for p in table.values()]
+    if ropes_file is not None:
+        names += list(load_custom_ropes(ropes_file))
+    return [*sorted(table), *(repr(n) for n in names)]
+
+
+def resolve_rope(rope: int | str | RopeParams, ropes_file: str | Path | None = None) -> RopeParams:
+    """The one place a rope id becomes a rope.
+
+    Args:
+        rope: A paper rope id 1..7 (an int or a string of digits, e.g. from the command
+            line), a rope's name (the paper's, e.g. ``"shoe lace"``, or one of
+            ``ropes_file``'s), or a :class:`RopeParams` (returned as is).
+        ropes_file: A user's ropes file (:func:`load_custom_ropes`), or None.
+
+    Raises:
+        ConfigError: Unknown id or name (listing the valid ids and names), or a bad ropes
+            file.
+    """
+    if isinstance(rope, RopeParams):
+        return rope
+    custom = load_custom_ropes(ropes_file) if ropes_file is not None else {}
+    if isinstance(rope, str) and rope.strip().isdigit():
+        rope = int(rope)
+    if isinstance(rope, int) and not isinstance(rope, bool):
+        table = _default_table()
+        if rope in table:
+            return table[rope]
+        if not custom:
+            get_rope(rope)  # the paper's message: unknown rope id, valid ids
+        raise ConfigError("rope", f"unknown rope id {rope}", rope_choices(ropes_file))
+    if isinstance(rope, str):
+        if rope in custom:
+            return custom[rope]
+        for p in _default_table().values():
+            if p.name == rope:
+                return p
+        hint = "" if ropes_file is not None else ", and no ropes file was given"
+        raise ConfigError("rope", f"unknown rope name {rope!r}{hint}", rope_choices(ropes_file))
+    raise ConfigError("rope", f"must be a rope id or name, got {rope!r}", rope_choices(ropes_file))
+
+
+def rope_record(params: RopeParams, ropes_file: str | Path | None = None) -> dict[str, Any]:
+    """What a record says about its rope: ``rope`` (the id: 1..7, or a custom rope's name)
+    and ``rope_name``; for a custom rope also ``rope_params`` (all its parameters) and
+    ``ropes_file``, so that the record describes the rope without the file."""
+    out: dict[str, Any] = {"rope": params.id, "rope_name": params.name}
+    if params.custom:
+        out["rope_params"] = params.to_dict()
+        out["ropes_file"] = None if ropes_file is None else str(ropes_file)
+    return out

@@ -1,0 +1,350 @@
+"""The rope table of the simulated lab: the paper's ropes and the simulation options.
+
+Rope ids, names, sizes and material data live in ``assets/ropes.toml`` (``[[rope]]`` entries
+taking their material's values from ``[materials.<material>]``, see :func:`load_rope_table`);
+simulation options in its ``[simulation]`` table (:func:`load_sim_settings`). A user's own
+ropes and the one resolver of rope ids and names are in :mod:`flyknot_sim.rope_custom`; the
+MuJoCo rope built from a :class:`RopeParams` in :mod:`flyknot_sim.rope`.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+from flyknot.constants import ROPE_TABLE
+from flyknot.errors import ConfigError, check_choice, check_nonnegative, check_positive
+
+try:  # Python >= 3.11
+    import tomllib as _toml
+except ModuleNotFoundError:  # pragma: no cover - Python 3.10 needs the tomli backport
+    import tomli as _toml  # type: ignore[no-redef]
+
+__all__ = [
+    "CLEARANCE_EXTRA",
+    "INTEGRATORS",
+    "MATERIALS",
+    "SELFCOLLIDE_MODES",
+    "SOLVERS",
+    "STEEL_DENSITY",
+    "RopeParams",
+    "SimSettings",
+    "get_rope",
+    "load_rope_table",
+    "load_sim_settings",
+    "parse_rope_table",
+]
+
+MATERIALS = ("cotton", "steel", "latex")
+"""Materials of the paper's ropes."""
+
+STEEL_DENSITY = 7850.0
+"""Density of carbon steel [kg/m^3] (e.g. ASM Handbook vol. 1), for the end-weight sphere."""
+
+CLEARANCE_EXTRA = 1e-3
+"""Gap between the anchor point and the first capsule's cap [m]; clearance = radius + this."""
+
+SELFCOLLIDE_MODES = ("auto", "sap", "bvh", "narrow")
+INTEGRATORS = ("discrete",)
+SOLVERS = ("Newton", "CG")
+
+
+# ----------------------------------------------------------------------------------------
+# parameters
+# ----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class RopeParams:
+    """One rope of the paper's table plus the material and discretisation we chose for it, or
+    a user's own rope (:func:`load_custom_ropes`).
+
+    Attributes:
+        id: Rope id of the paper (1..7), or, for a custom rope, its name (a string).
+        name: Name in the paper's table (or the custom rope's name).
+        material: One of :data:`MATERIALS`.
+        diameter: Rope diameter [m]; the flex capsule radius is half of it.
+        density: Linear density [kg/m].
+        end_mass: Mass of the weight at the free end [kg] (separate from the rope's mass).
+        length: Rope length [m].
+        bend_modulus: Effective Young's modulus E of a solid circular section of the rope's
+            diameter [Pa]; bending stiffness EI = E pi r^4 / 4 [N m^2].
+        shear_modulus: Effective shear modulus G [Pa]; torsional stiffness GJ = G pi r^4 / 2.
+            0 lets MuJoCo use E / (2 (1 + nu)) with nu = 0.
+        damping: Rayleigh damping time of the bending/torsion stiffness [s].
+        friction: Sliding friction coefficient of rope-rope and rope-geom contact [-].
+        segments: Number of flex elements (capsules); length / segments > diameter.
+        timestep: Largest simulation step this rope was validated at [s].
+        cd: Fixed cross-flow drag coefficient [-] replacing the C_D(Re) curve of
+            :mod:`flyknot_sim.aero` (the labs pass it on as ``AeroParams.cd``), or None.
+        condim: Contact dimensionality of the rope's contacts: 3 (sliding friction, the
+            default) or 4 (plus torsional friction about the contact normal).
+        torsional_friction: MuJoCo's torsional friction coefficient [m] (the moment about the
+            normal is this times the normal force) when ``condim`` is 4; None:
+            (2/3) friction r, the moment of uniform pressure over a contact disc of radius a
+            = r (K. L. Johnson, "Contact Mechanics", 1985, sec. 7.4; a soft cord flattens to
+            a patch about its radius wide -- an upper bound, no measured value found).
+    """
+
+    id: int | str
+    name: str
+    material: str
+    diameter: float
+    density: float
+    end_mass: float
+    length: float
+    bend_modulus: float
+    shear_modulus: float
+    damping: float
+    friction: float
+    segments: int
+    timestep: float
+    cd: float | None = None
+    condim: int = 3
+    torsional_friction: float | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.id, str):
+            if self.id != self.name:
+                raise ConfigError(
+                    "id", f"a custom rope's id is its name {self.name!r}, got {self.id!r}"
+                )
+        elif isinstance(self.id, bool) or not isinstance(self.id, int) or self.id < 1:
+            raise ConfigError("id", f"must be an integer >= 1, got {self.id!r}")
+        if not isinstance(self.name, str) or not self.name.strip():
+            raise ConfigError("name", f"must be a non-empty string, got {self.name!r}")
+        check_choice("material", self.material, MATERIALS)
+        for f in ("diameter", "density", "length", "friction", "timestep"):
+            check_positive(f, getattr(self, f))
+        for f in ("end_mass", "bend_modulus", "shear_modulus", "damping"):
+            check_nonnegative(f, getattr(self, f))
+        if isinstance(self.segments, bool) or not isinstance(self.segments, int):
+            raise ConfigError("segments", f"must be an integer, got {self.segments!r}")
+        if self.segments < 2:
+            raise ConfigError("segments", f"must be >= 2, got {self.segments}")
+        if self.length / self.segments <= self.diameter:
+            n_max = max(1, int(self.length // self.diameter))
+            while n_max > 1 and self.length / n_max <= self.diameter:
+                n_max -= 1
+            raise ConfigError(
+                "segments",
+                f"segment length {self.length / self.segments:.4g} m must exceed the diameter "
+                f"{self.diameter:.4g} m (elements sharing no vertex would touch at rest); "
+                f"use at most {n_max} segments",
+            )
+        if self.cd is not None:
+            check_positive("cd", self.cd)
+        check_choice("condim", self.condim, (3, 4))
+        if self.torsional_friction is not None:
+            check_nonnegative("torsional_friction", self.torsional_friction)
+
+    @property
+    def friction_triple(self) -> list[float]:
+        """MuJoCo's (sliding, torsional [m], rolling [m]) friction of the rope's contacts."""
+        tors = self.torsional_friction
+        if tors is None:
+            tors = 2.0 / 3.0 * self.friction * self.radius
+        return [self.friction, tors, 0.0001]
+
+    @property
+    def custom(self) -> bool:
+        """A user's rope (from a ropes file; its id is its name), not one of the paper's."""
+        return isinstance(self.id, str)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The parameters as plain data (``cd`` only when set, so that the paper's ropes read
+        as before it existed)."""
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        for k, default in (("cd", None), ("condim", 3), ("torsional_friction", None)):
+            if d[k] == default:
+                del d[k]
+        return d
+
+    @property
+    def n_segments(self) -> int:
+        """Number of flex elements (alias of ``segments``)."""
+        return self.segments
+
+    @property
+    def radius(self) -> float:
+        """Capsule radius r = diameter / 2 [m]."""
+        return self.diameter / 2
+
+    @property
+    def segment_length(self) -> float:
+        """Rest length of one element, length / segments [m]."""
+        return self.length / self.segments
+
+    @property
+    def mass(self) -> float:
+        """Rope mass without the end weight, density * length [kg]."""
+        return self.density * self.length
+
+    @property
+    def bending_stiffness(self) -> float:
+        """EI = E pi r^4 / 4 [N m^2]."""
+        return self.bend_modulus * math.pi * self.radius**4 / 4
+
+    @property
+    def torsional_stiffness(self) -> float:
+        """GJ = G pi r^4 / 2 [N m^2] (G = E / 2 when ``shear_modulus`` is 0)."""
+        g = self.shear_modulus if self.shear_modulus > 0 else self.bend_modulus / 2
+        return g * math.pi * self.radius**4 / 2
+
+    @property
+    def end_radius(self) -> float:
+        """Radius of the end-weight sphere [m]: a steel sphere of ``end_mass``, at least r.
+
+        r_end = max(r, (3 m_end / (4 pi rho_steel))^(1/3)).
+        """
+        r_steel = (3 * self.end_mass / (4 * math.pi * STEEL_DENSITY)) ** (1 / 3)
+        return max(self.radius, r_steel)
+
+    @property
+    def clearance(self) -> float:
+        """Distance from the anchor point to the held end (vertex 0) along the axis [m]."""
+        return self.radius + CLEARANCE_EXTRA
+
+
+_ROPE_FIELDS = tuple(f.name for f in fields(RopeParams))
+_OPTIONAL_ROPE_FIELDS = ("cd", "condim", "torsional_friction")
+_MATERIAL_FIELDS = ("bend_modulus", "shear_modulus", "damping", "friction")
+
+
+@dataclass(frozen=True)
+class SimSettings:
+    """Simulation options for scenes with ropes (the ``[simulation]`` table).
+
+    Attributes:
+        integrator: MuJoCo integrator; only ``discrete`` integrates rod elasticity implicitly.
+        solver: Constraint solver, ``Newton`` or ``CG`` (PGS does not support flex).
+        iterations: Maximum solver iterations.
+        ls_iterations: Maximum line-search iterations per solver iteration.
+        tolerance: Solver early-termination tolerance.
+        edge_timeconst: solref time constant of the edge and hold equalities [s].
+        contact_timeconst: solref time constant of rope contacts [s].
+        contact_dampratio: solref damping ratio of rope contacts [-].
+        contact_solimp: solimp (d0, d_width, width) of rope contacts: impedance at zero and at
+            ``width`` [m] penetration.
+        refsafe: MuJoCo's refsafe flag; under ``discrete`` it replaces contact rows stiffer than
+            the step can resolve (time constant < timestep) by the stiffest resolvable one.
+        selfcollide: Flex self-collision midphase, one of ``auto``, ``sap``, ``bvh``,
+            ``narrow``.
+    """
+
+    integrator: str = "discrete"
+    solver: str = "Newton"
+    iterations: int = 100
+    ls_iterations: int = 50
+    tolerance: float = 1e-8
+    edge_timeconst: float = 1e-4
+    contact_timeconst: float = 0.001
+    contact_dampratio: float = 1.0
+    contact_solimp: tuple[float, float, float] = (0.9, 0.95, 0.001)
+    refsafe: bool = True
+    selfcollide: str = "auto"
+
+    def __post_init__(self) -> None:
+        check_choice("integrator", self.integrator, INTEGRATORS)
+        check_choice("solver", self.solver, SOLVERS)
+        check_choice("selfcollide", self.selfcollide, SELFCOLLIDE_MODES)
+        for f in ("iterations", "ls_iterations"):
+            v = getattr(self, f)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ConfigError(f, f"must be an integer >= 1, got {v!r}")
+        for f in ("tolerance", "edge_timeconst", "contact_timeconst", "contact_dampratio"):
+            check_positive(f, getattr(self, f))
+        imp = tuple(self.contact_solimp)
+        if len(imp) != 3 or not all(isinstance(v, (int, float)) for v in imp):
+            raise ConfigError("contact_solimp", f"must be 3 numbers, got {self.contact_solimp!r}")
+        if not (0 < imp[0] < 1 and 0 < imp[1] < 1 and imp[2] > 0):
+            raise ConfigError(
+                "contact_solimp", f"need 0 < d0, d_width < 1 and width > 0, got {imp!r}"
+            )
+        object.__setattr__(self, "contact_solimp", tuple(float(v) for v in imp))
+        if not isinstance(self.refsafe, bool):
+            raise ConfigError("refsafe", f"must be true or false, got {self.refsafe!r}")
+
+
+_SIM_FIELDS = tuple(f.name for f in fields(SimSettings))
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
+    try:
+        with open(path, "rb") as fh:
+            return _toml.load(fh)
+    except FileNotFoundError as exc:
+        raise ConfigError("rope table", f"file not found: {path}") from exc
+    except _toml.TOMLDecodeError as exc:
+        raise ConfigError("rope table", f"{path}: {exc}") from exc
+
+
+def _check_keys(where: str, table: Mapping[str, Any], allowed: Sequence[str]) -> None:
+    for key in table:
+        if key not in allowed:
+            raise ConfigError(f"{where}.{key}", "unknown key", allowed)
+
+
+def parse_rope_table(doc: Mapping[str, Any]) -> dict[int, RopeParams]:
+    """Build the rope table from a parsed TOML document (see ``assets/ropes.toml``).
+
+    Each ``[[rope]]`` entry takes its material's values from ``[materials.<material>]`` and
+    may override any of them.
+
+    Raises:
+        ConfigError: Missing or unknown keys, bad values, duplicate ids.
+    """
+    materials = doc.get("materials", {})
+    ropes = doc.get("rope")
+    if not isinstance(ropes, list) or not ropes:
+        raise ConfigError("rope", "the table needs at least one [[rope]] entry")
+    out: dict[int, RopeParams] = {}
+    for i, entry in enumerate(ropes):
+        where = f"rope[{i}]"
+        _check_keys(where, entry, _ROPE_FIELDS)
+        material = entry.get("material")
+        check_choice(f"{where}.material", material, MATERIALS)
+        mat = materials.get(material, {})
+        _check_keys(f"materials.{material}", mat, _MATERIAL_FIELDS)
+        values = {**mat, **entry}
+        missing = [f for f in _ROPE_FIELDS if f not in values and f not in _OPTIONAL_ROPE_FIELDS]
+        if missing:
+            raise ConfigError(where, f"missing key(s) {', '.join(missing)}")
+        p = RopeParams(**{f: values[f] for f in _ROPE_FIELDS if f in values})
+        if p.custom:
+            raise ConfigError(f"{where}.id", f"must be an integer >= 1, got {p.id!r}")
+        if p.id in out:
+            raise ConfigError(f"{where}.id", f"duplicate rope id {p.id}")
+        out[p.id] = p
+    return dict(sorted(out.items()))
+
+
+def load_rope_table(path: str | Path = ROPE_TABLE) -> dict[int, RopeParams]:
+    """Read the rope table (default ``assets/ropes.toml``): rope id -> :class:`RopeParams`."""
+    return parse_rope_table(_read_toml(Path(path)))
+
+
+def load_sim_settings(path: str | Path = ROPE_TABLE) -> SimSettings:
+    """Read the ``[simulation]`` table of the rope file as :class:`SimSettings`."""
+    sim = _read_toml(Path(path)).get("simulation", {})
+    _check_keys("simulation", sim, _SIM_FIELDS)
+    return SimSettings(**sim)
+
+
+@functools.lru_cache(maxsize=1)
+def _default_table() -> dict[int, RopeParams]:
+    return load_rope_table(ROPE_TABLE)
+
+
+def get_rope(rope_id: int) -> RopeParams:
+    """The rope with this id from ``assets/ropes.toml``.
+
+    Raises:
+        ConfigError: Unknown id, listing the valid ids.
+    """
+    table = _default_table()
+    if isinstance(rope_id, bool) or rope_id not in table:
+        raise ConfigError("rope", f"unknown rope id {rope_id}", sorted(table))
+    return table[rope_id]

@@ -1,0 +1,284 @@
+"""The ``flyknot-tools`` command line: the offline tools that make demonstrations and study ropes.
+
+* ``flyknot-tools demo synthesize --variant NAME --seed S --out FILE`` searches a hand motion
+  of the variant (progress on stderr), saves the nominal trial as a demonstration (``.npz``)
+  and checks it with ``--check-repeats`` varied replays (the rate goes into its metadata);
+  ``docs/demo-synthesis.md``.
+* ``flyknot-tools demo robot --out FILE [--start COMMAND.npz] [--seed S]`` searches a command
+  the simulated arm ties the knot with and saves its nominal trial as a demonstration;
+  ``docs/robot-feasibility.md``.
+* ``flyknot-tools demo record --command COMMAND.npz --out FILE`` records a robot command's
+  nominal trial as a demonstration.
+* ``flyknot-tools rope-study [ARGS...]`` prints the rope-model comparison table of
+  ``docs/rope-model.md`` (its own options: ``flyknot-tools rope-study --help``).
+
+Replaying a demonstration is part of the application: ``flyknot demo replay``. Errors print
+as ``flyknot``'s do (one line on stderr, exit status 2); this module also runs as
+``python -m flyknot_tools.cli ...``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from flyknot.errors import ConfigError, FlyknotError, SolverError, check_int
+
+PROG = "flyknot-tools"
+ROPE_STUDY = "rope-study"
+
+
+def _cmd_synthesize(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from flyknot_sim.hand_params import HandParams
+    from flyknot_sim.rope_table import get_rope
+    from flyknot_tools.hand_demos.synthesis import SynthConfig, synthesize
+    from flyknot_tools.hand_demos.variants import get_variant
+
+    variant = get_variant(args.variant)
+    pace = {}
+    for flag, f in (("max_speed", "speed_limit"), ("max_axis_rate", "axis_rate_limit")):
+        value = getattr(args, flag)
+        if value is not None:
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"--{flag.replace('_', '-')}", f"must be > 0, got {value!r}")
+            pace[f] = value
+    variant = replace(variant, **pace)
+    check_int("--seed", args.seed, 0)
+    check_int("--check-repeats", args.check_repeats, 0)
+    get_rope(args.rope)
+    out = Path(args.out)
+    if out.suffix != ".npz":
+        raise ConfigError("--out", f"must be a .npz file, got {str(out)!r}")
+    config = SynthConfig()
+    if args.budget is not None:
+        check_int("--budget", args.budget, 1)
+        config = replace(config, total_budget=args.budget)
+    config = replace(config, search=replace(config.search, hand=HandParams(rope=args.rope)))
+    result = synthesize(
+        variant,
+        args.seed,
+        config,
+        check_repeats=args.check_repeats,
+        progress=not args.quiet,
+    )
+    result.demo.save(out)
+    summary = {"file": str(out), **result.summary()}
+    _print_summary(summary, args.json)
+    return 0
+
+
+def _load_command(path: str) -> tuple[object, float]:
+    import numpy as np
+
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError("--command", f"no file {str(p)!r}")
+    with np.load(p) as z:
+        if "knots" not in z.files or "T" not in z.files:
+            raise ConfigError("--command", f"{str(p)!r} needs arrays 'knots' and 'T'")
+        return np.array(z["knots"]), float(z["T"])
+
+
+def _print_summary(summary: dict, as_json: bool) -> None:
+    print(json.dumps(summary) if as_json else "\n".join(f"{k}: {v}" for k, v in summary.items()))
+
+
+def _save_robot_demo(args: argparse.Namespace, knots, T: float, extra: dict) -> dict:
+    from flyknot_tools.robot_demo import record_demonstration
+
+    out = Path(args.out)
+    if out.suffix != ".npz":
+        raise ConfigError("--out", f"must be a .npz file, got {str(out)!r}")
+    demo = record_demonstration(knots, T, rope=args.rope, metadata=extra)
+    demo.save(out)
+    return {"file": str(out), "t_c": round(demo.t_c, 4), "knot": demo.metadata["knot"], **extra}
+
+
+def _cmd_robot(args: argparse.Namespace) -> int:
+    import tempfile
+
+    from flyknot_app.runner import initial_knots, prepare_target
+    from flyknot_sim.scene import SceneParams, robot_base_pose
+    from flyknot_tools.robot_demo import CommandSearchConfig, search_command
+    from learner.kinematics import RobotModel
+    from learner.rope_model import RopeModelParams
+
+    check_int("--seed", args.seed, 0)
+    config = CommandSearchConfig(
+        rope=args.rope,
+        evaluations=args.evaluations,
+        local_evaluations=args.local_evaluations,
+        target_rate=args.target_rate,
+    )
+    if args.start is not None:
+        knots0, T0 = _load_command(args.start)
+    else:
+        dt = RopeModelParams().dt
+        _, target = prepare_target(args.demo, dt)
+        with tempfile.TemporaryDirectory() as tmp:
+            z = float(robot_base_pose(SceneParams())[2])
+            knots0, _ = initial_knots(args.demo, Path(tmp), RobotModel.from_mjcf(), dt, z)
+        T0 = target.T
+    res = search_command(knots0, T0, config, seed=args.seed, progress=not args.quiet)
+    if not res.tied:
+        raise SolverError(
+            "robot demo search",
+            "no knot",
+            f"no command tied the knot in {res.evaluations} evaluations; try another --seed "
+            "or more --evaluations",
+        )
+    start = args.start if args.start is not None else f"initial guess of demo {args.demo!r}"
+    summary = _save_robot_demo(
+        args,
+        res.knots,
+        res.T,
+        {"search": {"seed": args.seed, "start": start, **res.summary(timing=False)}},
+    )
+    _print_summary(summary, args.json)
+    return 0
+
+
+def _cmd_record(args: argparse.Namespace) -> int:
+    knots, T = _load_command(args.command)
+    summary = _save_robot_demo(args, knots, T, {"command_file": str(args.command)})
+    _print_summary(summary, args.json)
+    return 0
+
+
+def _cmd_rope_study(args: argparse.Namespace) -> int:
+    from flyknot_tools.rope_study.cli import main as rope_study_main
+
+    rope_study_main(args.args)
+    return 0
+
+
+def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add ``demo synthesize|robot|record`` to a ``flyknot-tools`` subparser set.
+
+    Args:
+        subparsers: The object returned by ``parser.add_subparsers()``.
+
+    Returns:
+        The ``demo`` parser.
+    """
+    from flyknot_tools.hand_demos.variants import VARIANTS
+
+    d = subparsers.add_parser(
+        "demo", help="make a flying-knot demonstration (hand motion search, robot command)"
+    )
+    dsub = d.add_subparsers(dest="demo_cmd", required=True, metavar="ACTION")
+
+    s = dsub.add_parser(
+        "synthesize", help="search a hand motion that ties the knot and save it as a demo"
+    )
+    s.add_argument("--variant", required=True, help=f"one of: {', '.join(VARIANTS)}")
+    s.add_argument("--seed", type=int, default=0, help="search seed (default 0)")
+    s.add_argument("--out", required=True, help="output file (.npz)")
+    s.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
+    s.add_argument("--budget", type=int, default=None, help="most simulated trials in total")
+    s.add_argument("--max-speed", type=float, default=None, help="peak hand speed allowed [m/s]")
+    s.add_argument(
+        "--max-axis-rate",
+        type=float,
+        default=None,
+        help="peak turn rate of the rope's exit axis allowed [rad/s] (a robot-paced demo)",
+    )
+    s.add_argument(
+        "--check-repeats",
+        type=int,
+        default=20,
+        help="varied replays that check the saved demo (default 20; 0 skips)",
+    )
+    s.add_argument("--json", action="store_true", help="print a JSON summary")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=_cmd_synthesize)
+
+    rb = dsub.add_parser(
+        "robot",
+        help="search a command the simulated arm ties the knot with; save its trial as a demo",
+    )
+    rb.add_argument(
+        "--out", required=True, help="output file (.npz; the command is in its metadata)"
+    )
+    rb.add_argument("--demo", default="fast", help="start from this demo's initial guess")
+    rb.add_argument("--start", default=None, help="start command (.npz with knots, T) instead")
+    rb.add_argument("--seed", type=int, default=0, help="search seed (default 0)")
+    rb.add_argument("--evaluations", type=int, default=1500, help="most candidates (default 1500)")
+    rb.add_argument(
+        "--local-evaluations",
+        type=int,
+        default=300,
+        help="candidates of the robustness phase after the first knot (default 300)",
+    )
+    rb.add_argument(
+        "--target-rate",
+        type=float,
+        default=0.6,
+        help="stop the robustness phase at a command tying this fraction of 10 varied trials",
+    )
+    rb.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
+    rb.add_argument("--json", action="store_true", help="print a JSON summary")
+    rb.add_argument("--quiet", action="store_true", help="no progress bar")
+    rb.set_defaults(func=_cmd_robot)
+
+    rc = dsub.add_parser("record", help="record a robot command's nominal trial as a demo")
+    rc.add_argument("--command", required=True, help="command file (.npz with knots, T)")
+    rc.add_argument("--out", required=True, help="output file (.npz)")
+    rc.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
+    rc.add_argument("--json", action="store_true", help="print a JSON summary")
+    rc.set_defaults(func=_cmd_record)
+    return d
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``flyknot-tools`` (exposed for tests and docs).
+
+    ``rope-study`` hands everything after it to the rope study's own parser (:func:`main`
+    routes it there before this parser sees it).
+    """
+    p = argparse.ArgumentParser(
+        prog=PROG,
+        description="Offline tools of flyknot: make demonstrations, study the rope model.",
+    )
+    sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+    add_demo_parser(sub)
+    rs = sub.add_parser(
+        ROPE_STUDY,
+        help="measure the rope model variants (the table of docs/rope-model.md)",
+        add_help=False,
+    )
+    rs.add_argument("args", nargs=argparse.REMAINDER, help="the rope study's own options")
+    rs.set_defaults(func=_cmd_rope_study)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``flyknot-tools`` console script."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == [ROPE_STUDY]:  # its options are the rope study's, parsed by it
+        args = argparse.Namespace(cmd=ROPE_STUDY, args=argv[1:], func=_cmd_rope_study)
+    else:
+        args = build_parser().parse_args(argv)
+    return dispatch(args)
+
+
+def dispatch(args: argparse.Namespace) -> int:
+    """Run a parsed command; errors of the FlyknotError family become one line, exit 2."""
+    try:
+        return int(args.func(args) or 0)
+    except FlyknotError as e:
+        print(f"{PROG}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

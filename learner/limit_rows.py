@@ -1,0 +1,352 @@
+"""The limit rows of the inverse-model QP: build them, scale them, and generate the active set.
+
+Every joint limit of the updated command (position, velocity, acceleration, torque) on the
+250 Hz command samples is a linearised row ``lo <= b - J dkappa <= hi`` (:func:`limit_rows`,
+:class:`LimitRows`), with b the current value and J its knot Jacobian, so the row holds for the
+*updated* command: exactly for position, velocity and acceleration (linear in the knots) and to
+first order for torque. :func:`learner.inverse_qp.build_inverse_qp` turns rows into the QP's
+constraint blocks.
+
+The full grid has 4 x 7 rows per sample (~5600 for a 0.8 s command); most never come near their
+bound. :func:`generate_constraints` solves with the rows whose current value uses at least
+``margin`` of the range (:func:`initial_active_rows`), adds the rows the solution violates
+(:func:`limit_violation`, beyond ``LIMIT_TOL`` of the half range) and solves again, at most
+``max_rounds`` times, then once with every row. :func:`sampled_violation` checks a command's
+own limits on its samples, without linearisation.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from flyknot.constants import N_JOINTS
+from flyknot.errors import ConfigError, check_choice
+from flyknot.geometry import readonly
+from flyknot.limits import JointLimits
+from learner.bezier import sample_command, sample_jacobian
+from learner.inverse_qp import N_VARS
+
+if TYPE_CHECKING:
+    from learner.inverse_qp import QPResult
+    from learner.kinematics import RobotModel
+
+LIMIT_KINDS = ("pos", "vel", "acc", "tau")
+LIMIT_TOL = 1e-6  # a limit row counts as violated beyond this fraction of its half range
+
+
+# --------------------------------------------------------------------------------------------
+# the rows
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class LimitRows:
+    """Linearised limits ``lo <= b - J dkappa <= hi`` on the updated command.
+
+    Attributes:
+        J: Knot Jacobians of the limited quantities (r, 80).
+        b: Their values at the current knots (r,).
+        lo: Lower bounds (r,) (may be -inf).
+        hi: Upper bounds (r,) (may be +inf).
+        blocks: Named row ranges ``name -> (start, stop)``.
+    """
+
+    J: np.ndarray
+    b: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    blocks: Mapping[str, tuple[int, int]] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        J = np.asarray(self.J, dtype=float)
+        if J.ndim != 2 or J.shape[1] != N_VARS:
+            raise ConfigError("J", f"must have shape (r, {N_VARS}), got {J.shape}")
+        r = J.shape[0]
+        for name in ("b", "lo", "hi"):
+            a = np.asarray(getattr(self, name), dtype=float)
+            if a.shape != (r,):
+                raise ConfigError(name, f"must have shape ({r},), got {a.shape}")
+            if np.any(np.isnan(a)):
+                raise ConfigError(name, "must not contain NaN")
+            object.__setattr__(self, name, readonly(a))
+        for name, a in (("J", J), ("b", self.b)):
+            if not np.all(np.isfinite(a)):
+                raise ConfigError(name, "must be finite")
+        if np.any(self.lo > self.hi):
+            raise ConfigError("lo", "must be <= hi in every row")
+        blocks = dict(self.blocks) if self.blocks else {"limits": (0, r)}
+        for name, (a, z) in blocks.items():
+            if not 0 <= a <= z <= r:
+                raise ConfigError("blocks", f"range {name!r} = ({a}, {z}) outside 0..{r}")
+        object.__setattr__(self, "J", readonly(J))
+        object.__setattr__(self, "blocks", MappingProxyType(blocks))
+
+    @property
+    def n_rows(self) -> int:
+        """Number of limit rows."""
+        return int(self.J.shape[0])
+
+
+def limit_rows(
+    knots: np.ndarray,
+    T: float,
+    t_samples: np.ndarray,
+    robot_model: RobotModel | None,
+    limits: JointLimits | None = None,
+    kinds: Sequence[str] = LIMIT_KINDS,
+) -> LimitRows:
+    """Joint position, velocity, acceleration and torque limits at sample times.
+
+    For sample a and joint j (row ``a * 7 + j`` of each block) with Bezier basis
+    ``B_r(t)`` (8,) of time-derivative order r::
+
+        q^(r)_j(t_a) = B_r(t_a) . kappa[j],   d q^(r)_j(t_a) / d kappa[j, :] = B_r(t_a)
+        tau(t_a) = ID(q, qd, qdd)(t_a)
+        d tau / d kappa = dID/dq S_0 + dID/dqd S_1 + dID/dqdd S_2,   S_r = d q^(r) / d kappa
+
+    Bounds: ``q_min <= q <= q_max``, ``|qd| <= qd_max``, ``|qdd| <= qdd_max``,
+    ``|tau| <= tau_max``.
+
+    Args:
+        knots: Current knots (10, 8) (rows 0-6 [rad], rows 7-9 [m]).
+        T: Command duration [s].
+        t_samples: Sample times (m,) [s] in [0, T].
+        robot_model: Inverse dynamics for the torque rows; None leaves torque out.
+        limits: Bounds (default: the paper's).
+        kinds: Which blocks to build, a subset of ("pos", "vel", "acc", "tau").
+
+    Returns:
+        The stacked rows: J (r, 80), b (r,), lo, hi, with blocks named by ``kinds``.
+    """
+    limits = JointLimits() if limits is None else limits
+    kinds = list(kinds)
+    for k in kinds:
+        check_choice("kinds", k, LIMIT_KINDS)
+    if "tau" in kinds and robot_model is None:
+        raise ConfigError("robot_model", "is needed for torque limits (kind 'tau')")
+    t = np.asarray(t_samples, dtype=float)
+    derivs = {r: sample_command(knots, T, t, r)[:, :N_JOINTS] for r in (0, 1, 2)}  # (m, 7)
+    jacs = {r: sample_jacobian(t, T, r) for r in (0, 1, 2)}  # (m * 7, 80)
+    m = derivs[0].shape[0]
+    bounds = {
+        "pos": (limits.q_min, limits.q_max),
+        "vel": (-limits.qd_max, limits.qd_max),
+        "acc": (-limits.qdd_max, limits.qdd_max),
+        "tau": (-limits.tau_max, limits.tau_max),
+    }
+    Js, bs, los, his, blocks = [], [], [], [], {}
+    start = 0
+    for kind in kinds:
+        if kind == "tau":
+            q, qd, qdd = derivs[0], derivs[1], derivs[2]
+            b = robot_model.torques(q, qd, qdd)  # type: ignore[union-attr]
+            dq, dqd, dqdd = robot_model.torque_jacobians(q, qd, qdd)  # type: ignore[union-attr]
+            S = [jacs[r].reshape(m, N_JOINTS, N_VARS) for r in (0, 1, 2)]
+            J = (
+                np.einsum("aij,ajc->aic", dq, S[0])
+                + np.einsum("aij,ajc->aic", dqd, S[1])
+                + np.einsum("aij,ajc->aic", dqdd, S[2])
+            ).reshape(m * N_JOINTS, N_VARS)
+        else:
+            r = LIMIT_KINDS.index(kind)
+            b, J = derivs[r], jacs[r]
+        lo, hi = bounds[kind]
+        Js.append(J)
+        bs.append(np.asarray(b).ravel())
+        los.append(np.tile(lo, m))
+        his.append(np.tile(hi, m))
+        blocks[kind] = (start, start + m * N_JOINTS)
+        start += m * N_JOINTS
+    if not Js:
+        raise ConfigError("kinds", "must name at least one limit", LIMIT_KINDS)
+    return LimitRows(
+        J=np.vstack(Js),
+        b=np.concatenate(bs),
+        lo=np.concatenate(los),
+        hi=np.concatenate(his),
+        blocks=blocks,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# scaling, selecting and checking rows
+# --------------------------------------------------------------------------------------------
+
+
+def row_scale(rows: LimitRows) -> tuple[np.ndarray, np.ndarray]:
+    """Mid point and half range of every row (half range 1 where a bound is infinite).
+
+    Every selection and violation below is measured in these units: a row's value y is
+    scaled as (y - mid) / half.
+    """
+    lo, hi = rows.lo, rows.hi
+    finite = np.isfinite(lo) & np.isfinite(hi) & (hi > lo)
+    mid = np.where(finite, 0.5 * (lo + hi), 0.0)
+    half = np.where(finite, 0.5 * (hi - lo), 1.0)
+    return mid, half
+
+
+def initial_active_rows(rows: LimitRows, margin: float) -> np.ndarray:
+    """Rows whose current value uses at least ``margin`` of the range: |b - mid| >= m * half.
+
+    Args:
+        rows: All limit rows.
+        margin: Fraction in [0, 1]; 0 selects every row.
+
+    Returns:
+        Sorted row indices.
+    """
+    mid, half = row_scale(rows)
+    return np.flatnonzero(np.abs(rows.b - mid) >= margin * half)
+
+
+def limit_violation(rows: LimitRows, dkappa: np.ndarray) -> np.ndarray:
+    """Linearised violation of every row after the update, relative to the half range.
+
+    y = b - J dkappa,  viol = max(lo - y, y - hi, 0) / half.
+
+    Args:
+        rows: Limit rows.
+        dkappa: Update (10, 8) or (80,).
+
+    Returns:
+        Violations, shape (r,) (0 where the row holds).
+    """
+    _, half = row_scale(rows)
+    y = rows.b - rows.J @ np.asarray(dkappa, dtype=float).ravel()
+    return np.maximum(0.0, np.maximum(rows.lo - y, y - rows.hi)) / half
+
+
+def sampled_violation(
+    knots: np.ndarray, T: float, t: np.ndarray, robot: RobotModel, limits: JointLimits
+) -> float:
+    """Largest violation of the limits by a command on its samples, relative to half ranges.
+
+    max over samples, joints and kinds of max(lo - y, y - hi, 0) / ((hi - lo) / 2) for
+    y = q, qd, qdd (Bezier, exact) and tau = ID(q, qd, qdd).
+
+    Args:
+        knots: Knots (10, 8).
+        T: Duration [s].
+        t: Sample times (m,) [s].
+        robot: Robot model (inverse dynamics).
+        limits: The limits.
+
+    Returns:
+        The violation (0 when every limit holds).
+    """
+    q, qd, qdd = (sample_command(knots, T, t, r)[:, :N_JOINTS] for r in (0, 1, 2))
+    worst = 0.0
+    for y, lo, hi in (
+        (q, limits.q_min, limits.q_max),
+        (qd, -limits.qd_max, limits.qd_max),
+        (qdd, -limits.qdd_max, limits.qdd_max),
+        (robot.torques(q, qd, qdd), -limits.tau_max, limits.tau_max),
+    ):
+        over = np.maximum(lo - y, y - hi) / (0.5 * (hi - lo))
+        worst = max(worst, float(over.max()))
+    return worst
+
+
+def subset_rows(rows: LimitRows, idx: np.ndarray) -> LimitRows:
+    """The rows ``idx`` (sorted) of ``rows``, with the named blocks kept contiguous."""
+    idx = np.asarray(idx, dtype=int)
+    blocks = {}
+    for name, (a, z) in rows.blocks.items():
+        start = int(np.searchsorted(idx, a))
+        stop = int(np.searchsorted(idx, z))
+        blocks[name] = (start, stop)
+    return LimitRows(J=rows.J[idx], b=rows.b[idx], lo=rows.lo[idx], hi=rows.hi[idx], blocks=blocks)
+
+
+# --------------------------------------------------------------------------------------------
+# constraint generation
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class GeneratedSolve:
+    """Outcome of :func:`generate_constraints`.
+
+    Attributes:
+        result: The last solve.
+        active: Indices of the rows in the last QP (sorted), or None without rows.
+        rounds: Solves made.
+        violation: :func:`limit_violation` of every row at the last solve's update, (r,);
+            empty without rows or when the first solve failed.
+    """
+
+    result: QPResult
+    active: np.ndarray | None
+    rounds: int
+    violation: np.ndarray
+
+
+def generate_constraints(
+    rows: LimitRows | None,
+    solve: Callable[[LimitRows | None], QPResult],
+    margin: float,
+    max_rounds: int,
+) -> GeneratedSolve:
+    """Solve with an active set of limit rows, adding the violated ones (module docstring).
+
+    The first solve holds :func:`initial_active_rows` (rows, margin). After each solve every
+    row is checked at the new update; rows violated beyond ``LIMIT_TOL`` join the set and the QP
+    is solved again; after ``max_rounds`` solves the next one holds every row. Stops when no row
+    is violated, a solve fails, or every row was in the solve.
+
+    Args:
+        rows: All limit rows, or None (a single solve without limits).
+        solve: Builds and solves the QP with the given rows (None: none) and returns its result.
+        margin: Initial active-set threshold in [0, 1].
+        max_rounds: Most solves before the one with every row (>= 1).
+
+    Returns:
+        The last solve, its rows, the number of solves and the rows' violations.
+    """
+    idx = None if rows is None else initial_active_rows(rows, margin)
+
+    def solve_rows(idx: np.ndarray | None) -> QPResult:
+        lim = None if rows is None or idx is None or idx.size == 0 else subset_rows(rows, idx)
+        return solve(lim)
+
+    rounds = 0
+    res = solve_rows(idx)
+    rounds += 1
+    viol = np.zeros(0)
+    if rows is not None and res.solved:
+        tol = LIMIT_TOL
+        while True:
+            viol = limit_violation(rows, res.dkappa)
+            new = np.setdiff1d(np.flatnonzero(viol > tol), idx)
+            if new.size == 0:
+                break
+            idx = np.union1d(idx, new) if rounds < max_rounds else np.arange(rows.n_rows)
+            res = solve_rows(idx)
+            rounds += 1
+            if not res.solved:
+                break
+            if idx.size == rows.n_rows:
+                viol = limit_violation(rows, res.dkappa)
+                break
+    return GeneratedSolve(result=res, active=idx, rounds=rounds, violation=viol)
+
+
+__all__ = [
+    "LIMIT_KINDS",
+    "LIMIT_TOL",
+    "GeneratedSolve",
+    "LimitRows",
+    "generate_constraints",
+    "initial_active_rows",
+    "limit_rows",
+    "limit_violation",
+    "row_scale",
+    "sampled_violation",
+    "subset_rows",
+]
