@@ -24,6 +24,10 @@ class ConfigError(FlyknotError, ValueError):
             msg += f" (valid choices: {', '.join(str(c) for c in self.choices)})"
         super().__init__(msg)
 
+    def __reduce__(self):
+        """Rebuild from the constructor's arguments (an error raised in a worker process)."""
+        return (type(self), (self.field, self.problem, self.choices))
+
 
 class CommandError(FlyknotError, ValueError):
     """A joint command is malformed (shape, NaN, rate, file format)."""
@@ -42,7 +46,12 @@ class SolverError(FlyknotError):
         msg = f"{solver} failed with status {status!r}"
         if detail:
             msg += f": {detail}"
+        self.detail = detail
         super().__init__(msg)
+
+    def __reduce__(self):
+        """Rebuild from the constructor's arguments (an error raised in a worker process)."""
+        return (type(self), (self.solver, self.status, self.detail))
 
 
 class HardwareError(FlyknotError):
