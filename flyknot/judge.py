@@ -39,11 +39,12 @@ class KnotJudge(Protocol):
 
 @dataclass(frozen=True)
 class CellVerdict:
-    """The cell's own verdict, ``record.knot`` (None for a faulted trial)."""
+    """The cell's own verdict, ``record.knot`` (a faulted trial never counts as a success,
+    whatever its knot: see :attr:`flyknot.record.TrialRecord.succeeded`)."""
 
     def __call__(self, record: TrialRecord) -> str | None:
-        """``record.knot``, or None when the trial faulted."""
-        return None if record.fault is not None else record.knot
+        """``record.knot``."""
+        return record.knot
 
 
 def final_polyline(record: TrialRecord) -> np.ndarray | None:

@@ -47,7 +47,7 @@ def _trials_text(run: dict[str, Any]) -> str:
 def outcome_line(kind: str, runs: list[dict[str, Any]]) -> str:
     """One sentence on a scenario's outcome: knots learned, or (``track``) how often tracking
     alone tied, in the first trial and in the repeats."""
-    n_ok = sum(r["first_success_trial"] is not None for r in runs)
+    n_ok = sum(r["trials_to_success"] is not None for r in runs)
     if kind != "track":
         text = f"Knot learned in {n_ok} of {len(runs)} runs"
         confirming = [r for r in runs if r.get("confirm")]
@@ -127,11 +127,11 @@ def plot_transfer_grid(runs: list[dict[str, Any]], path: Path) -> Path:
             continue
         a = src[r["start_from"]]["rope"]
         b = r["rope"]
-        n = r.get("first_success_trial")
+        n = r.get("trials_to_success")
         if n is None:
             failed[a - 1, b - 1] = True
         else:
-            grid[a - 1, b - 1] = n  # trials of learning before the knot (0: none needed)
+            grid[a - 1, b - 1] = n - 1  # updates before the knot (0: none needed)
     fig, ax = plt.subplots(figsize=(5.2, 4.6), constrained_layout=True)
     ax.imshow(np.where(failed, np.nan, grid), cmap="Greens_r", vmin=0, vmax=10)
     for a in range(7):

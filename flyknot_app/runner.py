@@ -31,6 +31,7 @@ from flyknot import __version__
 from flyknot.constants import DEMOS_DIR, FOLLOW_THROUGH_S, PATH_FRAC
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, FlyknotError
+from flyknot.judge import CellVerdict
 from flyknot.progress import bar_disable
 from flyknot_app.cells import open_cell
 from flyknot_app.scenario import RunSpec, Scenario, find_named_file
@@ -141,6 +142,7 @@ def execute_run(
     _, target = prepare_target(spec.demo, rope_model.dt, spec.window)
     ig_info: dict[str, Any] = {}
     lab = open_cell(spec.cell, spec.cell_spec())
+    judge = CellVerdict()  # the verdict the cell recorded (simulated truth, or the operator's)
     if knots0 is None:
         knots0, ig_info = initial_knots(
             spec.demo, out_dir, robot, rope_model.dt, float(lab.base_pose[2]), spec.window
@@ -183,6 +185,7 @@ def execute_run(
         run_dir=run_dir / "learning",
         resume=resume,
         on_trial=on_trial,
+        judge=judge,
     )
     bar.close()
     # max_trials = 0: tracking alone; the initial command is the run's command (its one
@@ -206,7 +209,7 @@ def execute_run(
             else:
                 rec = lab.run(command)
                 rec.save(stem)
-            repeats.append("fault" if rec.fault else rec.knot)
+            repeats.append("fault" if rec.fault else judge(rec))
     counted = {s.trial: s for s in res.trials}
     summary = {
         "name": spec.name,
@@ -225,7 +228,6 @@ def execute_run(
         "costs": res.costs,
         "knots": res.knots,
         "faults": [counted[k].fault for k in sorted(counted)],
-        "first_success_trial": res.first_success_trial,
         "trials_to_success": None
         if res.first_success_trial is None
         else res.first_success_trial + 1,
@@ -360,10 +362,10 @@ def run_scenario(
 
 
 def _print_run(res: dict[str, Any], bar) -> None:
-    first = res["first_success_trial"]
+    n = res["trials_to_success"]
     msg = (
         f"{res['name']}: rope {res['rope']}, "
-        + (f"knot at trial {first + 1}" if first is not None else "no knot")
+        + (f"knot at trial {n}" if n is not None else "no knot")
         + f" ({len(res['costs'])} trials)"
     )
     if res.get("repeat_success_rate") is not None:

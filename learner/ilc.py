@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from flyknot.errors import ConfigError, RecordError, check_choice, check_positive
+from flyknot.judge import CellVerdict, KnotJudge
 from flyknot.limits import JointLimits
 from flyknot.record import Cell, TrialRecord
 from learner.bezier import BezierCommand
@@ -173,6 +174,7 @@ def learn(
     resume: bool = False,
     limits: JointLimits = JointLimits(),  # noqa: B008 - frozen value
     on_trial: Callable[[TrialSummary], None] | None = None,
+    judge: KnotJudge = CellVerdict(),  # noqa: B008 - frozen value
 ) -> LearnResult:
     """Run Task-Level ILC from ``knots0`` on ``cell`` until a knot or ``max_trials``.
 
@@ -186,6 +188,8 @@ def learn(
         resume: Continue the run found in ``run_dir`` instead of starting anew.
         limits: Joint limits for the updated commands.
         on_trial: Called after every attempt (progress display).
+        judge: Who says whether a trial tied the knot (:mod:`flyknot.judge`); the stop rule
+            asks it, never the cell's internals. Default: the verdict the cell recorded.
 
     Returns:
         Per-attempt summaries, the first successful trial (0-based) or None, the last
@@ -258,7 +262,9 @@ def learn(
                 record = cell.run(joint_cmd)
                 if stem is not None:
                     record.save(stem)
-            summary, update = _assess(record, command, target, robot, params, limits, k, attempt)
+            summary, update = _assess(
+                record, command, target, robot, params, limits, k, attempt, judge=judge
+            )
             summary = TrialSummary(**{**asdict(summary), "wall_s": time.perf_counter() - t0})
             last = (
                 not summary.tracking_lost
@@ -325,6 +331,7 @@ def learn(
                             k,
                             attempt,
                             extra_records=tuple(group),
+                            judge=judge,
                         )
                         summary = TrialSummary(
                             **{
@@ -492,12 +499,13 @@ def _assess(
     k: int,
     attempt: int,
     extra_records: tuple[TrialRecord, ...] = (),
+    judge: KnotJudge = CellVerdict(),  # noqa: B008 - frozen value
 ) -> tuple[TrialSummary, dict[str, Any] | None]:
     base = dict(
         trial=k,
         attempt=attempt,
         fault=record.fault,
-        knot=record.knot,
+        knot=judge(record),
         wall_s=0.0,
     )
     if record.fault is not None:

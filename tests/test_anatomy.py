@@ -515,7 +515,7 @@ def test_report_has_an_anatomy_section(tmp_path):
             "objective": "critical",
             "costs": [1.0, 0.5],
             "knots": [False, name == "rope1"],
-            "first_success_trial": 1 if name == "rope1" else None,
+            "trials_to_success": 2 if name == "rope1" else None,
             "trials_to_success": 2 if name == "rope1" else None,
             "t_c": 0.15,
         }

@@ -127,14 +127,14 @@ def test_outcome_line_reports_both_stop_rules():
     from flyknot_app.report import outcome_line
 
     runs = [
-        {"first_success_trial": 2, "confirm": [2, 3], "confirmed": True},
-        {"first_success_trial": 1, "confirm": [2, 3], "confirmed": False},
-        {"first_success_trial": None, "confirm": [2, 3], "confirmed": False},
+        {"trials_to_success": 3, "confirm": [2, 3], "confirmed": True},
+        {"trials_to_success": 2, "confirm": [2, 3], "confirmed": False},
+        {"trials_to_success": None, "confirm": [2, 3], "confirmed": False},
     ]
     assert outcome_line("learn", runs) == (
         "Knot learned in 2 of 3 runs; confirmed (2 of 3 repeats tied) in 1 of 3."
     )
-    assert outcome_line("learn", [{"first_success_trial": 0}]) == "Knot learned in 1 of 1 runs."
+    assert outcome_line("learn", [{"trials_to_success": 1}]) == "Knot learned in 1 of 1 runs."
 
 
 def _spy(cell, monkeypatch):
@@ -246,3 +246,18 @@ def test_average_must_be_a_positive_integer():
     with pytest.raises(ConfigError) as e:
         ILCParams(average=0)
     assert str(e.value) == "average: must be an integer >= 1, got 0"
+
+
+def test_the_stop_rule_asks_the_judge_not_the_cell(arm, setup, monkeypatch):
+    target, start = setup
+    cell = _cell(arm, target, [True] * 4, monkeypatch)  # the cell says "trefoil" every time
+    asked = []
+
+    def judge(record):  # a person who sees a knot only in the third trial
+        asked.append(record.knot)
+        return "trefoil" if len(asked) == 3 else "unknot"
+
+    res = learn(cell, target, start, arm, ILCParams(max_trials=5, rope_model=ROPE), judge=judge)
+    assert res.first_success_trial == 2 and res.stopped_because == "success"
+    assert [s.knot for s in res.trials] == ["unknot", "unknot", "trefoil"]
+    assert asked == ["trefoil"] * 3

@@ -48,10 +48,10 @@ def test_every_judge_is_a_knot_judge():
         assert isinstance(j, KnotJudge)
 
 
-def test_cell_verdict_is_the_records_and_none_when_faulted():
-    rec = _record(_trefoil(), knot="trefoil")
-    assert CellVerdict()(rec) == "trefoil"
-    assert CellVerdict()(_record(_trefoil(), fault="C31 collision")) is None
+def test_cell_verdict_is_the_records():
+    assert CellVerdict()(_record(_trefoil(), knot="trefoil")) == "trefoil"
+    assert CellVerdict()(_record(_trefoil(), knot=None)) is None
+    assert MarkerJudge()(_record(_trefoil(), fault="C31 collision")) is None
 
 
 def test_marker_judge_sees_a_trefoil_and_a_straight_rope():

@@ -78,7 +78,7 @@ def test_kill_and_resume_equals_the_uninterrupted_run(tmp_path, guess):
     assert _ledger(killed) == _ledger(whole)
     a = json.loads((killed / "summary.json").read_text())["runs"][0]
     b = json.loads((whole / "summary.json").read_text())["runs"][0]
-    for key in ("costs", "knots", "faults", "repeats", "first_success_trial"):
+    for key in ("costs", "knots", "faults", "repeats", "trials_to_success"):
         assert a[key] == b[key], key
     files = sorted(f.relative_to(whole) for f in (whole / "runs").rglob("*.npz"))
     assert files == sorted(f.relative_to(killed) for f in (killed / "runs").rglob("*.npz"))

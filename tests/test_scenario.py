@@ -183,9 +183,9 @@ def test_outcome_line_for_learning_and_tracking():
     from flyknot_app.report import outcome_line
 
     runs = [
-        {"first_success_trial": 2, "repeats": ["trefoil", "unknot"]},
-        {"first_success_trial": None, "repeats": ["unknot", "trefoil"]},
-        {"first_success_trial": None},
+        {"trials_to_success": 3, "repeats": ["trefoil", "unknot"]},
+        {"trials_to_success": None, "repeats": ["unknot", "trefoil"]},
+        {"trials_to_success": None},
     ]
     assert outcome_line("learn", runs) == "Knot learned in 1 of 3 runs."
     assert outcome_line("track", runs) == (

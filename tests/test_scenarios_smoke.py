@@ -45,7 +45,7 @@ def test_scenario_runs_at_tiny_size(path: Path, tmp_path, guess_cache):
     on_disk = json.loads((out / "summary.json").read_text())
     assert on_disk == json.loads(json.dumps(summary))
     for run in summary["runs"]:
-        for key in ("rope", "objective", "costs", "knots", "first_success_trial"):
+        for key in ("rope", "objective", "costs", "knots", "trials_to_success"):
             assert key in run
         assert len(run["costs"]) == len(run["knots"]) == 1
         assert (out / "runs" / run["name"] / "final_knots.npy").is_file()
