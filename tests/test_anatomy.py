@@ -516,7 +516,6 @@ def test_report_has_an_anatomy_section(tmp_path):
             "costs": [1.0, 0.5],
             "knots": [False, name == "rope1"],
             "trials_to_success": 2 if name == "rope1" else None,
-            "trials_to_success": 2 if name == "rope1" else None,
             "t_c": 0.15,
         }
         for name, rope in (("rope1", 1), ("rope2", 2))
