@@ -42,6 +42,7 @@ from typing import Any
 from flyknot.constants import FOLLOW_THROUGH_S, PATH_FRAC, SCENARIOS_DIR
 from flyknot.errors import ConfigError, check_choice, check_nonnegative, check_positive
 from flyknot_app.cells import cell_kind, cell_spec
+from learner.ilc import parse_confirm
 from learner.update import OBJECTIVES
 
 KINDS = ("learn", "track", "transfer", "sensitivity", "objectives", "demos")
@@ -164,24 +165,7 @@ class RunSpec:
             raise ConfigError("gain", f"must lie in (0, 1], got {self.gain!r}")
         if self.trust_region is not None:
             check_positive("trust_region", self.trust_region)
-        if self.confirm is not None:
-            c = self.confirm
-            if isinstance(c, str) and "/" in c:
-                try:
-                    c = tuple(int(v) for v in c.split("/"))
-                except ValueError:
-                    c = self.confirm
-            if isinstance(c, (list, tuple)):
-                c = tuple(c)
-            ok = isinstance(c, tuple) and len(c) == 2
-            ok = ok and all(isinstance(v, int) and not isinstance(v, bool) for v in c)
-            if not ok or not 1 <= c[0] <= c[1]:
-                raise ConfigError(
-                    "confirm", f"must be [k, n] (or k/n) with 1 <= k <= n, got {self.confirm!r}"
-                )
-            if not self.stop_at_success:
-                raise ConfigError("confirm", "needs stop_at_success = true")
-            object.__setattr__(self, "confirm", c)
+        object.__setattr__(self, "confirm", parse_confirm(self.confirm, self.stop_at_success))
         if isinstance(self.average, bool) or not isinstance(self.average, int) or self.average < 1:
             raise ConfigError("average", f"must be an integer >= 1, got {self.average!r}")
         if not isinstance(self.safeguard, bool):

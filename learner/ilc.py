@@ -46,6 +46,31 @@ from learner.target import DemoTarget
 from learner.update import OBJECTIVES, UpdateSettings, ilc_update
 
 
+def parse_confirm(value: object, stop_at_success: bool = True) -> tuple[int, int] | None:
+    """The confirmed-success rule ``(k, n)`` from ``[k, n]``, ``(k, n)`` or ``"k/n"`` (or None).
+
+    Raises:
+        ConfigError: Not two integers with 1 <= k <= n, or ``stop_at_success`` is off.
+    """
+    if value is None:
+        return None
+    c = value
+    if isinstance(c, str) and "/" in c:
+        try:
+            c = tuple(int(v) for v in c.split("/"))
+        except ValueError:
+            c = value
+    if isinstance(c, list | tuple):
+        c = tuple(c)
+    ok = isinstance(c, tuple) and len(c) == 2
+    ok = ok and all(isinstance(v, int) and not isinstance(v, bool) for v in c)
+    if not ok or not 1 <= c[0] <= c[1]:
+        raise ConfigError("confirm", f"must be [k, n] (or k/n) with 1 <= k <= n, got {value!r}")
+    if not stop_at_success:
+        raise ConfigError("confirm", "needs stop_at_success = true")
+    return c
+
+
 @dataclass(frozen=True)
 class ILCParams:
     """How the learning loop runs.
@@ -104,16 +129,9 @@ class ILCParams:
             check_positive("trust_region", self.trust_region)
         if isinstance(self.average, bool) or not isinstance(self.average, int) or self.average < 1:
             raise ConfigError("average", f"must be an integer >= 1, got {self.average!r}")
-        if self.confirm is not None:
-            c = tuple(self.confirm)
-            ok = len(c) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in c)
-            if not ok or not 1 <= c[0] <= c[1]:
-                raise ConfigError(
-                    "confirm", f"must be two integers (k, n) with 1 <= k <= n, got {self.confirm!r}"
-                )
-            if not self.stop_at_success:
-                raise ConfigError("confirm", "needs stop_at_success = true")
-            object.__setattr__(self, "confirm", c)
+        if not isinstance(self.safeguard, bool):
+            raise ConfigError("safeguard", f"must be true or false, got {self.safeguard!r}")
+        object.__setattr__(self, "confirm", parse_confirm(self.confirm, self.stop_at_success))
 
     def update_settings(self, limits: JointLimits | None) -> UpdateSettings:
         """The settings of every update of the run, with ``limits`` on the updated commands."""

@@ -112,8 +112,8 @@ def test_resume_inside_a_confirmation(arm, setup, monkeypatch, tmp_path):
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
-        ({"confirm": (3, 2)}, "confirm: must be two integers (k, n) with 1 <= k <= n, got (3, 2)"),
-        ({"confirm": (0, 2)}, "confirm: must be two integers (k, n) with 1 <= k <= n, got (0, 2)"),
+        ({"confirm": (3, 2)}, "confirm: must be [k, n] (or k/n) with 1 <= k <= n, got (3, 2)"),
+        ({"confirm": (0, 2)}, "confirm: must be [k, n] (or k/n) with 1 <= k <= n, got (0, 2)"),
         ({"confirm": (1, 2), "stop_at_success": False}, "confirm: needs stop_at_success = true"),
     ],
 )
