@@ -130,6 +130,7 @@ class FlyknotEnv(gym.Env):
         return obs, float(reward), success, info
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Start an episode from the initial command: one trial, its observation and info."""
         super().reset(seed=seed)
         self.knots = self.initial_knots()
         self.trials = 0
@@ -137,6 +138,7 @@ class FlyknotEnv(gym.Env):
         return obs, info
 
     def step(self, action):
+        """Change the command's knots by ``action`` (scaled, in [-1, 1]) and play it once."""
         a = np.clip(np.asarray(action, dtype=float).reshape(N_ROWS, N_KNOTS), -1.0, 1.0)
         d = self.action_scale * a
         d[N_JOINTS:] = d[N_JOINTS:].mean(axis=1, keepdims=True)  # base fixed within a command

@@ -1,4 +1,4 @@
-"""How well does the learner's rope model predict the lab? (``flyknot model-check``)
+"""How well does the learner's rope model predict the lab (``flyknot model-check``)?
 
 The inverse-model update trusts the linearised model M = dx(t_c)/dkappa (66 x 80). This
 module measures the lab's own response to small knot changes and compares:

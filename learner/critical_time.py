@@ -104,6 +104,8 @@ def first_self_approach(
         hand_pos: Fingertip positions, shape (m, 3) [m].
         markers: Markers, shape (m, 11, 3) [m], NaN where lost.
         threshold: Distance [m].
+        gap: Smallest index difference of two polyline segments compared (2: segments
+            sharing no vertex).
 
     Returns:
         The time [s], or None if never.

@@ -35,6 +35,7 @@ class TrialSummary:
 
     @property
     def success(self) -> bool:
+        """The trial ran without fault and left a trefoil."""
         return self.fault is None and self.knot == "trefoil"
 
 
@@ -55,27 +56,34 @@ class RunDirectory:
         self.path.mkdir(parents=True, exist_ok=True)
 
     def knots_path(self, k: int) -> Path:
+        """File of the command played in trial ``k``."""
         return self.path / f"knots_{k:04d}.npy"
 
     def record_stem(self, k: int, attempt: int) -> Path:
+        """Stem of the record files of trial ``k``, attempt ``attempt``."""
         return self.path / f"trial_{k:04d}_a{attempt}"
 
     def write_manifest(self, manifest: dict[str, Any]) -> None:
+        """Write what was run (once, at the start)."""
         (self.path / "manifest.json").write_text(json.dumps(manifest, indent=2, sort_keys=True))
 
     def save_knots(self, k: int, knots: np.ndarray) -> None:
+        """Save the command of trial ``k`` (10, 8) atomically (write, then rename)."""
         tmp = self.path / f".knots_{k:04d}.tmp.npy"
         np.save(tmp, np.asarray(knots))
         tmp.replace(self.knots_path(k))
 
     def load_knots(self, k: int) -> np.ndarray:
+        """The command of trial ``k``, (10, 8)."""
         return np.load(self.knots_path(k))
 
     def append_ledger(self, summary: TrialSummary) -> None:
+        """Append one attempt to the ledger (the commit point of a resumed run)."""
         with open(self.path / "ledger.jsonl", "a") as f:
             f.write(json.dumps(asdict(summary)) + "\n")
 
     def ledger(self) -> list[TrialSummary]:
+        """Every attempt written so far, in order."""
         p = self.path / "ledger.jsonl"
         if not p.is_file():
             return []
@@ -86,9 +94,11 @@ class RunDirectory:
         return out
 
     def save_update(self, k: int, info: dict[str, Any]) -> None:
+        """Save the update computed after trial ``k``."""
         (self.path / f"update_{k:04d}.json").write_text(json.dumps(info, indent=2))
 
     def load_update(self, k: int) -> dict[str, Any] | None:
+        """The update computed after trial ``k``, or None if there is none."""
         p = self.path / f"update_{k:04d}.json"
         return json.loads(p.read_text()) if p.is_file() else None
 

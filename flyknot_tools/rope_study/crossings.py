@@ -44,8 +44,14 @@ def coplanarity_cubic(
     exactly when the four points are coplanar.
 
     Args:
-        a, b, c, d: Points at t = 0, shape (..., 3) [m].
-        da, db, dc, dd: Displacements over the interval, shape (..., 3) [m].
+        a: Point A at t = 0, shape (..., 3) [m].
+        b: Point B at t = 0, shape (..., 3) [m].
+        c: Point C at t = 0, shape (..., 3) [m].
+        d: Point D at t = 0, shape (..., 3) [m].
+        da: Displacement of A over the interval, shape (..., 3) [m].
+        db: Displacement of B over the interval, shape (..., 3) [m].
+        dc: Displacement of C over the interval, shape (..., 3) [m].
+        dd: Displacement of D over the interval, shape (..., 3) [m].
 
     Returns:
         Coefficients (c0, c1, c2, c3), shape (..., 4) [m^3].
@@ -68,6 +74,7 @@ def cubic_roots_unit(coef: np.ndarray, iters: int = 60) -> np.ndarray:
 
     Args:
         coef: (c0, c1, c2, c3), shape (P, 4).
+        iters: Bisection steps per root.
 
     Returns:
         Roots, shape (P, 3), NaN where a piece has none.
@@ -145,7 +152,8 @@ def count_crossings(x0: np.ndarray, x1: np.ndarray, min_gap: int = 2, tol: float
     segments do not overlap.
 
     Args:
-        x0, x1: Vertices at the start and end of the interval, shape (n + 1, 3) [m].
+        x0: Vertices at the start of the interval, shape (n + 1, 3) [m].
+        x1: Vertices at the end of the interval, shape (n + 1, 3) [m].
         min_gap: Smallest index difference tested (2: pairs sharing no vertex).
         tol: Distance under which coplanar segments count as intersecting [m].
 
