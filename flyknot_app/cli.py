@@ -310,15 +310,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     return dispatch(build_parser().parse_args(argv))
 
 
-def dispatch(args: argparse.Namespace) -> int:
-    """Run a parsed command; errors of the FlyknotError family become one line, exit 2."""
+def dispatch(args: argparse.Namespace, prog: str = "flyknot") -> int:
+    """Run a parsed command; errors of the FlyknotError family become one line, exit 2.
+
+    Args:
+        args: Parsed arguments whose ``func`` runs the command.
+        prog: Program name the messages start with.
+    """
     try:
         return int(args.func(args) or 0)
     except FlyknotError as e:
-        print(f"flyknot: error: {e}", file=sys.stderr)
+        print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("flyknot: interrupted", file=sys.stderr)
+        print(f"{prog}: interrupted", file=sys.stderr)
         return 130
 
 

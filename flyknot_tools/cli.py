@@ -26,7 +26,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from flyknot.errors import ConfigError, FlyknotError, SolverError, check_int
+from flyknot.errors import ConfigError, SolverError, check_int
+from flyknot_app.cli import dispatch
 
 PROG = "flyknot-tools"
 ROPE_STUDY = "rope-study"
@@ -265,19 +266,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = argparse.Namespace(cmd=ROPE_STUDY, args=argv[1:], func=_cmd_rope_study)
     else:
         args = build_parser().parse_args(argv)
-    return dispatch(args)
-
-
-def dispatch(args: argparse.Namespace) -> int:
-    """Run a parsed command; errors of the FlyknotError family become one line, exit 2."""
-    try:
-        return int(args.func(args) or 0)
-    except FlyknotError as e:
-        print(f"{PROG}: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr)
-        return 130
+    return dispatch(args, PROG)
 
 
 if __name__ == "__main__":
