@@ -1,0 +1,413 @@
+"""XArmCell against a fake controller on loopback, through the real, unmodified xArm SDK.
+
+Never another address: every fake listens on 127.x.y.z (see ``tests/fakes/fake_xarm.py``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("xarm")
+
+from fakes import SimFingertip, StandInMocap, lab_doc
+from fakes.fake_xarm import HOME, FakeXArm
+
+from flyknot.errors import ConfigError, HardwareError
+from flyknot.record import Cell, JointCommand, TrialRecord
+from flyknot_hw.config import parse_lab_config
+from flyknot_hw.preflight import PreflightError
+from flyknot_hw.xarm_cell import XArmCell
+
+ROOT = Path(__file__).resolve().parents[1]
+MOTION = {11, 12, 19, 23, 29}  # motion enable, set state, set mode, joint move, servo_j
+RATE = 250.0
+FK = SimFingertip()
+
+
+@pytest.fixture
+def make_fake(monkeypatch):
+    """Start fakes (loopback only); patch the SDK's port constants only when the fake could
+    not bind the SDK's own ports."""
+    from xarm.core.config.x_config import XCONF
+
+    fakes = []
+
+    def make(**kw) -> FakeXArm:
+        fk = FakeXArm(**kw).start()
+        fakes.append(fk)
+        assert fk.host.startswith("127."), fk.host
+        if not fk.uses_sdk_ports:
+            for name, port in fk.sdk_port_overrides().items():
+                monkeypatch.setattr(XCONF.SocketConf, name, port)
+        return fk
+
+    yield make
+    for fk in fakes:
+        fk.stop()
+
+
+@pytest.fixture
+def cells():
+    made = []
+
+    def make(fake: FakeXArm, judge=lambda r: "trefoil", **kw) -> XArmCell:
+        sections = kw.pop("sections", {})
+        cell = XArmCell(
+            parse_lab_config(lab_doc(fake, **sections)), fingertip=FK, judge=judge, **kw
+        )
+        made.append(cell)
+        return cell
+
+    yield make
+    for c in made:
+        c.close()
+
+
+def throw(n: int = 250, amp: float | None = None, start=HOME + 0.05) -> np.ndarray:
+    """At rest at both ends: q = start + amp (1 - cos(2 pi t / T)) / 2 on every joint
+    (default amp 0.3 rad over 1 s, less for shorter commands: peak 24 rad/s^2)."""
+    amp = 0.3 * min(1.0, (n / 250) ** 2) if amp is None else amp
+    t = np.arange(n) / (n - 1)
+    s = 0.5 * (1 - np.cos(2 * np.pi * t))
+    return start + amp * np.outer(s, [1.0, 0.6, 1.0, 0.6, 1.0, 0.6, 1.0])
+
+
+def motion_events(fake: FakeXArm) -> list:
+    return [(name, v) for _, name, v in fake.events if name != "move_joint"]
+
+
+# --- the fake speaks the SDK ---------------------------------------------------------------
+def test_sdk_connects_and_changes_mode_and_state(make_fake):
+    from xarm.wrapper import XArmAPI
+
+    fk = make_fake(report_hz={30002: 50.0})
+    api = XArmAPI(fk.host, is_radian=True, forbid_uds=True)
+    try:
+        assert api.connected and api.axis == 7 and api.sn == fk.serial
+        assert api.version_number == (2, 5, 0)
+        assert api.motion_enable(True) == 0
+        assert api.set_mode(1) == 0 and api.mode == 0  # takes effect at set_state(0)
+        assert api.set_state(0) == 0
+        assert fk.wait_for(lambda: fk.mode == 1) and fk.wait_for(lambda: api.mode == 1)
+        assert api.set_state(4) == 0 and api.get_state() == (0, 4)
+        np.testing.assert_allclose(api.angles, HOME, atol=5e-3)  # rich report, radians, sag
+    finally:
+        api.disconnect()
+    assert not fk.unknown
+
+
+def test_fake_firmware_faults_on_its_own(make_fake):
+    """C24 for a servo target too far from the last, C23 outside the joint range."""
+    from xarm.wrapper import XArmAPI
+
+    fk = make_fake(arm="exact")
+    api = XArmAPI(fk.host, is_radian=True, forbid_uds=True, check_joint_limit=False)
+    try:
+        api.motion_enable(True), api.set_mode(1), api.set_state(0)
+        assert api.set_servo_angle_j((HOME + 0.05).tolist(), is_radian=True) == 1
+        assert api.get_err_warn_code() == (0, [24, 0]) and fk.state == 4
+        api.clean_error(), api.motion_enable(True), api.set_mode(1), api.set_state(0)
+        q = fk.q
+        q[1] = fk.ranges[1, 1] + 0.01
+        assert api.set_servo_angle_j(q.tolist(), is_radian=True) == 1
+        assert api.get_err_warn_code()[1] == [23, 0]
+    finally:
+        api.disconnect()
+
+
+# --- the robot's own limits ------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("serial", "q4_min"), [("XI1305FAKE0001", -0.10472), ("XI1303FAKE0001", -0.19)]
+)
+def test_cell_reads_the_robot_limits(make_fake, cells, serial, q4_min):
+    fk = make_fake(serial=serial, reduced=(2.0, np.tile([-3.0, 3.0], (7, 1))))
+    cell = cells(fk)
+    cell.connect()
+    assert cell.robot_info["serial"] == serial and cell.robot_info["reduced_mode"]
+    assert cell.limits.q_min[3] == pytest.approx(q4_min, abs=1e-6)  # stricter of paper, robot
+    assert cell.limits.q_min[0] == pytest.approx(-3.0, abs=1e-6)  # reduced-mode range
+    np.testing.assert_allclose(cell.limits.qd_max, 2.0, rtol=1e-6)  # reduced-mode speed
+
+
+# --- a whole trial -----------------------------------------------------------------------------
+def test_stream_plays_the_command_and_records_it(make_fake, cells):
+    fk = make_fake()
+    mocap = StandInMocap()
+    ticks = []
+    cell = cells(fk, mocap=mocap, on_tick=lambda i, t: ticks.append(i))
+    q = throw()
+    assert isinstance(cell, Cell)
+    rec = cell.run(JointCommand(q))
+    assert rec.fault is None and rec.knot == "trefoil" and cell.trial_index == 1
+    # the controller received exactly the command, in servo mode, once each
+    np.testing.assert_allclose(fk.servo_targets(), q, atol=1e-6)
+    assert all(e.mode == 1 and e.applied for e in fk.servo)
+    assert motion_events(fk) == [
+        ("motion_enable", True), ("set_mode", 0), ("set_state", 0),
+        ("set_mode", 1), ("set_state", 0), ("set_mode", 0), ("set_state", 0),
+    ]  # fmt: skip
+    moves = [v for _, name, v in fk.events if name == "move_joint"]
+    assert len(moves) == 1
+    np.testing.assert_allclose(moves[0], q[0], atol=1e-6)
+    # what was measured
+    n_after = round(0.1 * RATE)
+    assert rec.q_meas.shape == (250 + n_after, 7) and ticks == list(range(250 + n_after))
+    np.testing.assert_allclose(rec.t_joint, np.arange(250 + n_after) / RATE)
+    np.testing.assert_array_equal(rec.q_cmd[:250], q)
+    np.testing.assert_array_equal(rec.q_cmd[250:], np.tile(q[-1], (n_after, 1)))
+    assert np.all(np.isfinite(rec.q_meas))
+    assert np.max(np.abs(rec.q_meas - rec.q_cmd)) < 0.03  # the simulated servos' lag
+    assert rec.metadata["joint_source"] == "report30000"
+    timing = rec.metadata["timing"]
+    assert timing["ticks"] == 250 and timing["lateness"]["max_ms"] < 20.0
+    assert len(timing["lateness_us"]) == len(timing["round_trip_us"]) == 250
+    assert rec.metadata["robot"]["serial"] == fk.serial
+    # fingertip in the mocap frame: the base pose's translation added to the base-frame FK
+    p, quat = FK(rec.q_meas[:1])
+    np.testing.assert_allclose(rec.fingertip_pos[0], p[0] + [0.1, -0.2, 0.8], atol=1e-9)
+    assert abs(np.dot(rec.fingertip_quat[0], quat[0])) == pytest.approx(1.0)
+    # markers: started before the stream, times relative to the first command sample
+    assert mocap.started == mocap.stopped == 1
+    assert rec.t_marker[0] < 0 < rec.t_marker[-1] and rec.markers.shape[1:] == (11, 3)
+    assert rec.metadata["settle"]["before"]["mode"] == "seconds"
+
+
+def test_record_round_trips_through_files(make_fake, cells, tmp_path):
+    fk = make_fake(arm="exact")
+    rec = cells(fk, sections={"robot": {"joint_source": "poll"}}).run(JointCommand(throw(60)))
+    assert rec.metadata["joint_source"] == "poll:get_servo_angle"
+    assert np.all(np.isfinite(rec.q_meas))
+    assert fk.registers().count(42) >= 60  # one joint read per tick
+    back = TrialRecord.load(rec.save(tmp_path / "trial"))
+    np.testing.assert_array_equal(back.q_meas, rec.q_meas)
+    assert back.metadata == rec.metadata
+
+
+def test_report_port_refused(make_fake, cells):
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        dead = s.getsockname()[1]
+    fk = make_fake(arm="exact")
+    rec = cells(fk, sections={"robot": {"report_port": dead}}).run(JointCommand(throw(30)))
+    assert rec.metadata["joint_source"] == "poll:get_servo_angle (report port refused)"
+    before = len(fk.events)
+    strict = cells(fk, sections={"robot": {"report_port": dead, "joint_source": "report"}})
+    with pytest.raises(HardwareError, match=r"robot\.report_port: cannot connect"):
+        strict.run(JointCommand(throw(30)))
+    assert len(fk.events) == before  # refused before any motion
+
+
+def test_settle_checks_are_called_and_recorded(make_fake, cells, monkeypatch):
+    fk = make_fake(arm="exact")
+    calls = []
+    cell = cells(
+        fk,
+        settle=lambda phase: calls.append(phase) or {"rest_s": 1.0},
+        sections={"settle": {"mode": "markers"}},
+    )
+    rec = cell.run(JointCommand(throw(30)))
+    assert calls == ["before", "after"]
+    after = rec.metadata["settle"]["after"]
+    assert after["mode"] == "markers" and after["rest_s"] == 1.0
+    with pytest.raises(ConfigError, match=r"settle\.mode"):
+        cells(fk, sections={"settle": {"mode": "markers"}})
+    prompts = []
+    monkeypatch.setattr("builtins.input", lambda text: prompts.append(text) or "")
+    cells(fk, sections={"settle": {"mode": "operator"}}).run(JointCommand(throw(30)))
+    assert len(prompts) == 2 and "before the throw" in prompts[0]
+
+
+def test_no_controller_or_wrong_port(make_fake, cells):
+    fk = make_fake(arm="exact")
+    doc = lab_doc(fk)
+    doc["robot"]["address"] = fk.host.rsplit(".", 1)[0] + ".255"  # fakes use .1 to .254
+    cell = XArmCell(parse_lab_config(doc), fingertip=FK)
+    with pytest.raises(HardwareError, match=r"robot\.address: cannot connect"):
+        cell.run(JointCommand(throw(30)))
+    with pytest.raises(ConfigError, match=r"robot\.port: the xArm SDK connects to port"):
+        cells(fk, sections={"robot": {"port": 503}}).connect()
+
+
+# --- refused before anything moves -------------------------------------------------------------
+@pytest.mark.parametrize("what", ["joint", "workspace", "torque", "rate", "pose", "error"])
+def test_refused_before_any_motion(make_fake, cells, what):
+    fk = make_fake(
+        arm="exact",
+        q0=np.r_[HOME[0], -1.9, HOME[2:]] if what == "pose" else HOME,
+        initial_error=31 if what == "error" else 0,
+    )
+    q = throw()
+    kw, rate = {}, RATE
+    if what == "joint":
+        q[150:, 1] = q[149, 1] + np.linspace(0, 2.0, 100)  # past the paper's joint 2 limit
+    if what == "workspace":
+        kw["sections"] = {"safety": {"workspace": {"min": [-1, -1, 0.5], "max": [1, 1, 1.5]}}}
+    if what == "torque":
+        kw["torques"] = lambda c: np.full((c.n, 7), 25.0)  # joint 6/7 limit 20 N m
+    if what == "rate":
+        rate = 200.0
+    cell = cells(fk, **kw)
+    expected = {"rate": ConfigError, "error": HardwareError}.get(what, PreflightError)
+    with pytest.raises(expected) as e:
+        cell.run(JointCommand(q, rate_hz=rate))
+    msg = str(e.value)
+    assert {
+        "joint": "joint 2 ",
+        "workspace": "leaves the workspace box",
+        "torque": "joint 6 torque 25 N m",
+        "rate": "robot.servo_rate_hz",
+        "pose": "the robot's current pose: joint 2 position -1.9 rad",
+        "error": "C31 Collision Caused Abnormal Current",
+    }[what] in msg
+    assert not MOTION & set(fk.registers()), fk.registers()
+    assert not fk.servo and cell.trial_index == 0
+
+
+def test_recover_after_an_error(make_fake, cells):
+    fk = make_fake(arm="exact", initial_error=31)
+    cell = cells(fk)
+    assert cell.recover() == 2 and fk.error_code == 0
+    assert cell.run(JointCommand(throw(30))).fault is None
+
+
+# --- faults mid-motion --------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("code", "warn", "label"),
+    [
+        (31, False, "controller error C31 Collision Caused Abnormal Current"),
+        (23, False, "controller error C23 Joints Angle Exceed Limit"),
+        (24, False, "controller error C24 Speed Exceeds Limit"),
+        (11, True, "controller warning W11 Current controller cache is full"),
+    ],
+)
+def test_fault_mid_motion_stops_the_arm(make_fake, cells, code, warn, label):
+    fk = make_fake(arm="exact")
+    judged = []
+    mocap = StandInMocap()
+    cell = cells(fk, judge=lambda r: judged.append(r) or "trefoil", mocap=mocap)
+    fk.inject(code, after_servo=60, warn=warn)
+    rec = cell.run(JointCommand(throw(200)))
+    assert rec.fault == f"{label} at t={59 / RATE:.3f} s (tick 59)"
+    assert rec.fault_time == pytest.approx(59 / RATE)
+    assert len(fk.servo) == 60  # nothing streamed after the faulted tick
+    stops = [t for t, name, v in fk.events if name == "set_state" and v == 4]
+    assert stops and stops[0] >= fk.servo[-1].t and fk.state == 4
+    ctrl = rec.metadata["controller"]
+    assert ctrl["code"] == code and ctrl["stop"] == {"stop_sent": True, "state": 4, "stop_code": 0}
+    assert rec.knot is None and not judged and cell.trial_index == 1
+    n = 60 + round(cell.brake_s * RATE)
+    assert rec.q_meas.shape == (n, 7)
+    np.testing.assert_allclose(rec.q_cmd[59:], np.tile(rec.q_meas[59], (n - 59, 1)))
+    assert mocap.stopped == 1
+
+
+@pytest.mark.parametrize("how", ["close", "silent"])
+def test_dropped_connection_raises_after_trying_to_stop(make_fake, cells, how):
+    fk = make_fake(arm="exact")
+    mocap = StandInMocap()
+    cell = cells(fk, mocap=mocap)
+    fk.drop(after_servo=40, how=how)
+    t = time.perf_counter()
+    with pytest.raises(HardwareError, match="connection to the controller lost at tick 39"):
+        cell.run(JointCommand(throw(200)))
+    assert time.perf_counter() - t < 5.0
+    assert len(fk.servo) == 40 and mocap.stopped == 1 and cell.trial_index == 0
+
+
+# --- Ctrl-C -------------------------------------------------------------------------------------
+def test_keyboard_interrupt_from_the_tick_callback_stops_the_arm(make_fake, cells):
+    fk = make_fake(arm="exact")
+    mocap = StandInMocap()
+
+    def tick(i, t):
+        if i == 40:
+            raise KeyboardInterrupt
+
+    cell = cells(fk, mocap=mocap, on_tick=tick)
+    with pytest.raises(KeyboardInterrupt):
+        cell.run(JointCommand(throw(200)))
+    assert len(fk.servo) == 41 and fk.state == 4
+    assert fk.events[-1][1:] == ("set_state", 4) and fk.events[-1][0] > fk.servo[-1].t
+    assert mocap.stopped == 1 and cell.trial_index == 0
+
+
+CHILD = textwrap.dedent(
+    """
+    import json, sys
+    sys.path[:0] = [{root!r}, {tests!r}]
+    from xarm.core.config.x_config import XCONF
+    for name, port in json.loads({ports!r}).items():
+        setattr(XCONF.SocketConf, name, port)
+    import numpy as np
+    from fakes import SimFingertip
+    from flyknot.record import JointCommand
+    from flyknot_hw.config import parse_lab_config
+    from flyknot_hw.xarm_cell import XArmCell
+    cell = XArmCell(parse_lab_config(json.loads({doc!r})), fingertip=SimFingertip(),
+                    judge=lambda r: "unknot")
+    q = np.load({command!r})
+    rec = cell.run(JointCommand(q))
+    print("RESULT " + json.dumps({{"fault": rec.fault, "timing": rec.metadata["timing"]}}))
+    cell.close()
+    """
+)
+
+
+def _child(fk: FakeXArm, q: np.ndarray, tmp_path: Path) -> subprocess.Popen:
+    np.save(tmp_path / "q.npy", q)
+    ports = {} if fk.uses_sdk_ports else fk.sdk_port_overrides()
+    code = CHILD.format(
+        root=str(ROOT), tests=str(ROOT / "tests"), ports=json.dumps(ports),
+        doc=json.dumps(lab_doc(fk)), command=str(tmp_path / "q.npy"),
+    )  # fmt: skip
+    return subprocess.Popen(
+        [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True, cwd=ROOT, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )  # fmt: skip
+
+
+def test_sigint_to_a_streaming_process_stops_the_arm(make_fake, tmp_path):
+    """Ctrl-C (SIGINT) to the process streaming a 4 s command: the arm is stopped, then the
+    KeyboardInterrupt ends the process."""
+    fk = make_fake(arm="exact")
+    proc = _child(fk, throw(1000), tmp_path)
+    try:
+        assert fk.wait_for(lambda: len(fk.servo) >= 50, timeout=30.0), proc.stderr
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=20)
+    finally:
+        proc.kill()
+    assert "KeyboardInterrupt" in err and "RESULT" not in out
+    assert proc.returncode != 0
+    assert 50 <= len(fk.servo) < 1000
+    stops = [t for t, name, v in fk.events if name == "set_state" and v == 4]
+    assert stops and stops[-1] > fk.servo[-1].t and fk.state == 4
+
+
+def test_streaming_jitter_in_a_separate_process(make_fake, tmp_path):
+    """The cell in its own process, the fake in this one (as a real controller would be):
+    the stream keeps its deadlines."""
+    fk = make_fake()
+    proc = _child(fk, throw(500), tmp_path)
+    out, err = proc.communicate(timeout=60)
+    line = [x for x in out.splitlines() if x.startswith("RESULT ")]
+    assert line, err
+    result = json.loads(line[0][7:])
+    assert result["fault"] is None
+    timing = result["timing"]
+    stats = {k: v for k, v in timing.items() if not k.endswith("_us")}
+    print("\nstreaming timing against the fake (separate process):", json.dumps(stats))
+    assert timing["ticks"] == 500 and timing["lateness"]["max_ms"] < 20.0
+    np.testing.assert_allclose(fk.servo_targets(), throw(500), atol=1e-6)
