@@ -1,14 +1,19 @@
 """The registry of cells: a scenario's ``[cell]`` table names a kind, the registry opens it.
 
 A cell is where a command is tried (:class:`flyknot.record.Cell`): the simulated lab
-(``kind = "sim"``, :mod:`flyknot_sim`) today, the real xArm 7 with motion capture
-(``kind = "xarm"``, :mod:`flyknot_hw`) when that package exists. Each kind has a small frozen
-spec, validated on construction, and a factory that opens the cell from it::
+(``kind = "sim"``, :mod:`flyknot_sim`) or the real xArm 7 with motion capture
+(``kind = "xarm"``, :mod:`flyknot_hw`, assembled by :mod:`flyknot_app.hardware`). Each kind
+has a small frozen spec, validated on construction, and a factory that opens the cell::
 
     [cell]
     kind = "sim"      # the default
-    rope = 1          # the cell's fields may also be given per run, in a grid or by --set
+    rope = 1          # rope, seed, settle_s may also be given per run, in a grid or by --set
     seed = 0
+
+    [cell]
+    kind = "xarm"
+    lab = "my_lab.toml"   # the lab file (assets/lab_example.toml); or: flyknot run --cell FILE
+    dry_run = false       # true: preflight as on the arm, then play in the simulated lab
 
 The runner never names a cell class; it calls :func:`open_cell` with the run's spec.
 """
@@ -55,6 +60,52 @@ def _open_sim(spec: SimCellSpec) -> Cell:
 
 
 @dataclass(frozen=True)
+class XArmCellSpec:
+    """The real lab (:class:`flyknot_hw.xarm_cell.XArmCell`) as a run opens it.
+
+    Attributes:
+        lab: The lab file (TOML, ``assets/lab_example.toml``).
+        rope: The rope the run needs: it must be the one the lab file says is mounted.
+        seed: Seed of the simulated lab's variation in a dry run (unused on the arm).
+        settle_s: Unused on the arm (the lab file's ``[settle]`` decides); accepted so that
+            scenarios written for the simulated lab run unchanged.
+        ropes: A user's ropes file naming ``rope``, or None.
+        dry_run: Preflight each command as on the arm, then play it in the simulated lab
+            (:class:`flyknot_app.hardware.DryRunCell`); nothing connects to a robot.
+    """
+
+    lab: str = ""
+    rope: int | str = 1
+    seed: int = 0
+    settle_s: float | None = None
+    ropes: str | None = None
+    dry_run: bool = False
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.lab, str) or not self.lab:
+            raise ConfigError("cell.lab", "the real lab needs its lab file (--cell FILE)")
+        if not isinstance(self.dry_run, bool):
+            raise ConfigError("cell.dry_run", f"must be true or false, got {self.dry_run!r}")
+
+
+def _open_xarm(spec: XArmCellSpec) -> Cell:
+    from flyknot_app.hardware import DryRunCell, open_xarm_cell
+    from flyknot_hw.config import load_lab_config
+
+    config = load_lab_config(spec.lab)
+    if config.rope.key != spec.rope:
+        raise ConfigError(
+            "rope",
+            f"the run needs rope {spec.rope!r} but the lab file {spec.lab!r} says rope "
+            f"{config.rope.key!r} is mounted (change [rope] in the lab file when you change "
+            "the rope)",
+        )
+    if spec.dry_run:
+        return DryRunCell(config, seed=spec.seed)
+    return open_xarm_cell(config)
+
+
+@dataclass(frozen=True)
 class CellKind:
     """One registered kind of cell: its spec class and the factory opening it."""
 
@@ -71,6 +122,7 @@ class CellKind:
 
 CELLS: dict[str, CellKind] = {
     "sim": CellKind("sim", SimCellSpec, _open_sim, "the simulated lab (MuJoCo)"),
+    "xarm": CellKind("xarm", XArmCellSpec, _open_xarm, "a real xArm 7 with motion capture"),
 }
 """Every kind of cell, by the name a scenario's ``[cell] kind`` gives."""
 

@@ -92,7 +92,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from flyknot_app.scenario import load_scenario, parse_overrides
 
     overrides = parse_overrides(args.set)
-    scen = load_scenario(args.scenario, overrides, ropes=args.ropes)
+    cell = None
+    if args.cell is not None:
+        cell = {"kind": "xarm", "lab": str(Path(args.cell).resolve()), "dry_run": args.dry_run}
+    elif args.dry_run:
+        raise ConfigError("--dry-run", "needs --cell LAB.toml (the real lab it stands in for)")
+    scen = load_scenario(args.scenario, overrides, ropes=args.ropes, cell=cell)
     out = Path(args.out) if args.out else _default_run_dir(scen.name, args.resume)
     print(f"scenario {scen.name!r} ({scen.kind}, {len(scen.runs)} runs) -> {out}")
     summary = run_scenario(scen, out, workers=args.workers, resume=args.resume, overrides=overrides)
@@ -204,6 +209,19 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="your own ropes file (.toml), replacing the scenario's `ropes` "
         "(see assets/ropes_example.toml)",
+    )
+    r.add_argument(
+        "--cell",
+        default=None,
+        metavar="LAB.toml",
+        help="run on the real lab described by this lab file (assets/lab_example.toml) "
+        "instead of the scenario's cell",
+    )
+    r.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="with --cell: preflight every command as on the arm, then play it in the "
+        "simulated lab; nothing connects to the robot",
     )
     r.set_defaults(func=_cmd_run)
 

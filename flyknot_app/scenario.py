@@ -98,8 +98,10 @@ class RunSpec:
         ropes: A user's ropes file (absolute path; set from the scenario's top-level
             ``ropes``), or None.
         cell: Kind of cell the run plays on (:data:`flyknot_app.cells.CELLS`; set by the
-            scenario's ``[cell] kind``): ``rope``, ``seed``, ``settle_s`` and ``ropes`` are
-            that cell's fields.
+            scenario's ``[cell] kind`` or ``flyknot run --cell``): ``rope``, ``seed``,
+            ``settle_s`` and ``ropes`` are given to that cell.
+        cell_options: The cell's other fields (e.g. the real lab's ``lab`` file), from the
+            ``[cell]`` table or the command line.
     """
 
     name: str
@@ -125,6 +127,7 @@ class RunSpec:
     label: str = ""
     ropes: str | None = None
     cell: str = "sim"
+    cell_options: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         cell_kind(self.cell)
@@ -177,7 +180,7 @@ class RunSpec:
     def cell_spec(self) -> Any:
         """The validated spec of the run's cell (:func:`flyknot_app.cells.cell_spec`)."""
         values = {"rope": self.rope, "seed": self.seed, "settle_s": self.settle_s}
-        return cell_spec(self.cell, {**values, "ropes": self.ropes})
+        return cell_spec(self.cell, {**values, "ropes": self.ropes, **self.cell_options})
 
     @property
     def window(self) -> tuple[float, float]:
@@ -185,7 +188,7 @@ class RunSpec:
         return (float(self.follow_through_s), float(self.path_frac))
 
 
-RUN_KEYS = tuple(f.name for f in fields(RunSpec) if f.name not in ("ropes", "cell"))
+RUN_KEYS = tuple(f.name for f in fields(RunSpec) if f.name not in ("ropes", "cell", "cell_options"))
 """Fields a scenario's runs, defaults, grid and ``--set`` may give (``ropes`` and the cell's
 kind are top-level)."""
 
@@ -295,13 +298,17 @@ def _name_part(value: Any) -> str:
 
 
 def _make_run(
-    raw: Mapping[str, Any], where: str, ropes: str | None = None, cell: str = "sim"
+    raw: Mapping[str, Any],
+    where: str,
+    ropes: str | None = None,
+    cell: str = "sim",
+    cell_options: Mapping[str, Any] | None = None,
 ) -> RunSpec:
     for k in raw:
         if k not in RUN_KEYS:
             raise ConfigError(f"{where}.{k}", "unknown field", RUN_KEYS)
     try:
-        return RunSpec(**raw, ropes=ropes, cell=cell)
+        return RunSpec(**raw, ropes=ropes, cell=cell, cell_options=dict(cell_options or {}))
     except TypeError as e:
         raise ConfigError(where, str(e)) from None
 
@@ -313,8 +320,11 @@ def parse_scenario(
     overrides: Mapping[str, Any] | None = None,
     source: str | None = None,
     ropes: str | Path | None = None,
+    cell: Mapping[str, Any] | None = None,
 ) -> Scenario:
     """Build a :class:`Scenario` from a parsed TOML document (plus ``--set`` overrides).
+
+    ``cell`` (``flyknot run --cell FILE``) replaces the document's ``[cell]`` table.
 
     ``ropes`` (``flyknot run --ropes FILE``) replaces the document's top-level ``ropes``; a
     relative path in the document is looked up beside ``source`` first.
@@ -329,14 +339,16 @@ def parse_scenario(
         if not isinstance(doc["ropes"], str) or not doc["ropes"]:
             raise ConfigError("ropes", f"must be a file path, got {doc['ropes']!r}")
         ropes = find_ropes_file(doc["ropes"], Path(source).parent if source else None)
-    cell = dict(doc.get("cell", {}))
+    cell = dict(cell if cell is not None else doc.get("cell", {}))
     kind = cell.pop("kind", "sim")
     cell_kind(kind)
     settable = tuple(f for f in cell_kind(kind).fields if f != "ropes")
     for k in cell:
         if k not in settable:
             raise ConfigError(f"cell.{k}", f"not a field of a {kind!r} cell", settable)
-    defaults = {**cell, **dict(doc.get("defaults", {}))}
+    options = {k: v for k, v in cell.items() if k not in RUN_KEYS}
+    cell_defaults = {k: v for k, v in cell.items() if k in RUN_KEYS}
+    defaults = {**cell_defaults, **dict(doc.get("defaults", {}))}
     overrides = dict(overrides or {})
     max_runs = overrides.pop("max_runs", None)
     rope_model = {**dict(defaults.pop("rope_model", {})), **dict(overrides.pop("rope_model", {}))}
@@ -364,7 +376,7 @@ def parse_scenario(
         }
         merged["weights"] = {**weights, **dict(entry.get("weights", {}))}
         merged.setdefault("name", f"run{i}")
-        runs.append(_make_run(merged, f"run[{i}]", ropes, kind))
+        runs.append(_make_run(merged, f"run[{i}]", ropes, kind, options))
     scen = Scenario(
         name=str(doc.get("name", name)),
         kind=str(doc.get("kind", "learn")),
@@ -416,12 +428,14 @@ def load_scenario(
     name_or_path: str,
     overrides: Mapping[str, Any] | None = None,
     ropes: str | Path | None = None,
+    cell: Mapping[str, Any] | None = None,
 ) -> Scenario:
-    """Read and validate a scenario file (``ropes``: a ropes file replacing the scenario's
-    own, see :func:`parse_scenario`)."""
+    """Read and validate a scenario file (``ropes``, ``cell``: see :func:`parse_scenario`)."""
     path = find_scenario(name_or_path)
     try:
         doc = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(str(path), f"not valid TOML: {e}") from None
-    return parse_scenario(doc, name=path.stem, overrides=overrides, source=str(path), ropes=ropes)
+    return parse_scenario(
+        doc, name=path.stem, overrides=overrides, source=str(path), ropes=ropes, cell=cell
+    )

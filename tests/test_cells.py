@@ -19,9 +19,9 @@ def test_the_sim_cell_opens_from_its_spec():
 
 def test_unknown_kind_and_field_list_the_valid_ones():
     with pytest.raises(
-        ConfigError, match=r"^cell\.kind: unknown cell kind 'xarm' \(valid choices: sim\)$"
+        ConfigError, match=r"^cell\.kind: unknown cell kind 'robot' \(valid choices: sim, xarm\)$"
     ):
-        cell_spec("xarm", {})
+        cell_spec("robot", {})
     with pytest.raises(
         ConfigError,
         match=r"^cell\.ip: not a field of a 'sim' cell "
@@ -32,7 +32,7 @@ def test_unknown_kind_and_field_list_the_valid_ones():
         SimCellSpec(seed=-1)
     with pytest.raises(ConfigError, match=r"^cell: a 'sim' cell needs a SimCellSpec"):
         open_cell("sim", {"rope": 1})
-    assert sorted(CELLS) == ["sim"]
+    assert sorted(CELLS) == ["sim", "xarm"]
 
 
 def test_a_scenarios_cell_table_sets_the_kind_and_the_cells_defaults():

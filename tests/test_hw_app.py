@@ -1,0 +1,111 @@
+"""Hardware mode in the application: the xarm cell kind, --cell / --dry-run, the dry run's
+preflight, calibration with the learner's kinematics. No robot: the dry run never connects."""
+
+from __future__ import annotations
+
+import json
+import tomllib
+
+import numpy as np
+import pytest
+
+from flyknot.constants import REPO_ROOT
+from flyknot.errors import ConfigError
+from flyknot.geometry import quat_to_matrix
+from flyknot.record import JointCommand
+from flyknot_app import cli
+from flyknot_app.cells import cell_spec, open_cell
+from flyknot_app.hardware import DryRunCell, LearnerKinematics, calibrate
+from flyknot_hw.config import parse_lab_config
+from flyknot_hw.preflight import PreflightError
+from flyknot_sim.commands import HOME_Q
+
+LAB = REPO_ROOT / "assets" / "lab_example.toml"
+
+
+@pytest.fixture(scope="module")
+def kin():
+    return LearnerKinematics()
+
+
+def _lab(**safety):
+    doc = tomllib.loads(LAB.read_text())
+    doc["safety"].update(safety)
+    return parse_lab_config(doc)
+
+
+def _hold(q, n=50):
+    return JointCommand(q=np.tile(q, (n, 1)), rate_hz=250.0)
+
+
+def test_the_learners_fingertip_matches_the_simulated_arm(kin):
+    from fakes import SimFingertip
+
+    q = HOME_Q + np.random.default_rng(0).normal(scale=0.3, size=(5, 7))
+    p, quat = kin(q)
+    p_sim, quat_sim = SimFingertip()(q)
+    np.testing.assert_allclose(p, p_sim, atol=1e-9)
+    np.testing.assert_allclose(quat_to_matrix(quat), quat_to_matrix(quat_sim), atol=1e-9)
+
+
+def test_a_dry_run_refuses_what_the_arm_would_refuse_before_playing(kin):
+    lab = _lab(workspace={"min": [-0.9, -0.9, 0.05], "max": [0.1, 0.9, 1.3]})
+    cell = DryRunCell(lab, kinematics=kin)
+    with pytest.raises(PreflightError, match=r"^command: fingertip x = .* leaves the workspace"):
+        cell.run(_hold(HOME_Q))
+    assert cell.trial_index == 0  # nothing was played
+
+
+def test_a_dry_run_plays_a_passing_command_in_the_simulated_lab(kin):
+    cell = DryRunCell(_lab(), kinematics=kin)
+    rec = cell.run(_hold(HOME_Q, 25))
+    assert cell.trial_index == 1
+    assert rec.metadata["dry_run"] is True
+    assert set(rec.metadata["preflight"]["checked"]) >= {"position", "torque", "workspace"}
+
+
+def test_the_xarm_cell_needs_the_mounted_rope(tmp_path):
+    spec = cell_spec("xarm", {"lab": str(LAB), "rope": 3})
+    bad_rope = r"^rope: the run needs rope 3 but the lab file .* says rope 1 is mounted"
+    with pytest.raises(ConfigError, match=bad_rope):
+        open_cell("xarm", spec)
+    with pytest.raises(ConfigError, match=r"^cell\.lab: the real lab needs its lab file"):
+        cell_spec("xarm", {"rope": 1})
+    dry = open_cell("xarm", cell_spec("xarm", {"lab": str(LAB), "rope": 1, "dry_run": True}))
+    assert isinstance(dry, DryRunCell)
+
+
+def test_dry_run_without_a_lab_file_is_refused(capsys):
+    assert cli.main(["run", "quick", "--dry-run"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        "flyknot: error: --dry-run: needs --cell LAB.toml (the real lab it stands in for)"
+    )
+
+
+def test_run_with_cell_dry_run_plays_the_scenario_through_the_preflight(tmp_path):
+    out = tmp_path / "dry"
+    args = ["run", "quick", "--cell", str(LAB), "--dry-run", "--set", "max_trials=0"]
+    assert cli.main([*args, "--out", str(out)]) == 0
+    manifest = json.loads((out / "manifest.json").read_text())
+    run = manifest["runs"][0] if isinstance(manifest["runs"], list) else manifest["runs"]["rope1"]
+    assert run["cell"] == "xarm" and run["cell_options"]["dry_run"] is True
+    rec = json.loads((out / "runs" / "rope1" / "learning" / "trial_0000_a0.json").read_text())
+    assert rec["metadata"]["dry_run"] is True
+    assert rec["metadata"]["preflight"]["tip_speed_peak_m_s"] > 0
+
+
+def test_calibration_recovers_a_base_pose(kin):
+    rng = np.random.default_rng(1)
+    true_pose = np.array([0.4, -0.3, 0.8, *(q := rng.normal(size=4)) / np.linalg.norm(q)])
+    R, t = quat_to_matrix(true_pose[3:]), true_pose[:3]
+
+    def measure(q):  # the fingertip the motion capture would see, with 0.2 mm noise
+        return R @ kin.positions(q[None])[0] + t + rng.normal(scale=2e-4, size=3)
+
+    poses = HOME_Q + rng.normal(scale=0.4, size=(6, 7))
+    cal = calibrate(measure, poses, kinematics=kin)
+    np.testing.assert_allclose(cal.base_pose[:3], t, atol=2e-3)
+    np.testing.assert_allclose(quat_to_matrix(cal.base_pose[3:]), R, atol=5e-3)
+    assert cal.residual_rms < 1e-3 and cal.toml().startswith("[base]\npose = [")
+    with pytest.raises(ConfigError, match=r"^poses: must be at least 3 joint poses"):
+        calibrate(measure, poses[:2], kinematics=kin)
