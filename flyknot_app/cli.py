@@ -185,6 +185,31 @@ def _cmd_model_check(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_epilog() -> str:
+    """The scenarios and the ``--set`` fields, for ``flyknot run --help``."""
+    import textwrap
+
+    from flyknot.constants import SCENARIOS_DIR
+    from flyknot_app.scenario import ROPE_MODEL_KEYS, RUN_KEYS, WEIGHT_KEYS
+
+    names = sorted(p.stem for p in SCENARIOS_DIR.glob("*.toml"))
+    plain = [k for k in RUN_KEYS if k not in ("name", "rope_model", "weights")]
+    fields = [*plain, *(f"rope_model.{k}" for k in ROPE_MODEL_KEYS)]
+    fields += [f"weights.{k}" for k in WEIGHT_KEYS]
+
+    def wrap(items: list[str]) -> str:
+        return textwrap.fill(", ".join(items), 88, initial_indent="  ", subsequent_indent="  ")
+
+    return (
+        "scenarios:\n"
+        + wrap(names)
+        + "\n\n--set fields (KEY=VALUE, repeatable):\n"
+        + wrap(fields)
+        + "\n\nscenario fields are explained in flyknot_app/scenario.py "
+        "(RunSpec) and the README."
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``flyknot`` (exposed for tests and docs)."""
     p = argparse.ArgumentParser(
@@ -193,7 +218,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
 
-    r = sub.add_parser("run", help="run a scenario (an experiment of the paper) headless")
+    r = sub.add_parser(
+        "run",
+        help="run a scenario (an experiment of the paper) headless",
+        epilog=_run_epilog(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     r.add_argument("scenario", help="scenario name under scenarios/ or a .toml path")
     r.add_argument("--out", default=None, help="run directory (default runs/<scenario>)")
     r.add_argument("--workers", type=int, default=1, help="processes for independent runs")

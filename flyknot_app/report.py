@@ -11,6 +11,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.ticker import MaxNLocator
 
 from flyknot_app.anatomy_report import report_section
 
@@ -77,7 +78,11 @@ def plot_costs(runs: list[dict[str, Any]], path: Path, title: str) -> Path:
             later = np.flatnonzero(knots)[1:]
             ax.plot(x[later], np.array(costs)[later], "o", ms=8, color=line.get_color())
     ax.set_yscale("log")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set(xlabel="trial", ylabel="critical-point cost ||x(t_c) - x_demo(t_c)||²_Q", title=title)
+    if any(any(r["knots"]) for r in runs):  # the markers' meaning, once, in grey
+        ax.plot([], [], "s", ms=8, color="0.4", label="first knot")
+        ax.plot([], [], "o", ms=7, color="0.4", label="later knot")
     ax.legend(fontsize=7, ncol=2)
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -211,6 +216,20 @@ def plot_critical_overlays(run_dir: Path, run: dict[str, Any], path: Path) -> Pa
     return path
 
 
+def settings_lines(out_dir: Path) -> list[str]:
+    """What the report's runs were run with: ``--set`` overrides and the cell (manifest)."""
+    path = out_dir / "manifest.json"
+    if not path.is_file():
+        return []
+    manifest = json.loads(path.read_text())
+    over = manifest.get("overrides") or {}
+    text = ", ".join(f"`{k}={json.dumps(v)}`" for k, v in sorted(over.items())) or "none"
+    runs = manifest.get("runs") or []
+    runs = list(runs.values()) if isinstance(runs, dict) else runs
+    cells = sorted({str(r.get("cell", "sim")) for r in runs if isinstance(r, dict)}) or ["sim"]
+    return [f"Overrides (`--set`): {text}. Cell: {', '.join(cells)}.", ""]
+
+
 def write_report(out_dir: str | Path, summary: dict[str, Any]) -> Path:
     """Write figures and ``report.md`` for a scenario's ``summary.json`` content."""
     out_dir = Path(out_dir)
@@ -257,6 +276,7 @@ def write_report(out_dir: str | Path, summary: dict[str, Any]) -> Path:
                 f"{r.get('start_from') or '-'} | {_trials_text(r)} | {costs} | {rep} |"
             )
     lines += ["", outcome_line(kind, runs), ""]
+    lines += settings_lines(out_dir)
     lines += report_section(out_dir)  # failure anatomy of every trial; writes anatomy.png
     lines += ["## Figures", ""]
     lines += [f"![{p.stem}]({p.name})" for p in figs]
