@@ -5,14 +5,23 @@ proposes a change of the command's Bezier knots, the lab plays the command with 
 trial-to-trial variation, and the agent observes what the learner would observe (the rope
 state error at the critical time, from the motion-capture markers) plus the knots.
 
-* Observation (146,): the critical-point error x(t_c) - x_demo(t_c) in the demonstration
-  frame (66: 11 marker positions [m] then velocities [m/s]; zeros when the trial faulted or
-  lost tracking before t_c) followed by the current knots (80: 7 joint rows [rad] and 3
-  base-offset rows [m], 8 knots each, row-major).
+* Observation (146,), bounded: the critical-point error x(t_c) - x_demo(t_c) in the
+  demonstration frame (66: 11 marker positions [m], clipped to +-:data:`POS_BOUND`, then
+  velocities [m/s], clipped to +-:data:`VEL_BOUND`; zeros when the trial faulted or lost
+  tracking before t_c) followed by the current knots (80: 7 joint rows [rad] within the
+  paper's joint limits, 3 base-offset rows [m] within +-:data:`BASE_BOUND`; 8 knots each,
+  row-major).
 * Action (80,) in [-1, 1]: the knot change divided by ``action_scale`` (joint rows [rad],
   base rows [m]); the base rows' change is averaged over the knots (the base stays fixed
   within a command) and the first/last two knots of each joint row move together (the
-  command stays at rest at both ends).
+  command stays at rest at both ends); the knots are then clipped to the bounds above. An
+  action of the wrong shape, or with NaN or infinity, is refused before anything changes.
+* ``reset(seed=s)`` restarts the lab's trial-to-trial variation at trial 0 of seed ``s``
+  (trial i of an episode meets the same variation for the same seed); ``reset()`` without
+  a seed continues the variation sequence.
+* ``info``: the trial number, fault, knot, cost, ``failure`` (the failure class of
+  :mod:`flyknot_app.anatomy`: ``success``, ``shaken_loose``, ...) and ``record`` (the saved
+  trial record's path under ``record_dir``, a temporary directory by default).
 * Reward: -(critical-point cost ||x(t_c) - x_demo(t_c)||^2_Q) + ``knot_bonus`` when the
   trial ties the knot; ``fault_penalty`` replaces the cost when the robot faults or tracking
   is lost before t_c.
@@ -32,7 +41,16 @@ import gymnasium as gym
 import numpy as np
 
 from flyknot.constants import N_JOINTS, N_KNOTS, N_ROWS
-from flyknot.errors import FlyknotError, check_positive
+from flyknot.errors import ConfigError, check_positive
+from flyknot.limits import JointLimits
+
+POS_BOUND = 5.0
+"""Bound of the marker position errors in the observation [m]."""
+VEL_BOUND = 100.0
+"""Bound of the marker velocity errors in the observation [m/s]."""
+BASE_BOUND = 1.0
+"""Bound of the base-offset knots [m]."""
+N_ERR = 66
 
 
 class FlyknotEnv(gym.Env):
@@ -53,9 +71,11 @@ class FlyknotEnv(gym.Env):
         settle_s: float | None = None,
         seed: int = 0,
         ropes: str | None = None,
+        record_dir: str | None = None,
     ):
         """``rope``: a paper rope id 1..7 or a rope's name (the paper's, or one of ``ropes``,
-        a user's ropes file; see ``assets/ropes_example.toml``)."""
+        a user's ropes file; see ``assets/ropes_example.toml``); ``record_dir``: where each
+        trial's record is saved (a temporary directory if None)."""
         super().__init__()
         from flyknot_app.runner import prepare_target
         from flyknot_sim.lab import LabParams, SimLab
@@ -64,8 +84,8 @@ class FlyknotEnv(gym.Env):
         from learner.rope_model import RopeModelParams
 
         check_positive("action_scale", action_scale)
-        if not isinstance(max_trials, int) or max_trials < 1:
-            raise FlyknotError(f"max_trials: must be an integer >= 1, got {max_trials!r}")
+        if not isinstance(max_trials, int) or isinstance(max_trials, bool) or max_trials < 1:
+            raise ConfigError("max_trials", f"must be an integer >= 1, got {max_trials!r}")
         self.max_trials = max_trials
         self.action_scale = float(action_scale)
         self.knot_bonus = float(knot_bonus)
@@ -77,10 +97,37 @@ class FlyknotEnv(gym.Env):
         _, self.target = prepare_target(demo, RopeModelParams().dt, self._window)
         self._demo = demo
         self._knots0: np.ndarray | None = None
-        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (66 + N_ROWS * N_KNOTS,), float)
-        self.action_space = gym.spaces.Box(-1.0, 1.0, (N_ROWS * N_KNOTS,), float)
+        limits = JointLimits()
+        self._knot_lo = np.concatenate(
+            [
+                np.repeat(limits.q_min[:, None], N_KNOTS, 1),
+                np.full((N_ROWS - N_JOINTS, N_KNOTS), -BASE_BOUND),
+            ]
+        )
+        self._knot_hi = np.concatenate(
+            [
+                np.repeat(limits.q_max[:, None], N_KNOTS, 1),
+                np.full((N_ROWS - N_JOINTS, N_KNOTS), BASE_BOUND),
+            ]
+        )
+        err_hi = np.concatenate([np.full(N_ERR // 2, POS_BOUND), np.full(N_ERR // 2, VEL_BOUND)])
+        self._err_hi = err_hi
+        self.observation_space = gym.spaces.Box(
+            np.concatenate([-err_hi, self._knot_lo.ravel()]),
+            np.concatenate([err_hi, self._knot_hi.ravel()]),
+            dtype=np.float64,
+        )
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (N_ROWS * N_KNOTS,), np.float64)
         self.knots = np.zeros((N_ROWS, N_KNOTS))
         self.trials = 0
+        if record_dir is None:
+            import tempfile
+
+            self._tmp = tempfile.TemporaryDirectory(prefix="flyknot_env_")
+            record_dir = self._tmp.name
+        from pathlib import Path
+
+        self.record_dir = Path(record_dir)
 
     # ------------------------------------------------------------------------------------
     def initial_knots(self) -> np.ndarray:
@@ -105,14 +152,25 @@ class FlyknotEnv(gym.Env):
 
     def _trial(self) -> tuple[np.ndarray, float, bool, dict[str, Any]]:
         from flyknot.errors import RecordError
+        from flyknot_app.anatomy import diagnose
         from learner.bezier import BezierCommand
         from learner.critical_state import critical_state_from_record
         from learner.ilc import critical_cost
 
+        # Named by the lab's variation (seed, trial index): the same seed replays the same trial.
+        lab_trial = self._lab.trial_index
+        stem = self.record_dir / f"seed_{self._lab.params.seed}" / f"trial_{lab_trial:05d}"
         rec = self._lab.run(BezierCommand(self.knots, self.target.T).joint_command())
         self.trials += 1
-        info: dict[str, Any] = {"fault": rec.fault, "knot": rec.knot, "trial": self.trials}
-        err = np.zeros(66)
+        rec.save(stem)
+        info: dict[str, Any] = {
+            "fault": rec.fault,
+            "knot": rec.knot,
+            "trial": self.trials,
+            "record": str(stem.with_suffix(".json")),
+            "failure": diagnose(rec, t_c=self.target.t_c).label,
+        }
+        err = np.zeros(N_ERR)
         if rec.fault is None:
             try:
                 x = critical_state_from_record(rec, self.target.t_c, self.knots[N_JOINTS:, 0])
@@ -126,25 +184,35 @@ class FlyknotEnv(gym.Env):
         info["cost"] = cost
         success = rec.succeeded
         reward = -cost + (self.knot_bonus if success else 0.0)
-        obs = np.concatenate([err, self.knots.ravel()])
+        obs = np.concatenate([np.clip(err, -self._err_hi, self._err_hi), self.knots.ravel()])
         return obs, float(reward), success, info
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """Start an episode from the initial command: one trial, its observation and info."""
         super().reset(seed=seed)
-        self.knots = self.initial_knots()
+        if seed is not None:
+            from dataclasses import replace
+
+            self._lab.params = replace(self._lab.params, seed=int(seed))
+            self._lab.trial_index = 0
+        self.knots = np.clip(self.initial_knots(), self._knot_lo, self._knot_hi)
         self.trials = 0
         obs, _, _, info = self._trial()
         return obs, info
 
     def step(self, action):
         """Change the command's knots by ``action`` (scaled, in [-1, 1]) and play it once."""
-        a = np.clip(np.asarray(action, dtype=float).reshape(N_ROWS, N_KNOTS), -1.0, 1.0)
+        a = np.asarray(action, dtype=float)
+        if a.shape != self.action_space.shape:
+            raise ConfigError("action", f"must have shape {self.action_space.shape}, got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ConfigError("action", "must be finite (NaN or infinity given); nothing changed")
+        a = np.clip(a.reshape(N_ROWS, N_KNOTS), -1.0, 1.0)
         d = self.action_scale * a
         d[N_JOINTS:] = d[N_JOINTS:].mean(axis=1, keepdims=True)  # base fixed within a command
         d[:N_JOINTS, 1] = d[:N_JOINTS, 0]  # at rest at the start ...
         d[:N_JOINTS, -1] = d[:N_JOINTS, -2]  # ... and at the end
-        self.knots = self.knots + d
+        self.knots = np.clip(self.knots + d, self._knot_lo, self._knot_hi)
         obs, reward, success, info = self._trial()
         truncated = not success and self.trials >= self.max_trials
         return obs, reward, success, truncated, info

@@ -11,7 +11,7 @@ import flyknot_app.gym_env  # noqa: F401 - registers the environment
 
 @pytest.fixture(scope="module")
 def env():
-    e = gym.make("flyknot/FlyingKnot-v0", rope=1, demo="fast", max_trials=2, settle_s=0.2)
+    e = gym.make("flyknot/FlyingKnot-v0", rope=1, demo="robot", max_trials=2, settle_s=0.2)
     yield e
     e.close()
 
@@ -33,3 +33,62 @@ def test_reset_and_step(env):
     np.testing.assert_allclose(d[:7, 7], d[:7, 6])  # ... and at the end
     assert np.abs(d).max() <= inner.action_scale + 1e-12
     assert truncated or terminated  # max_trials = 2
+
+
+def test_gymnasiums_own_checker_passes():
+    from gymnasium.utils.env_checker import check_env
+
+    env = gym.make("flyknot/FlyingKnot-v0", rope=1, max_trials=3, settle_s=0.2)
+    check_env(env.unwrapped, skip_render_check=True)
+    env.close()
+
+
+def test_reset_with_a_seed_repeats_the_episode(env):
+    a = np.full(80, 0.3)
+    first = [env.reset(seed=5)[0], env.step(a)[0]]
+    second = [env.reset(seed=5)[0], env.step(a)[0]]
+    for x, y in zip(first, second, strict=True):
+        np.testing.assert_array_equal(x, y)
+    other = env.reset(seed=6)[0]
+    assert not np.array_equal(other[:66], first[0][:66])
+
+
+def test_bad_actions_are_refused_before_anything_changes(env):
+    from flyknot.errors import ConfigError
+
+    env.reset(seed=0)
+    inner = env.unwrapped
+    knots, trials = inner.knots.copy(), inner.trials
+    bad = np.zeros(80)
+    bad[3] = np.nan
+    with pytest.raises(ConfigError, match=r"^action: must be finite"):
+        inner.step(bad)
+    with pytest.raises(ConfigError, match=r"^action: must have shape \(80,\), got \(79,\)$"):
+        inner.step(np.zeros(79))
+    np.testing.assert_array_equal(inner.knots, knots)
+    assert inner.trials == trials
+    obs, *_ = inner.step(np.zeros(80))  # still usable
+    assert np.all(np.isfinite(obs))
+
+
+def test_info_names_the_record_and_the_failure_class(env):
+    from flyknot.record import TrialRecord
+    from flyknot_app.anatomy import LABELS
+
+    _, info = env.reset(seed=1)
+    assert info["failure"] in LABELS
+    rec = TrialRecord.load(info["record"])
+    assert rec.knot == info["knot"]
+
+
+def test_the_env_is_made_with_gymnasium_alone(tmp_path):
+    import subprocess
+    import sys
+
+    code = (
+        "import gymnasium as gym\n"
+        "env = gym.make('flyknot_app.gym_env:flyknot/FlyingKnot-v0', settle_s=0.2)\n"
+        "print(type(env.unwrapped).__name__, env.observation_space.is_bounded())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["FlyknotEnv", "True"]
