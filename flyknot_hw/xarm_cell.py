@@ -9,23 +9,34 @@ One trial (:meth:`XArmCell.run`):
 2. refuse to start while the controller reports an error or warning, or while the robot's
    current pose or the joint-space path to the start pose breaks a limit;
 3. move slowly to the command's first sample (position mode, ``robot.start_speed``);
-4. wait for the rope to hang still (the injected settle check, or ``settle.before_s``);
+4. wait for the rope to hang still (the injected settle check, the live markers' check for
+   ``settle.mode = "markers"``, an operator's confirmation, or ``settle.before_s``);
 5. start the motion capture, switch to servo mode (mode 1, state 0) and stream every sample
    with ``set_servo_angle_j`` on absolute deadlines; hold the last target for
-   ``settle.after_s`` while recording;
+   ``settle.after_s`` while recording, then wait for the rope again (the settle check);
 6. on ANY controller error or warning, an SDK refusal, or Ctrl-C: stop streaming and stop
    the arm (state 4). A controller fault ends the trial with ``record.fault`` (its code and
    meaning from the SDK's tables); Ctrl-C re-raises :class:`KeyboardInterrupt`; a lost
    connection or a late stream raises :class:`~flyknot.errors.HardwareError`;
-7. back to position mode; the knot is judged by the injected judge (an operator by default).
+7. back to position mode; the motion capture's recording becomes the record's markers;
+   the knot is judged by the injected judge (an operator by default).
 
 Measured joints come from the controller's real-time report (port 30000, timestamped at
 200 Hz, interpolated onto the 250 Hz ticks) or, without it, from one ``get_servo_angle`` per
 tick; ``metadata["joint_source"]`` says which. ``metadata["timing"]``: the stream's
 lateness (send time - deadline), period error and reply round trip (mean / p99 / max [ms]),
-and per tick ``lateness_us`` and ``round_trip_us``. Times: ``t_joint`` is 0 at the first command
-sample; the motion capture (:class:`MarkerRecorder`) reports on this process's
-``time.perf_counter`` clock and is shifted the same way.
+and per tick ``lateness_us`` and ``round_trip_us``; ``t0_perf_counter_s``, the first command
+sample's deadline on this host's ``time.perf_counter``. Times: ``t_joint`` is 0 at the first
+command sample.
+
+Markers: the motion capture (a :class:`~flyknot_hw.mocap.stream.MocapSource`: injected, or
+built from the lab file's ``[mocap]`` by :func:`flyknot_hw.mocap.trial.open_source`) records
+one :class:`~flyknot_hw.mocap.stream.RawStream` per trial, on its own clock; after the stream
+it is labelled, aligned to the robot clock on the fingertip and resampled to 200 Hz
+(:func:`flyknot_hw.mocap.trial.trial_capture`, with the measured joints, the injected
+fingertip kinematics and the lab file's base pose). ``metadata["mocap"]`` holds the source,
+the clock offset (``t_robot = t_mocap + offset_s``) and the alignment residual, or the
+``error`` that left the trial without markers.
 """
 
 from __future__ import annotations
@@ -35,12 +46,11 @@ import platform
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import replace
-from typing import Any, Protocol, runtime_checkable
+from typing import Any
 
 import numpy as np
 
 from flyknot import __version__
-from flyknot.constants import N_MARKERS
 from flyknot.errors import CommandError, ConfigError, HardwareError
 from flyknot.geometry import matrix_to_quat, quat_to_matrix
 from flyknot.judge import KnotJudge, OperatorJudge
@@ -48,11 +58,19 @@ from flyknot.limits import JointLimits
 from flyknot.record import JointCommand, TrialRecord
 from flyknot_hw import xarm_sdk
 from flyknot_hw.config import LabConfig
+from flyknot_hw.mocap.stream import MocapSource, RawStream
+from flyknot_hw.mocap.trial import (
+    CapturedMarkers,
+    MarkerSettle,
+    gravity_in_mocap,
+    open_source,
+    trial_capture,
+)
 from flyknot_hw.preflight import PreflightError, PreflightReport, check_pose, preflight
 from flyknot_hw.rt_report import RealtimeReport
 from flyknot_hw.timing import DeadlineClock, SigintLatch, timing_stats
 
-__all__ = ["MarkerRecorder", "XArmCell", "console_ask", "console_confirm"]
+__all__ = ["XArmCell", "console_ask", "console_confirm"]
 
 FingertipFK = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 """q (k, 7) [rad] -> fingertip position (k, 3) [m] and quaternion (w, x, y, z) (k, 4), in the
@@ -66,20 +84,6 @@ hangs still (or raises to abort); may return plain data for the record's metadat
 START_TOLERANCE = 5e-3  # [rad] the start pose is reached when every joint is this close
 REACH_POLL_S = 0.01  # [s]
 SERVO_MODE_TIMEOUT_S = 1.0  # [s]
-
-
-@runtime_checkable
-class MarkerRecorder(Protocol):
-    """The motion capture as the cell needs it: labelled rope markers on this clock."""
-
-    def start(self) -> None:
-        """Begin recording."""
-        ...
-
-    def stop(self) -> tuple[np.ndarray, np.ndarray]:
-        """End recording: times (m,) [s] on ``time.perf_counter`` and markers (m, 11, 3)
-        [m] in the mocap frame, NaN where a marker was lost."""
-        ...
 
 
 def console_ask(record: TrialRecord, suggestion: str | None) -> bool | None:
@@ -107,9 +111,11 @@ class XArmCell:
         fingertip: Fingertip kinematics (:data:`FingertipFK`), base frame.
         judge: Knot judge; default an operator at the terminal (:func:`console_ask`).
         torques: Inverse dynamics for the torque check (:data:`TorqueModel`), or None.
-        mocap: The motion capture, or None (no markers are recorded).
-        settle: The rope-settled check (:data:`SettleCheck`); required for
-            ``settle.mode = "markers"``; default for ``operator``: :func:`console_confirm`.
+        mocap: The motion capture (:class:`~flyknot_hw.mocap.stream.MocapSource`); None: the
+            lab file's (:func:`flyknot_hw.mocap.trial.open_source`).
+        settle: The rope-settled check (:data:`SettleCheck`); default for ``markers``: the
+            live markers' (:class:`~flyknot_hw.mocap.trial.MarkerSettle`, which needs a live
+            source), for ``operator``: :func:`console_confirm`.
         on_tick: Called after every tick (streaming, then holding the last target) with
             (tick, time [s]), e.g. for a progress display.
         trial_index: Index of the next trial.
@@ -123,7 +129,7 @@ class XArmCell:
         fingertip: FingertipFK,
         judge: KnotJudge | None = None,
         torques: TorqueModel | None = None,
-        mocap: MarkerRecorder | None = None,
+        mocap: MocapSource | None = None,
         settle: SettleCheck | None = None,
         on_tick: Callable[[int, float], None] | None = None,
         trial_index: int = 0,
@@ -133,14 +139,20 @@ class XArmCell:
             raise ConfigError("config", f"must be a LabConfig, got {type(config).__name__}")
         if not callable(fingertip):
             raise ConfigError("fingertip", "the cell needs the fingertip kinematics")
-        if settle is None and config.settle.mode == "markers":
-            raise ConfigError(
-                "settle.mode", '"markers" needs the motion capture\'s settle check', ["settle="]
-            )
-        if settle is None and config.settle.mode == "operator":
-            settle = console_confirm
+        if mocap is None:
+            mocap = open_source(config)
+        for attr in ("start", "stop"):
+            if not callable(getattr(mocap, attr, None)):
+                raise ConfigError("mocap", f"a motion-capture source needs {attr}()")
         self.config = config
         self.base_pose = np.array(config.base_pose)
+        if settle is None and config.settle.mode == "markers":
+            settle = MarkerSettle(
+                mocap, self._fingertip_now, gravity_in_mocap(self.base_pose),
+                timeout_s=config.settle.timeout_s,
+            )  # fmt: skip
+        if settle is None and config.settle.mode == "operator":
+            settle = console_confirm
         self.trial_index = int(trial_index)
         self._fk, self._torques, self._mocap = fingertip, torques, mocap
         self._settle_check, self._on_tick = settle, on_tick
@@ -244,6 +256,12 @@ class XArmCell:
             raise HardwareError(f"cannot read the joints: SDK code {code}")
         return np.asarray(q, dtype=float)[:7]
 
+    def _fingertip_now(self) -> np.ndarray:
+        """The fingertip now, mocap frame (3,) [m] (for the live markers' settle check)."""
+        p, _ = self._fk(self._joints()[None, :])
+        r_base = quat_to_matrix(self.base_pose[3:])
+        return r_base @ np.asarray(p, dtype=float)[0] + self.base_pose[:3]
+
     def _check_start_path(self, q_now: np.ndarray, q0: np.ndarray) -> None:
         margins = self.config.safety.margins
         check_pose(q_now, self.limits, margins, what="the robot's current pose")  # type: ignore[arg-type]
@@ -268,6 +286,9 @@ class XArmCell:
         q_now = self._joints()
         q0 = np.asarray(command.q[0], dtype=float)
         self._check_start_path(q_now, q0)
+        ready = getattr(self._mocap, "ready", None)
+        if callable(ready):
+            ready()  # the motion capture can record, before anything moves
         rt, src_note = self._open_report()
         latch = SigintLatch()
         mocap_on = False
@@ -277,9 +298,8 @@ class XArmCell:
                 self._position_mode()
                 self._move_to(q0, q_now, latch)
             settle_meta["before"] = self._settle("before")
-            if self._mocap is not None:
-                self._mocap.start()
-                mocap_on = True
+            self._mocap.start()
+            mocap_on = True
             with latch:
                 s = self._stream(command, rt, latch)
             api.set_timeout(xarm_sdk.default_timeout())
@@ -287,15 +307,15 @@ class XArmCell:
                 settle_meta["after"] = self._settle("after")
                 api.set_mode(0)
                 api.set_state(0)
-            on, mocap_on = mocap_on, False
-            t_marker, markers = self._stop_mocap(on, s["t0"])
+            mocap_on = False
+            stream = self._mocap.stop()
         except BaseException as e:
             stop = xarm_sdk.stop_arm(api)  # with the stream's short reply timeout
             if api.connected:
                 api.set_timeout(xarm_sdk.default_timeout())
             if mocap_on:
                 with contextlib.suppress(Exception):
-                    self._mocap.stop()  # type: ignore[union-attr]
+                    self._mocap.stop()
             if rt is not None:
                 rt.close()
             if isinstance(e, _LostConnectionError):
@@ -305,7 +325,8 @@ class XArmCell:
         q_meas = self._measured(s, rt, command)
         if rt is not None:
             rt.close()
-        record = self._record(command, s, q_meas, t_marker, markers, report, settle_meta)
+        captured = self._capture(stream, s, q_meas, command)
+        record = self._record(command, s, q_meas, captured, report, settle_meta)
         if record.fault is None:
             record = replace(record, knot=self.judge(record))
         self.trial_index += 1
@@ -455,23 +476,29 @@ class XArmCell:
         timing = timing_stats(deadlines, sent[:k], replied[:k], dt)
         timing["lateness_us"] = np.round(1e6 * (sent[:k] - deadlines)).astype(int).tolist()
         timing["round_trip_us"] = np.round(1e6 * (replied[:k] - sent[:k])).astype(int).tolist()
+        timing["t0_perf_counter_s"] = t0
         return {
             "t0": t0, "n_ticks": end, "fault": fault, "fault_tick": fault_tick,
             "controller": info, "q_poll": q_poll[:end],
             "timing": timing,
         }  # fmt: skip
 
-    def _stop_mocap(self, on: bool, t0: float) -> tuple[np.ndarray, np.ndarray]:
-        if not on:
-            return np.zeros(0), np.zeros((0, N_MARKERS, 3))
-        t, m = self._mocap.stop()  # type: ignore[union-attr]
-        t, m = np.asarray(t, dtype=float), np.asarray(m, dtype=float)
-        if t.ndim != 1 or m.shape != (t.shape[0], N_MARKERS, 3):
-            raise HardwareError(
-                f"mocap.stop() must return t (m,) and markers (m, {N_MARKERS}, 3), got "
-                f"{t.shape} and {m.shape}"
+    def _capture(self, stream: object, s: dict[str, Any], q_meas, cmd) -> CapturedMarkers:
+        """The recording -> the record's markers (:func:`~flyknot_hw.mocap.trial.trial_capture`)."""
+        if not isinstance(stream, RawStream):
+            what = type(stream).__name__
+            return CapturedMarkers.empty(
+                {"error": f"mocap.stop() returned a {what}, not a RawStream"}
             )
-        return t - t0, m
+        host = bool(getattr(self._mocap, "host_clock", False))
+        return trial_capture(
+            stream,
+            t_joint=cmd.dt * np.arange(s["n_ticks"]),
+            q_meas=q_meas,
+            fk=lambda q: np.asarray(self._fk(q)[0]),
+            base_pose=self.base_pose,
+            coarse_offset_s=-s["t0"] if host else None,
+        )
 
     def _measured(self, s: dict[str, Any], rt: RealtimeReport | None, cmd: JointCommand):
         """Measured joints at the ticks, (N, 7) [rad]; NaN where nothing was measured."""
@@ -487,7 +514,7 @@ class XArmCell:
             out[inside, j] = np.interp(t_tick[inside], fr.t, fr.q[:, j])
         return out
 
-    def _record(self, cmd, s, q_meas, t_marker, markers, report, settle_meta) -> TrialRecord:
+    def _record(self, cmd, s, q_meas, cap, report, settle_meta) -> TrialRecord:
         n, big_n, dt = cmd.n, s["n_ticks"], cmd.dt
         q_cmd = np.asarray(cmd.q, dtype=float)[np.minimum(np.arange(big_n), n - 1)]
         k = s["fault_tick"]
@@ -517,7 +544,7 @@ class XArmCell:
             "robot": self.robot_info,
             "controller": s["controller"],
             "settle": settle_meta,
-            "mocap_frames": int(t_marker.shape[0]) if self._mocap is not None else None,
+            "mocap": cap.metadata,
             "versions": {
                 "flyknot": __version__,
                 "xarm_sdk": xarm_sdk.sdk_version(),
@@ -528,8 +555,8 @@ class XArmCell:
             t_joint=dt * np.arange(big_n),
             q_cmd=q_cmd,
             q_meas=q_meas,
-            t_marker=t_marker,
-            markers=markers,
+            t_marker=cap.t_marker,
+            markers=cap.markers,
             fingertip_pos=tip_pos,
             fingertip_quat=tip_quat,
             base_pose=self.base_pose,

@@ -8,6 +8,8 @@
 * :mod:`~flyknot_hw.mocap.clock`: mocap clock -> robot clock (start event, cross-correlation).
 * :mod:`~flyknot_hw.mocap.calibration`: robot base pose in the mocap frame.
 * :mod:`~flyknot_hw.mocap.pipeline`: all of it for one trial.
+* :mod:`~flyknot_hw.mocap.trial`: the lab file's source, a trial's markers for the record,
+  the live markers' settle check (what the xArm cell uses).
 
 Frames: mocap (world) frame [m]; times [s]. Forward kinematics of the fingertip is injected
 by the application as ``fk(q (n, 7)) -> (n, 3)`` in the robot base frame [m].
@@ -22,6 +24,8 @@ from flyknot_hw.mocap.calibration import (
 from flyknot_hw.mocap.clock import ClockAlignment, align_clocks, start_event_time
 from flyknot_hw.mocap.files import (
     RecordedFileSource,
+    cluster_labels,
+    directory_snapshot,
     match_recording,
     read_c3d,
     read_csv,
@@ -40,15 +44,27 @@ from flyknot_hw.mocap.stream import (
     hanging_markers,
     marker_arclengths,
 )
+from flyknot_hw.mocap.trial import (
+    TIP_BODY,
+    CapturedMarkers,
+    MarkerSettle,
+    free_end_track,
+    gravity_in_mocap,
+    open_source,
+    trial_capture,
+)
 
 __all__ = [
     "DEFAULT_MAX_GAP_S",
     "LIVE_KINDS",
+    "TIP_BODY",
     "BodyTrack",
     "CalibrationResidual",
+    "CapturedMarkers",
     "ClockAlignment",
     "LabelParams",
     "LabelResult",
+    "MarkerSettle",
     "MocapSource",
     "MotioncaptureSource",
     "RawStream",
@@ -57,16 +73,22 @@ __all__ = [
     "align_clocks",
     "apply_pose",
     "calibrate_base",
+    "cluster_labels",
+    "directory_snapshot",
+    "free_end_track",
+    "gravity_in_mocap",
     "hanging_markers",
     "label_rope_markers",
     "marker_arclengths",
     "match_recording",
+    "open_source",
     "read_c3d",
     "read_csv",
     "read_recording",
     "resample_uniform",
     "rigid_fit",
     "start_event_time",
+    "trial_capture",
     "trial_markers",
     "uniform_grid",
     "write_c3d",

@@ -7,7 +7,10 @@ negative are missing (NaN). Units from ``POINT:UNITS`` ("mm" or "m"). Labels are
 for the rope: every point not claimed by a body becomes an unlabelled point (a swap in the
 capture software's labels cannot reach the rope labelling). ``body_labels`` names clusters:
 ``{"fingertip": ["tip1", "tip2", "tip3"]}`` makes a body whose position is the mean of those
-points (NaN in a frame where any is missing; no orientation).
+points (NaN in a frame where any is missing; no orientation). ``clusters`` finds them by name:
+``("fingertip",)`` makes the body ``fingertip`` of every point labelled ``fingertip`` followed
+by a number (``fingertip1``, ``fingertip_2``, ``Hand:fingertip3``; :func:`cluster_labels`), and
+no body when the file has none.
 
 **CSV** (:func:`read_csv`, :func:`write_csv`), the layout to export from any other software::
 
@@ -22,6 +25,10 @@ optionally qw, qx, qy, qz (orientation). A label with orientation columns, or na
 ``nan`` is a missing value.
 
 **Matching a recording to a trial** (:func:`match_recording`), in this order:
+
+Only file names matching ``pattern`` (a glob such as ``trial_*.c3d``) take part, and never
+a file listed in ``exclude`` (``name -> (size, mtime_ns)`` as it was before the trial, so
+that a file already there and unchanged is not taken for the trial's):
 
 1. By name: with ``trial_stem`` (e.g. ``trial_0007``), the file whose stem equals it, else
    the single file whose name contains it (the operator names the capture after the trial,
@@ -39,6 +46,7 @@ optionally qw, qx, qy, qz (orientation). A label with orientation columns, or na
 from __future__ import annotations
 
 import csv
+import fnmatch
 import math
 import re
 import time
@@ -55,6 +63,7 @@ from flyknot_hw.mocap.stream import BodyTrack, RawStream
 __all__ = [
     "RECORDING_SUFFIXES",
     "RecordedFileSource",
+    "cluster_labels",
     "match_recording",
     "read_c3d",
     "read_csv",
@@ -99,14 +108,38 @@ def _body_columns(labels: list[str], body_labels: Mapping[str, Sequence[str]]) -
     return cols
 
 
+def cluster_labels(labels: Sequence[str], name: str) -> list[str]:
+    """The labels of the marker cluster ``name``: ``name`` followed by a number, optionally
+    after a subject prefix (``Hand:``) and a separator (``fingertip1``, ``fingertip_2``,
+    ``Hand:fingertip3``), case-insensitive; in the order given."""
+    rx = re.compile(rf"^(?:[^:]*:)?{re.escape(name)}[ _.\-]?\d+$", re.IGNORECASE)
+    return [str(x) for x in labels if rx.match(str(x).strip())]
+
+
+def _with_clusters(
+    labels: list[str], body_labels: Mapping[str, Sequence[str]] | None, clusters: Sequence[str]
+) -> dict[str, Sequence[str]]:
+    out = dict(body_labels or {})
+    for name in clusters:
+        found = cluster_labels(labels, name)
+        if found and name not in out:
+            out[name] = found
+    return out
+
+
 def read_c3d(
-    path: str | Path, *, body_labels: Mapping[str, Sequence[str]] | None = None
+    path: str | Path,
+    *,
+    body_labels: Mapping[str, Sequence[str]] | None = None,
+    clusters: Sequence[str] = (),
 ) -> RawStream:
     """Read a C3D recording into a :class:`RawStream` (conventions: module docstring).
 
     Args:
         path: The ``.c3d`` file.
         body_labels: Body name -> point labels whose mean is the body's position.
+        clusters: Names of marker clusters to make bodies of, when the file has them
+            (:func:`cluster_labels`).
 
     Raises:
         RecordError: The file is missing or not a readable C3D.
@@ -137,7 +170,8 @@ def read_c3d(
     labels += [f"_{k}" for k in range(len(labels), xyz.shape[1])]
     bodies = {}
     claimed: set[int] = set()
-    for name, cols in _body_columns(labels[: xyz.shape[1]], body_labels or {}).items():
+    labels = labels[: xyz.shape[1]]
+    for name, cols in _body_columns(labels, _with_clusters(labels, body_labels, clusters)).items():
         bodies[name] = BodyTrack.positions_only(xyz[:, cols].mean(axis=1))
         claimed.update(cols)
     free = [k for k in range(xyz.shape[1]) if k not in claimed]
@@ -213,8 +247,17 @@ def _float(text: str) -> float:
     return math.nan if text == "" else float(text)
 
 
-def read_csv(path: str | Path, *, body_names: Sequence[str] = (), units: str = "m") -> RawStream:
+def read_csv(
+    path: str | Path,
+    *,
+    body_names: Sequence[str] = (),
+    units: str = "m",
+    clusters: Sequence[str] = (),
+) -> RawStream:
     """Read the CSV layout of the module docstring into a :class:`RawStream`.
+
+    ``clusters``: names of marker clusters whose points (:func:`cluster_labels`) become a
+    body at their mean, when the file has them.
 
     Raises:
         RecordError: Missing file, bad header, unparsable or non-increasing rows.
@@ -246,18 +289,25 @@ def read_csv(path: str | Path, *, body_names: Sequence[str] = (), units: str = "
         raise RecordError(f"{str(path)!r}: every row needs {len(header)} values")
     scale = _UNITS[units]
     bodies, points = {}, []
+    member = {lb: name for name in clusters for lb in cluster_labels(list(groups), name)}
+    parts: dict[str, list[np.ndarray]] = {}
     for label, axes in groups.items():
         if not {"x", "y", "z"} <= set(axes):
             raise RecordError(f"{str(path)!r}: label {label!r} lacks x, y or z")
         xyz = data[:, [axes["x"], axes["y"], axes["z"]]] * scale
         has_q = {"qw", "qx", "qy", "qz"} <= set(axes)
-        if has_q or label in body_names:
+        if label in member and not has_q and label not in body_names:
+            parts.setdefault(member[label], []).append(xyz)
+        elif has_q or label in body_names:
             quat = data[:, [axes[a] for a in ("qw", "qx", "qy", "qz")]] if has_q else None
             bodies[label] = (
                 BodyTrack(xyz, quat) if quat is not None else BodyTrack.positions_only(xyz)
             )
         else:
             points.append(xyz)
+    for name, xyzs in parts.items():
+        if name not in bodies:
+            bodies[name] = BodyTrack.positions_only(np.mean(np.stack(xyzs), axis=0))
     missing = [b for b in body_names if b not in bodies]
     if missing:
         raise ConfigError("body_names", f"{missing} not in {path.name}", sorted(groups))
@@ -315,11 +365,16 @@ def match_recording(
     trial_start: float | None = None,
     trial_end: float | None = None,
     suffixes: Sequence[str] = RECORDING_SUFFIXES,
+    pattern: str | None = None,
+    exclude: Mapping[str, tuple[int, int]] | None = None,
     lead_s: float = 30.0,
     lag_s: float = 60.0,
     slack_s: float = 2.0,
 ) -> Path:
     """The recording of one trial in ``directory`` (rules in the module docstring).
+
+    ``pattern``: a glob the file names must match (None: any name); ``exclude``: files to
+    skip while unchanged, name -> (size [bytes], mtime_ns) (:func:`directory_snapshot`).
 
     Raises:
         HardwareError: No file matches, or several match ``trial_stem``.
@@ -328,7 +383,15 @@ def match_recording(
     directory = Path(directory)
     if not directory.is_dir():
         raise HardwareError(f"recordings directory {str(directory)!r} does not exist")
-    files = sorted(p for p in directory.iterdir() if p.is_file() and p.suffix.lower() in suffixes)
+    skip = dict(exclude or {})
+    files = sorted(
+        p
+        for p in directory.iterdir()
+        if p.is_file()
+        and p.suffix.lower() in suffixes
+        and (pattern is None or fnmatch.fnmatch(p.name, pattern))
+        and skip.get(p.name) != _stat_key(p)
+    )
     if trial_stem is not None:
         exact = [p for p in files if p.stem == trial_stem]
         found = exact or [p for p in files if trial_stem in p.name]
@@ -347,29 +410,59 @@ def match_recording(
         pick = [max(stamped)] if stamped else [min(written)] if written else []
         found = [p for _, p in pick]
         how = "recorded at the trial's time"
+    else:
+        raise ConfigError("match_recording", "give trial_stem, or trial_start and trial_end")
     if len(found) != 1:
         names = ", ".join(p.name for p in found) or "none"
+        kinds = f"named {pattern}" if pattern else f"suffixes {', '.join(suffixes)}"
         raise HardwareError(
-            f"expected one recording {how} in {str(directory)!r} "
-            f"(suffixes {', '.join(suffixes)}), found {len(found)}: {names}"
+            f"expected one recording {how} in {str(directory)!r} ({kinds}"
+            f"{', new since the trial began' if skip else ''}), found {len(found)}: {names}"
         )
     return found[0]
+
+
+def _stat_key(path: Path) -> tuple[int, int] | None:
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return st.st_size, st.st_mtime_ns
+
+
+def directory_snapshot(directory: str | Path) -> dict[str, tuple[int, int]]:
+    """Every file in ``directory`` as name -> (size [bytes], mtime_ns), for ``exclude``."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        return {}
+    out = {}
+    for p in directory.iterdir():
+        key = _stat_key(p) if p.is_file() else None
+        if key is not None:
+            out[p.name] = key
+    return out
 
 
 class RecordedFileSource:
     """A :class:`~flyknot_hw.mocap.stream.MocapSource` whose data arrive as a file.
 
     The lab's capture software records (started by the operator or by its own trigger) and
-    writes a file into ``directory``. :meth:`start` notes the host time; :meth:`stop` waits
-    (up to ``wait_s``) for the trial's file (:func:`match_recording`: by ``trial_stem`` if
-    set, else by time) to appear and stop growing, then reads it.
+    writes a file into ``directory``. :meth:`start` notes the host time and the files already
+    there; :meth:`stop` waits (up to ``wait_s``) for the trial's file (:func:`match_recording`:
+    by ``trial_stem`` if set, else by time; only names matching ``pattern``; with
+    ``new_only``, never a file that was already there, unchanged, at :meth:`start`) to appear
+    and stop growing, then reads it.
 
     Args:
         directory: Where the capture software writes.
         trial_stem: Name of the trial's recording; None: match by time.
+        pattern: Glob the file names must match (e.g. ``trial_*.c3d``); None: any.
+        new_only: Skip files present and unchanged since :meth:`start` (the previous trial's
+            recording must not be taken while this trial's is still being written).
         wait_s: How long :meth:`stop` waits for the file [s].
-        reader_kwargs: Passed to the reader (``body_labels`` for C3D, ``body_names`` and
-            ``units`` for CSV).
+        poll_s: Interval of the directory polls [s].
+        reader_kwargs: Passed to the reader (``body_labels`` or ``clusters`` for C3D,
+            ``body_names``, ``clusters`` and ``units`` for CSV).
         clock: Wall clock (epoch seconds), injectable for tests.
     """
 
@@ -378,6 +471,8 @@ class RecordedFileSource:
         directory: str | Path,
         *,
         trial_stem: str | None = None,
+        pattern: str | None = None,
+        new_only: bool = True,
         wait_s: float = 30.0,
         poll_s: float = 0.2,
         reader_kwargs: Mapping[str, object] | None = None,
@@ -387,16 +482,38 @@ class RecordedFileSource:
         check_positive("poll_s", poll_s)
         self.directory = Path(directory)
         self.trial_stem = trial_stem
+        self.pattern = pattern
+        self.new_only = bool(new_only)
         self.wait_s = wait_s
         self.poll_s = poll_s
         self.reader_kwargs = dict(reader_kwargs or {})
         self._clock = clock
         self._t_start: float | None = None
+        self._before: dict[str, tuple[int, int]] = {}
+        self.last_path: Path | None = None
+
+    @property
+    def source(self) -> str:
+        """The directory and pattern (for messages)."""
+        return str(self.directory / (self.pattern or "*"))
+
+    @property
+    def recording(self) -> bool:
+        """Whether :meth:`start` was called and :meth:`stop` has not returned a recording."""
+        return self._t_start is not None
+
+    def ready(self) -> None:
+        """Check, before a trial moves the arm, that the directory exists."""
+        if not self.directory.is_dir():
+            raise HardwareError(
+                f"mocap.file: the recordings directory {str(self.directory)!r} does not exist"
+            )
 
     def start(self) -> None:
-        """Note the trial's start time (the capture software records on its own)."""
-        if not self.directory.is_dir():
-            raise HardwareError(f"recordings directory {str(self.directory)!r} does not exist")
+        """Note the trial's start time and the files already there (the capture software
+        records on its own)."""
+        self.ready()
+        self._before = directory_snapshot(self.directory) if self.new_only else {}
         self._t_start = self._clock()
 
     def stop(self) -> RawStream:
@@ -406,7 +523,7 @@ class RecordedFileSource:
         t_end = self._clock()
         deadline = time.monotonic() + self.wait_s
         last_err: HardwareError | None = None
-        size = -1
+        seen: tuple[Path, int] | None = None
         while True:
             try:
                 path = match_recording(
@@ -414,13 +531,17 @@ class RecordedFileSource:
                     trial_stem=self.trial_stem,
                     trial_start=self._t_start,
                     trial_end=t_end,
+                    pattern=self.pattern,
+                    exclude=self._before,
                 )
-                now = path.stat().st_size
-                if now == size and now > 0:  # unchanged over one poll: written
+                now = (path, path.stat().st_size)
+                if now == seen and now[1] > 0:  # unchanged over one poll: written
+                    self._t_start = None
+                    self.last_path = path
                     return read_recording(path, **self.reader_kwargs)
-                size = now
-            except HardwareError as e:
-                last_err = e
+                seen = now
+            except (HardwareError, OSError) as e:
+                last_err = e if isinstance(e, HardwareError) else HardwareError(str(e))
             if time.monotonic() > deadline:
                 raise HardwareError(
                     f"no finished recording after {self.wait_s} s: {last_err}"

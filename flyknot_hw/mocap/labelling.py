@@ -4,7 +4,12 @@ Algorithm (:func:`label_rope_markers`):
 
 1. **Initialisation from the hanging pose.** A trial starts with the rope at rest, hanging
    straight down from the fingertip: marker k near ``fingertip + s_k g``
-   (:func:`flyknot_hw.mocap.stream.hanging_markers`). The first frame where at least
+   (:func:`flyknot_hw.mocap.stream.hanging_markers`). A rope leaving a tube at an angle hangs
+   from a point beside the fingertip (4 cm in the simulated lab), as does one seen through a
+   slightly wrong base pose, so the hanging line is first found in the frame: when at least
+   ``init_min_markers`` points lie below the fingertip (deeper than half of marker 0's
+   arclength, not below the rope's length) within ``init_search_m`` of its vertical, the
+   line moves sideways to their median. The first frame where at least
    ``init_min_markers`` of these 11 positions get a point within ``init_gate_m`` (one
    gated assignment, step 3) starts the tracks; markers without a point start lost.
 2. **Prediction.** A marker seen in the previous frame ("tracked") is predicted at constant
@@ -95,6 +100,8 @@ class LabelParams:
         init_gate_m: Gate around the hanging pose at initialisation [m] (a rope at rest may
             sway by 8 mm at the free end, :class:`flyknot.rest.RestCriterion`).
         init_min_markers: Markers that must be found to initialise.
+        init_search_m: Radius about the fingertip's vertical in which the hanging line is
+            looked for [m] (0: the rope hangs from the fingertip itself).
         coast_s: How long a lost marker is extrapolated at constant velocity [s].
         accel_m_s2: Acceleration bound that widens a coasting marker's gate [m/s^2].
         reacquire_gate_m: Gate of a lost marker [m] (the cap of the coasting gate).
@@ -115,6 +122,7 @@ class LabelParams:
     gate_m: float = 0.03
     init_gate_m: float = 0.04
     init_min_markers: int = 9
+    init_search_m: float = 0.08
     coast_s: float = 0.03
     accel_m_s2: float = 300.0
     reacquire_gate_m: float = 0.05
@@ -128,6 +136,7 @@ class LabelParams:
         for name in ("gate_m", "init_gate_m", "reacquire_gate_m", "anchored_gate_m"):
             check_positive(f"LabelParams.{name}", getattr(self, name))
         nonneg = ("coast_s", "accel_m_s2", "stretch_m", "anchor_reach_m", "ambiguity_m")
+        nonneg += ("init_search_m",)
         for name in (*nonneg, "exclude_radius_m"):
             check_nonnegative(f"LabelParams.{name}", getattr(self, name))
         check_int("LabelParams.init_min_markers", self.init_min_markers, 1)
@@ -244,6 +253,7 @@ def label_rope_markers(
         if not np.all(np.isfinite(tip_f)):
             continue
         obs = _frame_points(pts[f], tip[f] if tip_track else None, p.exclude_radius_m)
+        tip_f = _hanging_line(tip_f, obs, gravity_dir, s, p)
         hang = hanging_markers(tip_f, gravity_dir, s)
         d2 = _sqdist(hang, obs)
         cost = np.where(d2 <= p.init_gate_m**2, d2, _FORBIDDEN)
@@ -262,7 +272,7 @@ def label_rope_markers(
     # Per-marker state: last position (the hanging pose for a marker not found at the
     # start), time seen (-inf: never), frame of that position, velocity.
     found = np.all(np.isfinite(out[init]), axis=1)
-    tip0 = tip[init] if np.all(np.isfinite(tip[init])) else tip[0]
+    tip0 = tip_f  # the hanging line's top at the initial frame
     last_x = np.where(found[:, None], out[init], hanging_markers(tip0, gravity_dir, s))
     last_t = np.where(found, t[init], -np.inf)
     last_f = np.full(N_MARKERS, init)
@@ -325,6 +335,25 @@ def label_rope_markers(
         last_f = np.where(seen, f, last_f)
         out[f, seen] = x_new[seen]
     return LabelResult(out, init, n_amb, n_reacq)
+
+
+def _hanging_line(
+    tip: np.ndarray, obs: np.ndarray, gravity_dir: np.ndarray, s: np.ndarray, p: LabelParams
+) -> np.ndarray:
+    """The top of the line the rope hangs along: ``tip`` moved sideways (across gravity) to
+    the median of the points hanging below it (module docstring, step 1), or ``tip``."""
+    if p.init_search_m <= 0 or obs.shape[0] < p.init_min_markers:
+        return tip
+    g = np.asarray(gravity_dir, dtype=float)
+    g = g / np.linalg.norm(g)
+    rel = obs - tip[None, :]
+    depth = rel @ g
+    side = rel - depth[:, None] * g[None, :]
+    below = (depth > 0.5 * s[0]) & (depth < s[-1] + p.init_gate_m)
+    near = below & (np.linalg.norm(side, axis=1) <= p.init_search_m)
+    if np.count_nonzero(near) < p.init_min_markers:
+        return tip
+    return tip + np.median(side[near], axis=0)
 
 
 def _frame_points(frame: np.ndarray, tip: np.ndarray | None, radius: float) -> np.ndarray:

@@ -147,15 +147,7 @@ class MotioncaptureSource:
         """Connect (first time) and begin recording frames in a background thread."""
         if self._thread is not None:
             raise HardwareError(f"{self.source}: start() while already recording")
-        mc = self._open()
-        if self.require_points and not hasattr(mc, "pointCloud"):
-            version = getattr(sys.modules.get("motioncapture"), "__version__", "unknown")
-            raise HardwareError(
-                f"{self.source}: this motioncapture build (version {version}) exposes no "
-                "pointCloud, so the rope's unlabelled markers cannot be read live; record them "
-                "with the capture software (RecordedFileSource), or pass require_points=False "
-                "to record rigid bodies only"
-            )
+        self.ready()
         self._frames = []
         self._error = None
         self._stop.clear()
@@ -180,6 +172,51 @@ class MotioncaptureSource:
                     self._frames.append((stamp, pts.reshape(-1, 3), bodies))
         except BaseException as e:  # reported by stop()
             self._error = e
+
+    @property
+    def host_clock(self) -> bool:
+        """Whether frames are stamped with this host's ``time.perf_counter`` (the default)."""
+        return self._clock is time.perf_counter
+
+    def ready(self) -> None:
+        """Connect (first time) and check that the rope's points can be read, before a trial
+        moves the arm (raises :class:`HardwareError` otherwise)."""
+        mc = self._open()
+        if self.require_points and not hasattr(mc, "pointCloud"):
+            version = getattr(sys.modules.get("motioncapture"), "__version__", "unknown")
+            raise HardwareError(
+                f"{self.source}: this motioncapture build (version {version}) exposes no "
+                "pointCloud, so the rope's unlabelled markers cannot be read live; record them "
+                "with the capture software (RecordedFileSource), or pass require_points=False "
+                "to record rigid bodies only"
+            )
+
+    @property
+    def recording(self) -> bool:
+        """Whether :meth:`start` has begun a recording that :meth:`stop` has not ended."""
+        return self._thread is not None
+
+    def recent(self, seconds: float) -> RawStream | None:
+        """The frames of the last ``seconds`` [s] of the running recording (None: no frame
+        yet), without stopping it: what a settle check watches.
+
+        Raises:
+            HardwareError: Not recording, or the reader thread failed.
+        """
+        check_positive("seconds", seconds)
+        if self._thread is None:
+            raise HardwareError(f"{self.source}: recent() needs a running recording (start())")
+        if self._error is not None:
+            raise HardwareError(f"{self.source}: reading frames failed: {self._error}")
+        with self._lock:
+            if not self._frames:
+                return None
+            t_last = self._frames[-1][0]
+            k = len(self._frames)
+            while k > 0 and self._frames[k - 1][0] >= t_last - seconds:
+                k -= 1
+            frames = self._frames[k:]
+        return frames_to_stream(frames, self.source)
 
     def stop(self) -> RawStream:
         """Stop recording and return the frames since :meth:`start`."""
