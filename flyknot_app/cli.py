@@ -140,6 +140,45 @@ def _cmd_explain(args: argparse.Namespace) -> int:
     return 0
 
 
+def _parse_seeds(text: str) -> list[int]:
+    """``"0-4"`` or ``"0,2,5"`` as a list of seeds."""
+    try:
+        if "-" in text:
+            lo, hi = (int(v) for v in text.split("-", 1))
+            seeds = list(range(lo, hi + 1))
+        else:
+            seeds = [int(v) for v in text.split(",")]
+    except ValueError:
+        seeds = []
+    if not seeds or min(seeds) < 0:
+        raise ConfigError("--seeds", f"must be A-B or A,B,... with seeds >= 0, got {text!r}")
+    return seeds
+
+
+def _cmd_baseline(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from flyknot.progress import bar_disable
+    from flyknot_app.baselines import BaselineParams, run_baseline, write_results
+    from flyknot_app.gym_env import FlyknotEnv
+
+    params = BaselineParams(
+        budget=args.budget, sigma=args.sigma, scale=args.scale, repeats=args.repeats
+    )
+    seeds = _parse_seeds(args.seeds)
+    env = FlyknotEnv(
+        rope=args.rope, max_trials=params.budget + params.repeats + 1, settle_s=args.settle
+    )
+    results = []
+    for seed in tqdm(seeds, desc=args.name, unit="seed", disable=bar_disable(not args.quiet)):
+        results.append(run_baseline(args.name, env, params, seed))
+    out = Path(args.out or f"runs/baseline-{args.name}-rope{args.rope}")
+    table = write_results(out, results, params, args.rope)
+    print(table.read_text(), end="")
+    print(f"Written: {out / 'baseline.json'}")
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from flyknot_app import bench
 
@@ -343,6 +382,23 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--trials", action="store_true", help="also list every trial and why")
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.set_defaults(func=_cmd_explain)
+
+    bl = sub.add_parser(
+        "baseline", help="a black-box baseline (random search, CMA-ES) through the gym env"
+    )
+    bl.add_argument("name", choices=["random", "cma"])
+    bl.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
+    bl.add_argument("--budget", type=int, default=30, help="trials per seed (default 30)")
+    bl.add_argument("--seeds", default="0", help="lab seeds: A-B or A,B,... (default 0)")
+    bl.add_argument("--repeats", type=int, default=0, help="plays of the best command after")
+    bl.add_argument("--sigma", type=float, default=0.3, help="search step (offset units)")
+    bl.add_argument("--scale", type=float, default=0.1, help="knot change per unit [rad]")
+    bl.add_argument("--out", default=None, help="directory (default runs/baseline-NAME-ropeR)")
+    bl.add_argument(
+        "--settle", type=float, default=None, help="fixed settling time [s] (default: at rest)"
+    )
+    bl.add_argument("--quiet", action="store_true", help="no progress bar")
+    bl.set_defaults(func=_cmd_baseline)
 
     b = sub.add_parser("bench", help="benchmarks: sim (lab speed per rope), learner")
     b.add_argument("what", choices=["sim", "learner"])

@@ -200,6 +200,25 @@ class FlyknotEnv(gym.Env):
         obs, _, _, info = self._trial()
         return obs, info
 
+    def constrain(self, knots: np.ndarray) -> np.ndarray:
+        """``knots`` (10, 8) made a valid command: each base row constant, each joint row at
+        rest at both ends (knots 0 and 1, 6 and 7 equal), all within the bounds."""
+        k = np.array(knots, dtype=float)
+        if k.shape != (N_ROWS, N_KNOTS) or not np.all(np.isfinite(k)):
+            raise ConfigError("knots", f"must be finite, shape {(N_ROWS, N_KNOTS)}, got {k.shape}")
+        k[N_JOINTS:] = k[N_JOINTS:].mean(axis=1, keepdims=True)
+        k[:N_JOINTS, 1] = k[:N_JOINTS, 0]
+        k[:N_JOINTS, -1] = k[:N_JOINTS, -2]
+        return np.clip(k, self._knot_lo, self._knot_hi)
+
+    def play(self, knots: np.ndarray):
+        """Play the command ``knots`` (10, 8) (made valid by :meth:`constrain`) as the next
+        trial of the episode; returns what :meth:`step` returns (for black-box learners)."""
+        self.knots = self.constrain(knots)
+        obs, reward, success, info = self._trial()
+        truncated = not success and self.trials >= self.max_trials
+        return obs, reward, success, truncated, info
+
     def step(self, action):
         """Change the command's knots by ``action`` (scaled, in [-1, 1]) and play it once."""
         a = np.asarray(action, dtype=float)

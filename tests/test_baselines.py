@@ -1,0 +1,86 @@
+"""Black-box baselines through the gym env: bookkeeping, stopping, repeats, the command."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from flyknot.errors import ConfigError
+from flyknot_app.baselines import BaselineParams, run_baseline, write_results
+
+
+class QuadraticEnv:
+    """Stands in for FlyknotEnv: reward -|knots - goal|^2; the knot ties within ``radius``."""
+
+    def __init__(self, goal_offset: float = 0.15, radius: float = 0.25):
+        self.knots = np.zeros((10, 8))
+        self.goal = np.full((10, 8), goal_offset)
+        self.radius = radius
+        self.played = []
+
+    def reset(self, *, seed=None):
+        self.knots = np.zeros((10, 8))
+        return np.zeros(146), {}
+
+    def play(self, knots):
+        self.played.append(np.array(knots))
+        d = float(np.linalg.norm(knots - self.goal))
+        tied = d < self.radius
+        info = {"cost": d**2, "fault": None, "knot": "trefoil" if tied else "unknot"}
+        return np.zeros(146), -(d**2) + (100.0 if tied else 0.0), tied, False, info
+
+
+@pytest.mark.parametrize("name", ["random", "cma"])
+def test_a_search_stops_at_its_first_knot(name):
+    env = QuadraticEnv(goal_offset=0.02)
+    res = run_baseline(name, env, BaselineParams(budget=200, sigma=0.3, scale=0.1), seed=1)
+    np.testing.assert_array_equal(env.played[0], np.zeros((10, 8)))  # the initial command
+    assert res.trials_to_success == len(res.knots) and res.knots[-1]
+    assert not any(res.knots[:-1])
+
+
+@pytest.mark.parametrize("name", ["random", "cma"])
+def test_a_search_without_a_knot_uses_its_budget_and_repeats_its_best(name):
+    env = QuadraticEnv(goal_offset=5.0, radius=0.01)
+    res = run_baseline(name, env, BaselineParams(budget=12, repeats=3), seed=0)
+    assert res.trials_to_success is None and len(res.knots) == 12
+    assert res.repeats == ["unknot"] * 3 and res.success_rate == 0.0
+    best = int(np.argmax(res.rewards))
+    np.testing.assert_array_equal(env.played[-1], env.played[best])
+
+
+def test_the_same_seed_searches_the_same_way():
+    a, b = QuadraticEnv(5.0, 0.01), QuadraticEnv(5.0, 0.01)
+    run_baseline("cma", a, BaselineParams(budget=8), seed=3)
+    run_baseline("cma", b, BaselineParams(budget=8), seed=3)
+    np.testing.assert_array_equal(np.array(a.played), np.array(b.played))
+
+
+def test_errors_name_the_field():
+    with pytest.raises(
+        ConfigError, match=r"^baseline: unknown baseline 'ppo' \(valid choices: random, cma\)$"
+    ):
+        run_baseline("ppo", QuadraticEnv())
+    with pytest.raises(ConfigError, match=r"^budget: must be an integer >= 1, got 0$"):
+        BaselineParams(budget=0)
+
+
+def test_results_are_written(tmp_path):
+    res = run_baseline("random", QuadraticEnv(0.02), BaselineParams(budget=50, repeats=2), 0)
+    table = write_results(tmp_path, [res], BaselineParams(budget=50, repeats=2), 1).read_text()
+    assert table.splitlines()[2].startswith(f"| random | 0 | {res.trials_to_success} | ")
+    doc = json.loads((tmp_path / "baseline.json").read_text())
+    assert doc["runs"][0]["success_rate"] == 1.0
+
+
+def test_the_command_runs_a_tiny_search_on_the_lab(tmp_path, capsys):
+    from flyknot_app import cli
+
+    args = ["baseline", "random", "--budget", "2", "--seeds", "0-1", "--settle", "0.2"]
+    assert cli.main([*args, "--out", str(tmp_path), "--quiet"]) == 0
+    doc = json.loads((tmp_path / "baseline.json").read_text())
+    assert [r["seed"] for r in doc["runs"]] == [0, 1]
+    assert all(1 <= len(r["knots"]) <= 2 for r in doc["runs"])
+    assert "| random | 1 |" in capsys.readouterr().out
