@@ -179,6 +179,44 @@ def _cmd_baseline(args: argparse.Namespace) -> int:
     return 0
 
 
+def _read_rows(flag: str, path: str, width: int) -> np.ndarray:
+    """A (k, width) table from a .npy or .csv file (CSV: one row per line, header allowed)."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(flag, f"no file {str(p)!r}")
+    try:
+        a = np.load(p) if p.suffix == ".npy" else np.genfromtxt(p, delimiter=",", comments="#")
+    except ValueError as e:
+        raise ConfigError(flag, f"{str(p)!r} is not a numeric table: {e}") from None
+    a = np.atleast_2d(np.asarray(a, dtype=float))
+    a = a[np.all(np.isfinite(a), axis=1)]  # a CSV header row reads as NaN
+    if a.ndim != 2 or a.shape[1] != width:
+        raise ConfigError(flag, f"{str(p)!r} must hold rows of {width} numbers, got {a.shape}")
+    return a
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from flyknot_app.hardware import calibrate
+    from flyknot_hw.config import load_lab_config
+
+    config = load_lab_config(args.cell)
+    poses = _read_rows("--poses", args.poses, 7)
+    measured = _read_rows("--measured", args.measured, 3)
+    if len(measured) != len(poses):
+        raise ConfigError(
+            "--measured", f"has {len(measured)} rows for {len(poses)} poses (one per pose)"
+        )
+    rows = iter(measured)
+    cal = calibrate(lambda q: next(rows), poses)  # the poses were measured in this order
+    old = ", ".join(f"{v:.4f}" for v in config.base_pose)
+    print(
+        f"base pose fitted from {len(poses)} poses: residual rms {cal.residual_rms * 1e3:.2f} mm, "
+        f"max {cal.residual_max * 1e3:.2f} mm (lab file now: [{old}])"
+    )
+    print(cal.toml(), end="")
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from flyknot_app import bench
 
@@ -399,6 +437,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bl.add_argument("--quiet", action="store_true", help="no progress bar")
     bl.set_defaults(func=_cmd_baseline)
+
+    c = sub.add_parser(
+        "calibrate",
+        help="fit the robot base pose in the mocap frame from fingertip positions at joint poses",
+    )
+    c.add_argument("--cell", required=True, metavar="LAB.toml", help="the lab file")
+    c.add_argument("--poses", required=True, help="joint poses, (k, 7) [rad] (.csv or .npy)")
+    c.add_argument(
+        "--measured",
+        required=True,
+        help="the fingertip the motion capture saw at each pose, (k, 3) [m], mocap frame",
+    )
+    c.set_defaults(func=_cmd_calibrate)
 
     b = sub.add_parser("bench", help="benchmarks: sim (lab speed per rope), learner")
     b.add_argument("what", choices=["sim", "learner"])

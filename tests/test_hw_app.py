@@ -109,3 +109,19 @@ def test_calibration_recovers_a_base_pose(kin):
     assert cal.residual_rms < 1e-3 and cal.toml().startswith("[base]\npose = [")
     with pytest.raises(ConfigError, match=r"^poses: must be at least 3 joint poses"):
         calibrate(measure, poses[:2], kinematics=kin)
+
+
+def test_calibrate_command_prints_the_base_table(tmp_path, capsys, kin):
+    rng = np.random.default_rng(4)
+    poses = HOME_Q + rng.normal(scale=0.4, size=(5, 7))
+    t = np.array([0.3, 0.1, 0.75])
+    np.savetxt(tmp_path / "poses.csv", poses, delimiter=",", header="q1,q2,q3,q4,q5,q6,q7")
+    np.save(tmp_path / "measured.npy", kin.positions(poses) + t)
+    args = ["calibrate", "--cell", str(LAB), "--poses", str(tmp_path / "poses.csv")]
+    assert cli.main([*args, "--measured", str(tmp_path / "measured.npy")]) == 0
+    out = capsys.readouterr().out
+    assert "residual rms 0.00 mm" in out
+    assert "[base]\npose = [0.300000, 0.100000, 0.750000, 1.000000, " in out
+    np.save(tmp_path / "few.npy", (kin.positions(poses) + t)[:4])
+    assert cli.main([*args, "--measured", str(tmp_path / "few.npy")]) == 2
+    assert "--measured: has 4 rows for 5 poses" in capsys.readouterr().err
