@@ -42,6 +42,7 @@ the clock offset (``t_robot = t_mocap + offset_s``) and the alignment residual, 
 from __future__ import annotations
 
 import contextlib
+import gc
 import platform
 import time
 from collections.abc import Callable, Mapping
@@ -101,6 +102,21 @@ def console_confirm(phase: str) -> None:
 
 class _LostConnectionError(Exception):
     pass
+
+
+@contextlib.contextmanager
+def _no_gc():
+    """Python's cyclic garbage collector off while streaming: a full collection in a process
+    holding the learner takes tens of milliseconds (73 ms measured), a late tick that stops
+    the arm. Collected once before, re-enabled after."""
+    was = gc.isenabled()
+    gc.collect()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was:
+            gc.enable()
 
 
 class XArmCell:
@@ -300,7 +316,7 @@ class XArmCell:
             settle_meta["before"] = self._settle("before")
             self._mocap.start()
             mocap_on = True
-            with latch:
+            with latch, _no_gc():
                 s = self._stream(command, rt, latch)
             api.set_timeout(xarm_sdk.default_timeout())
             if s["fault"] is None:
@@ -308,7 +324,10 @@ class XArmCell:
                 api.set_mode(0)
                 api.set_state(0)
             mocap_on = False
-            stream = self._mocap.stop()
+            try:
+                stream: object = self._mocap.stop()
+            except HardwareError as e:  # no recording: the trial keeps its joints
+                stream = e
         except BaseException as e:
             stop = xarm_sdk.stop_arm(api)  # with the stream's short reply timeout
             if api.connected:
@@ -485,6 +504,8 @@ class XArmCell:
 
     def _capture(self, stream: object, s: dict[str, Any], q_meas, cmd) -> CapturedMarkers:
         """The recording -> the record's markers (:func:`~flyknot_hw.mocap.trial.trial_capture`)."""
+        if isinstance(stream, HardwareError):
+            return CapturedMarkers.empty({"error": f"no recording: {stream}"})
         if not isinstance(stream, RawStream):
             what = type(stream).__name__
             return CapturedMarkers.empty(

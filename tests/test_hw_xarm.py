@@ -25,6 +25,7 @@ from fakes.fake_xarm import HOME, FakeXArm
 from flyknot.errors import ConfigError, HardwareError
 from flyknot.record import Cell, JointCommand, TrialRecord
 from flyknot_hw.config import parse_lab_config
+from flyknot_hw.mocap import RawStream
 from flyknot_hw.preflight import PreflightError
 from flyknot_hw.xarm_cell import XArmCell
 
@@ -62,6 +63,7 @@ def cells():
 
     def make(fake: FakeXArm, judge=lambda r: "trefoil", **kw) -> XArmCell:
         sections = kw.pop("sections", {})
+        kw.setdefault("mocap", StandInMocap())
         cell = XArmCell(
             parse_lab_config(lab_doc(fake, **sections)), fingertip=FK, judge=judge, **kw
         )
@@ -142,7 +144,7 @@ def test_cell_reads_the_robot_limits(make_fake, cells, serial, q4_min):
 # --- a whole trial -----------------------------------------------------------------------------
 def test_stream_plays_the_command_and_records_it(make_fake, cells):
     fk = make_fake()
-    mocap = StandInMocap()
+    mocap = StandInMocap(fk)
     ticks = []
     cell = cells(fk, mocap=mocap, on_tick=lambda i, t: ticks.append(i))
     q = throw()
@@ -176,9 +178,20 @@ def test_stream_plays_the_command_and_records_it(make_fake, cells):
     p, quat = FK(rec.q_meas[:1])
     np.testing.assert_allclose(rec.fingertip_pos[0], p[0] + [0.1, -0.2, 0.8], atol=1e-9)
     assert abs(np.dot(rec.fingertip_quat[0], quat[0])) == pytest.approx(1.0)
-    # markers: started before the stream, times relative to the first command sample
+    # markers: started before the stream, on the robot clock (0 at the first command sample)
     assert mocap.started == mocap.stopped == 1
     assert rec.t_marker[0] < 0 < rec.t_marker[-1] and rec.markers.shape[1:] == (11, 3)
+    meta = rec.metadata["mocap"]
+    assert "error" not in meta and meta["aligned_on"] == "fingertip body"
+    assert meta["residual_rms_m"] < 1e-3  # the stand-in sees the fake arm's own fingertip
+    t0 = rec.metadata["timing"]["t0_perf_counter_s"]
+    assert abs(meta["offset_s"] + t0) < 2e-3  # host clock: t_robot = t_perf - t0
+    k = rec.t_marker * 200.0
+    np.testing.assert_allclose(k, np.round(k), atol=1e-6)
+    i = np.searchsorted(rec.t_marker, 0.5)
+    j = round(0.5 * RATE)
+    hang = rec.fingertip_pos[j] + np.outer(0.1 * np.arange(1, 12), [0, 0, -1.0])
+    np.testing.assert_allclose(rec.markers[i], hang, atol=0.01)  # markers follow the arm
     assert rec.metadata["settle"]["before"]["mode"] == "seconds"
 
 
@@ -351,12 +364,12 @@ CHILD = textwrap.dedent(
     for name, port in json.loads({ports!r}).items():
         setattr(XCONF.SocketConf, name, port)
     import numpy as np
-    from fakes import SimFingertip
+    from fakes import SimFingertip, StandInMocap
     from flyknot.record import JointCommand
     from flyknot_hw.config import parse_lab_config
     from flyknot_hw.xarm_cell import XArmCell
     cell = XArmCell(parse_lab_config(json.loads({doc!r})), fingertip=SimFingertip(),
-                    judge=lambda r: "unknot")
+                    judge=lambda r: "unknot", mocap=StandInMocap())
     q = np.load({command!r})
     rec = cell.run(JointCommand(q))
     print("RESULT " + json.dumps({{"fault": rec.fault, "timing": rec.metadata["timing"]}}))
@@ -411,3 +424,107 @@ def test_streaming_jitter_in_a_separate_process(make_fake, tmp_path):
     print("\nstreaming timing against the fake (separate process):", json.dumps(stats))
     assert timing["ticks"] == 500 and timing["lateness"]["max_ms"] < 20.0
     np.testing.assert_allclose(fk.servo_targets(), throw(500), atol=1e-6)
+
+
+# --- the cell's motion capture ------------------------------------------------------------------
+def test_the_cell_builds_its_motion_capture_from_the_lab_file(make_fake, tmp_path):
+    from flyknot_hw.mocap import MotioncaptureSource, RecordedFileSource
+
+    fk = make_fake(arm="exact")
+    lab = tmp_path / "lab"
+    lab.mkdir()
+    doc = lab_doc(fk)
+    path = lab / "lab.toml"
+    cell = XArmCell(parse_lab_config(doc, source=str(path)), fingertip=FK)
+    src = cell._mocap
+    assert isinstance(src, RecordedFileSource)  # relative to the lab file, its name a pattern
+    assert src.directory == lab / "captures" and src.pattern == "trial_*.c3d"
+    assert src.reader_kwargs == {"clusters": ("fingertip",)}
+    # the recordings directory is missing: refused before anything moves
+    with pytest.raises(HardwareError, match=r"mocap\.file: the recordings directory"):
+        cell.run(JointCommand(throw(30)))
+    assert not MOTION & set(fk.registers())
+    live = {"kind": "live", "system": "qualisys", "address": "10.0.0.5:22223", "file": None}
+    src = XArmCell(parse_lab_config(lab_doc(fk, mocap=live)), fingertip=FK)._mocap
+    assert isinstance(src, MotioncaptureSource) and src.host_clock
+    assert src.config == {"hostname": "10.0.0.5", "port": "22223"}
+    bad = {**live, "system": "c3d"}
+    with pytest.raises(ConfigError, match=r"mocap\.system: unknown value 'c3d'"):
+        XArmCell(parse_lab_config(lab_doc(fk, mocap=bad)), fingertip=FK)
+    with pytest.raises(ConfigError, match=r"settle\.mode: \"markers\" needs a live"):
+        XArmCell(parse_lab_config(lab_doc(fk, settle={"mode": "markers"})), fingertip=FK)
+
+
+def test_recorded_files_are_matched_by_pattern_and_novelty(tmp_path):
+    from flyknot_hw.mocap import RecordedFileSource, cluster_labels, write_c3d
+
+    labels = ["p0", "fingertip1", "Hand:fingertip_2", "fingertip3", "tip1", "fingertips"]
+    assert cluster_labels(labels, "fingertip") == ["fingertip1", "Hand:fingertip_2", "fingertip3"]
+    t = np.arange(5) / 200.0
+    pts = np.tile([[0.0, 0, 0], [1.0, 0, 0], [0, 1.0, 0]], (5, 1, 1))  # a point, a cluster
+
+    def name(prefix: str, ago_s: float) -> str:  # stamped with the capture's start
+        return time.strftime(f"{prefix}_%Y%m%d-%H%M%S.c3d", time.localtime(time.time() - ago_s))
+
+    old = write_c3d(tmp_path / name("trial", 5), RawStream(t, pts), rate_hz=200.0)
+    (tmp_path / name("other", 0)).write_bytes(old.read_bytes())
+    src = RecordedFileSource(tmp_path, pattern="trial_*.c3d", wait_s=0.3, poll_s=0.05,
+                             reader_kwargs={"clusters": ("fingertip",)})  # fmt: skip
+    src.start()  # the earlier trial's file is there and stays unchanged: never taken
+    with pytest.raises(HardwareError, match="new since the trial began"):
+        src.stop()
+    src.start()
+    new = name("trial", 0)
+    write_c3d(tmp_path / new, RawStream(t, pts), rate_hz=200.0,
+              labels=["p0", "fingertip1", "fingertip2"])  # fmt: skip
+    stream = src.stop()
+    assert src.last_path.name == new and stream.points.shape[1] == 1
+    np.testing.assert_allclose(stream.body("fingertip").position[0], [0.5, 0.5, 0.0], atol=1e-6)
+
+
+class _SwingingRope:
+    """A stand-in for ``motioncapture``'s connection: 200 Hz point clouds of a rope hanging from
+    (0, 0, 2) whose free end swings with amplitude ``amp(t)`` [m] at 3.6 rad/s."""
+
+    def __init__(self, amp):
+        self.amp, self.t0 = amp, time.perf_counter()
+        self.pointCloud, self.rigidBodies = np.zeros((0, 3)), {}
+
+    def waitForNextFrame(self):
+        time.sleep(0.005)
+        t = time.perf_counter() - self.t0
+        from flyknot_hw.mocap import hanging_markers
+
+        pts = hanging_markers(np.array([0.0, 0.0, 2.0]))
+        pts[:, 0] += self.amp(t) * np.sin(3.6 * t) * np.arange(1, 12) / 11
+        self.pointCloud = pts + np.random.default_rng().normal(0, 5e-4, pts.shape)
+
+
+@pytest.mark.parametrize("settles", [True, False])
+def test_the_markers_settle_check_waits_for_the_free_end(settles):
+    from flyknot_hw.mocap import MarkerSettle, MotioncaptureSource
+
+    amp = (lambda t: 0.05 * np.exp(-t / 0.4)) if settles else (lambda t: 0.05)
+    src = MotioncaptureSource("mock", connect=lambda kind, cfg: _SwingingRope(amp))
+    check = MarkerSettle(src, lambda: np.array([0.0, 0.0, 2.0]), np.array([0.0, 0.0, -1.0]),
+                         timeout_s=4.0)  # fmt: skip
+    t = time.perf_counter()
+    if settles:
+        out = check("before")
+        waited = time.perf_counter() - t
+        assert 1.3 < waited < 4.0 and out["rest"]["free_end_speed_m_s"] < 0.03
+        assert not src.recording  # started for the check, stopped after it
+    else:
+        with pytest.raises(HardwareError, match=r"settle\.timeout_s: the rope did not come"):
+            check("after")
+
+
+def test_a_trial_without_its_recording_keeps_its_joints(make_fake, cells, tmp_path):
+    from flyknot_hw.mocap import RecordedFileSource
+
+    fk = make_fake(arm="exact")
+    src = RecordedFileSource(tmp_path, pattern="trial_*.c3d", wait_s=0.3, poll_s=0.05)
+    rec = cells(fk, mocap=src).run(JointCommand(throw(60)))
+    assert rec.fault is None and np.all(np.isfinite(rec.q_meas)) and rec.knot == "trefoil"
+    assert rec.t_marker.shape == (0,) and rec.markers.shape == (0, 11, 3)
+    assert rec.metadata["mocap"]["error"].startswith("no recording: no finished recording")

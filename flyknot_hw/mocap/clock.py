@@ -10,7 +10,13 @@ times plus the offset, on the clock of the joint samples (0 at the first command
    cluster; robot: forward kinematics of the measured joints) it gives a first offset, good
    to about a millisecond on clean data and to tens of milliseconds with 1 mm noise on a slow
    start (the threshold is crossed early or late): well inside the search window of step 2.
-   A hardware sync signal, if the lab has one, replaces it (``coarse_offset_s``).
+   A hardware sync signal, if the lab has one, replaces it (``coarse_offset_s``). With a base
+   pose, the event is the fingertip's **departure** from the command's start pose instead
+   (:func:`departure_time`): the last time it leaves that pose before its main motion. A
+   capture that began while the arm was still approaching the start pose (the capture
+   software's pre-trigger buffer) then gives the right event, where the first departure
+   from its first position does not (measured on the fake lab: 0.26-0.43 s off, and the
+   search of step 2 locked onto a wrong peak). Not for rope marker 0, which hangs below.
 2. **Speed cross-correlation** (:func:`align_clocks`): speeds are frame-invariant, so the
    fingertip speed from forward kinematics (``fk``, injected: the robot base frame) and the
    speed of the fingertip track in the mocap frame can be compared before any calibration.
@@ -48,7 +54,13 @@ from flyknot.errors import ConfigError, HardwareError, check_positive
 from flyknot.geometry import readonly
 from flyknot_hw.mocap.calibration import apply_pose, pose_from_rt, rigid_fit
 
-__all__ = ["ClockAlignment", "align_clocks", "fingertip_speed", "start_event_time"]
+__all__ = [
+    "ClockAlignment",
+    "align_clocks",
+    "departure_time",
+    "fingertip_speed",
+    "start_event_time",
+]
 
 Fk = Callable[[np.ndarray], np.ndarray]
 """Forward kinematics of the fingertip: q (n, 7) [rad] -> positions (n, 3) [m], base frame."""
@@ -148,6 +160,62 @@ def fingertip_speed(times: np.ndarray, positions: np.ndarray) -> np.ndarray:
     return np.linalg.norm(v, axis=1)
 
 
+def departure_time(
+    times: np.ndarray,
+    positions: np.ndarray,
+    rest: np.ndarray,
+    *,
+    threshold_m: float = 0.005,
+    onset_frac: float = 0.3,
+    search_m: float = 0.02,
+) -> float:
+    """When the track last leaves its rest at ``rest`` before its main motion [s].
+
+    The rest position is the median of the samples within ``search_m`` of ``rest`` before
+    the main motion (its onset: the first sample at ``onset_frac`` of the peak speed); the
+    departure is the last crossing of ``threshold_m`` from it before the onset, linearly
+    interpolated.
+
+    Args:
+        times: Sample times, shape (m,) [s].
+        positions: Track, shape (m, 3) [m]; NaN frames are skipped.
+        rest: Where the track rests before the motion (3,) [m], to within ``search_m``.
+        threshold_m: Displacement that counts as motion [m].
+        onset_frac: Fraction of the peak speed that marks the main motion.
+        search_m: How far from ``rest`` the resting samples may lie [m].
+
+    Raises:
+        HardwareError: The track never rests near ``rest`` before moving.
+    """
+    t = _times("times", times)
+    p = _track("positions", positions, t.shape[0])
+    ok = np.all(np.isfinite(p), axis=1)
+    v = fingertip_speed(t[ok], p[ok])
+    if v.size < 3 or not np.any(np.isfinite(v)):
+        raise HardwareError("departure: the track has too few samples")
+    idx = np.flatnonzero(ok)
+    onset = int(idx[np.flatnonzero(v >= onset_frac * np.nanmax(v))[0]])
+    before = ok & (np.arange(t.shape[0]) < onset)
+    near = before & (np.linalg.norm(p - np.asarray(rest, dtype=float), axis=1) <= search_m)
+    if not near.any():
+        raise HardwareError(
+            f"departure: the track never rests within {search_m} m of the start pose before "
+            "it moves; check the base pose"
+        )
+    p0 = np.median(p[near], axis=0)
+    d = np.where(ok, np.linalg.norm(p - p0, axis=1), np.nan)
+    still = np.flatnonzero(before & (d <= threshold_m))
+    if still.size == 0:
+        raise HardwareError(f"departure: the track never rests within {threshold_m} m")
+    j = int(still[-1])
+    after = np.flatnonzero(ok & (np.arange(t.shape[0]) > j))
+    if after.size == 0:
+        return float(t[j])
+    k = int(after[0])
+    f = (threshold_m - d[j]) / (d[k] - d[j]) if d[k] > d[j] else 0.0
+    return float(t[j] + min(max(f, 0.0), 1.0) * (t[k] - t[j]))
+
+
 def _fk_track(fk: Fk, q: np.ndarray) -> np.ndarray:
     q = np.asarray(q, dtype=float)
     if q.ndim != 2 or q.shape[1] != N_JOINTS:
@@ -191,6 +259,7 @@ def align_clocks(
     grid_hz: float = 1000.0,
     refine: bool = True,
     threshold_m: float = 0.005,
+    departure: bool = False,
 ) -> ClockAlignment:
     """Offset ``t_robot = t_mocap + offset_s`` from the fingertip seen by both (module docstring).
 
@@ -202,11 +271,15 @@ def align_clocks(
         q_meas: Measured joints, shape (n, 7) [rad].
         fk: Fingertip forward kinematics, q (n, 7) -> (n, 3) [m] in the robot base frame.
         base_pose: Robot base in the mocap frame (7,), for the residual; None: fitted.
-        coarse_offset_s: Offset from a sync signal [s]; None: from the start events.
+        coarse_offset_s: Offset from a sync signal [s]; None: from the departures from the
+            start pose (with ``base_pose``) or the start events (without).
         search_s: Half-width of the lag search around the coarse offset [s].
         grid_hz: Rate of the common grid of the cross-correlation [Hz].
         refine: Refine by minimising the position residual (step 3).
         threshold_m: Start-event displacement threshold [m].
+        departure: The coarse offset from the departures from the start pose (needs
+            ``base_pose`` and a fingertip track, not rope marker 0) instead of the start
+            events.
 
     Raises:
         HardwareError: No motion to align on, or the tracks do not overlap.
@@ -219,7 +292,14 @@ def align_clocks(
         raise ConfigError("q_meas", f"must have {tj.shape[0]} rows (t_joint), got {pr.shape[0]}")
     check_positive("search_s", search_s)
     check_positive("grid_hz", grid_hz)
-    if coarse_offset_s is None:
+    if coarse_offset_s is None and departure:
+        if base_pose is None:
+            raise ConfigError("departure", "needs base_pose (the start pose in the mocap frame)")
+        rest = apply_pose(np.asarray(base_pose, dtype=float), pr[:1])[0]
+        coarse = departure_time(tj, pr, pr[0], threshold_m=threshold_m) - departure_time(
+            tm, pm, rest, threshold_m=threshold_m
+        )
+    elif coarse_offset_s is None:
         coarse = start_event_time(tj, pr, threshold_m=threshold_m) - start_event_time(
             tm, pm, threshold_m=threshold_m
         )

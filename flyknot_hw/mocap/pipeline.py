@@ -8,8 +8,9 @@
    still at the start, so that is where it hangs from).
 2. Labelling (:func:`flyknot_hw.mocap.labelling.label_rope_markers`), started from the
    hanging pose below that fingertip.
-3. Clock alignment (:func:`flyknot_hw.mocap.clock.align_clocks`) on the fingertip body, or
-   on rope marker 0 when there is none (less exact: the rope lags the hand).
+3. Clock alignment (:func:`flyknot_hw.mocap.clock.align_clocks`) on the fingertip body
+   (coarse offset from its departure from the start pose), or on rope marker 0 when there is
+   none (from the start events; less exact: the rope lags the hand).
 4. Resampling (:func:`flyknot_hw.mocap.resample.resample_uniform`) onto ``k / rate_hz`` of
    the robot clock, i.e. the record's ``t_marker``, covering the recording.
 """
@@ -106,6 +107,7 @@ def trial_markers(
         fk,
         base_pose=base_pose,
         coarse_offset_s=coarse_offset_s,
+        departure=tip_body is not None,
     )
     k0 = math.ceil((stream.times[0] + al.offset_s) * rate_hz - TIME_TOL * rate_hz)
     t0 = k0 / rate_hz

@@ -1,18 +1,21 @@
 """Test doubles of the real lab's devices (loopback only), and what the application injects.
 
-``fake_xarm.FakeXArm`` is the controller; here: the fingertip kinematics of the simulated lab's
-arm (:class:`SimFingertip`), a trivial motion capture (:class:`StandInMocap`) and a lab file
+``fake_xarm.FakeXArm`` is the controller, ``fake_lab.FakeLab`` the whole simulated lab behind
+it (arm, rope, motion-capture software); here: the fingertip kinematics of the simulated lab's
+arm (:class:`SimFingertip`), a stand-in motion capture (:class:`StandInMocap`) and a lab file
 pointing at a fake (:func:`lab_doc`).
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from typing import TYPE_CHECKING
 
 import mujoco
 import numpy as np
 
+from flyknot_hw.mocap import BodyTrack, RawStream, apply_pose, hanging_markers
 from flyknot_sim.robot import FINGERTIP_SITE, load_robot_model
 
 if TYPE_CHECKING:
@@ -40,23 +43,61 @@ class SimFingertip:
 
 
 class StandInMocap:
-    """A trivial motion capture: 200 Hz frames of a rope hanging 1 m below a fixed point,
-    stamped on ``time.perf_counter`` between :meth:`start` and :meth:`stop`."""
+    """A stand-in motion capture (a :class:`flyknot_hw.mocap.stream.MocapSource`), stamped on
+    ``time.perf_counter`` between :meth:`start` and :meth:`stop`.
 
-    def __init__(self) -> None:
+    With a ``fake`` controller: 200 Hz frames of a rope hanging straight down from the fake
+    arm's fingertip (read from the fake while recording; ``base_pose`` maps it to the mocap
+    frame) and the fingertip itself as the body ``fingertip``. Without: a rope hanging still
+    from a fixed point (nothing a trial's clock can be aligned on).
+    """
+
+    host_clock = True
+
+    def __init__(self, fake: FakeXArm | None = None, base_pose=(0.1, -0.2, 0.8, 1, 0, 0, 0)):
+        self.fake, self.base_pose = fake, np.asarray(base_pose, dtype=float)
         self.started = self.stopped = 0
         self._t0 = 0.0
+        self._rows: list[tuple[float, np.ndarray]] = []
+        self._thread: threading.Thread | None = None
+        self._run = threading.Event()
+
+    @property
+    def recording(self) -> bool:
+        return self._thread is not None or self._t0 > 0
 
     def start(self) -> None:
         self.started += 1
         self._t0 = time.perf_counter()
+        self._rows = []
+        if self.fake is not None:
+            self._run.set()
+            self._thread = threading.Thread(target=self._sample, daemon=True)
+            self._thread.start()
 
-    def stop(self) -> tuple[np.ndarray, np.ndarray]:
+    def _sample(self) -> None:
+        nxt = time.perf_counter()
+        while self._run.is_set():
+            self._rows.append((time.perf_counter(), self.fake.q))
+            nxt += 1 / 200.0
+            time.sleep(max(0.0, nxt - time.perf_counter()))
+
+    def stop(self) -> RawStream:
         self.stopped += 1
-        t = np.arange(self._t0, time.perf_counter(), 1 / 200.0)
-        markers = np.zeros((t.size, 11, 3))
-        markers[:, :, 2] = 2.0 - 0.1 * np.arange(1, 12)
-        return t, markers
+        self._run.clear()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+        t0, self._t0 = self._t0, 0.0
+        if self.fake is None:
+            t = np.arange(t0, time.perf_counter(), 1 / 200.0)
+            pts = np.tile(hanging_markers(np.array([0.0, 0.0, 2.0]))[None], (t.size, 1, 1))
+            return RawStream(t, pts, source="stand-in")
+        t = np.array([r[0] for r in self._rows])
+        tip = apply_pose(self.base_pose, SimFingertip()(np.array([r[1] for r in self._rows]))[0])
+        pts = tip[:, None, :] + hanging_markers(np.zeros(3))[None]
+        body = BodyTrack.positions_only(tip)
+        return RawStream(t, pts, {"fingertip": body}, source="stand-in")
 
 
 def lab_doc(fake: FakeXArm, **sections: dict) -> dict:

@@ -22,7 +22,9 @@ Registers served: 1 version, 2 serial, 11 motion enable, 12/13 set/get state, 14
 
 The arm: ``arm="mujoco"`` (default) is the simulated lab's xArm 7 (``flyknot_sim.robot``:
 our MJCF, its joint position servos, 1 ms steps, advanced to wall-clock time whenever the fake
-is asked anything); ``arm="exact"`` puts the joints exactly at the latest target.
+is asked anything); ``arm="exact"`` puts the joints exactly at the latest target; or an object
+with the same interface as ``_Arm`` (``q``, ``qd``, ``tau``, ``advance``, ``tcp_pose``,
+``stamp``), e.g. the whole simulated lab of ``fake_lab.py``.
 
 Firmware behaviour modelled: the joint ranges of ``xarm.core.config.x_config.XCONF`` for the
 fake's serial (C23 when a target leaves them), a joint speed limit of pi rad/s on the implied
@@ -119,6 +121,11 @@ class _Arm:
     def tau(self) -> np.ndarray:
         return self.data.actuator_force[self.act].copy()
 
+    def stamp(self, now: float) -> float:
+        """Time of the state the properties report, on ``perf_counter`` [s]: now (the arm
+        was advanced to it)."""
+        return now
+
     def advance(self, now: float, ctrl_at) -> None:
         """Step to ``now``; ``ctrl_at(t)`` is the joint target at time t."""
         dt = self.model.opt.timestep
@@ -151,7 +158,7 @@ class FakeXArm:
     """A fake controller; start with :meth:`start` (or ``with``), stop with :meth:`stop`.
 
     Args:
-        arm: ``"mujoco"`` (default) or ``"exact"`` (see the module docstring).
+        arm: ``"mujoco"`` (default), ``"exact"`` or an arm object (module docstring).
         serial: Robot serial; its digits 2..5 >= 1305 select the newer joint ranges.
         version: Firmware version string (>= 2.1 serves the 30000 report).
         q0: Initial joints (7,) [rad].
@@ -164,7 +171,7 @@ class FakeXArm:
     def __init__(
         self,
         *,
-        arm: str = "mujoco",
+        arm: str | object = "mujoco",
         serial: str = "XI1305FAKE0001",
         version: str = "2.5.0",
         q0: np.ndarray = HOME,
@@ -175,7 +182,7 @@ class FakeXArm:
     ):
         self.serial, self.version = serial, version
         self.ranges = firmware_ranges(serial)
-        self.arm = _Arm(arm, np.asarray(q0, dtype=float))
+        self.arm = _Arm(arm, np.asarray(q0, dtype=float)) if isinstance(arm, str) else arm
         self.report_hz = {**REPORT_HZ, **(report_hz or {})}
         self.rt_epoch_s = rt_epoch_s
         self.reduced = reduced
@@ -547,7 +554,7 @@ class FakeXArm:
         q, qd, tau = self.arm.q, self.arm.qd, self.arm.tau
         state_mode = (self.state & 0x0F) | (self.mode << 4)
         if port == 30000:
-            ts = int((time.perf_counter() + self.rt_epoch_s) * 1e6)
+            ts = int((self.arm.stamp(time.perf_counter()) + self.rt_epoch_s) * 1e6)
             struct.pack_into(">QBH", b, 4, ts, state_mode, 0)
             target = self._ctrl_at(time.perf_counter())
             for off, vals in ((32, target), (116, q), (144, qd), (228, tau)):
