@@ -123,7 +123,32 @@ def _rope_model(spec: RunSpec):
 def execute_run(
     spec: RunSpec, out_dir: Path, knots0: np.ndarray | None, *, resume: bool, progress: bool
 ) -> dict[str, Any]:
-    """Learn (and optionally repeat) one run; write and return its summary."""
+    """Learn (and optionally repeat) one run; write and return its summary.
+
+    The run's cell is opened here and closed when the run ends, however it ends (a real
+    lab's connection to the controller and the motion capture).
+    """
+    result_path = out_dir / "runs" / spec.name / "result.json"
+    if resume and result_path.is_file():
+        return json.loads(result_path.read_text())
+    lab = open_cell(spec.cell, spec.cell_spec())
+    try:
+        return _execute_on(lab, spec, out_dir, knots0, resume=resume, progress=progress)
+    finally:
+        close = getattr(lab, "close", None)
+        if callable(close):
+            close()
+
+
+def _execute_on(
+    lab: Any,
+    spec: RunSpec,
+    out_dir: Path,
+    knots0: np.ndarray | None,
+    *,
+    resume: bool,
+    progress: bool,
+) -> dict[str, Any]:
     from tqdm import tqdm
 
     from flyknot.record import TrialRecord
@@ -134,14 +159,11 @@ def execute_run(
 
     run_dir = out_dir / "runs" / spec.name
     result_path = run_dir / "result.json"
-    if resume and result_path.is_file():
-        return json.loads(result_path.read_text())
     t_start = time.perf_counter()
     robot = RobotModel.from_mjcf()
     rope_model = _rope_model(spec)
     _, target = prepare_target(spec.demo, rope_model.dt, spec.window)
     ig_info: dict[str, Any] = {}
-    lab = open_cell(spec.cell, spec.cell_spec())
     judge = CellVerdict()  # the verdict the cell recorded (simulated truth, or the operator's)
     if knots0 is None:
         knots0, ig_info = initial_knots(

@@ -54,3 +54,26 @@ def test_a_scenarios_cell_table_sets_the_kind_and_the_cells_defaults():
         parse_scenario({"cell": {"gain": 0.5}, "run": [{"name": "a"}]}, name="x")
     with pytest.raises(ConfigError, match=r"^run\[0\]\.cell: unknown field"):
         parse_scenario({"run": [{"name": "a", "cell": "sim"}]}, name="x")
+
+
+def test_the_runner_closes_the_cell_however_the_run_ends(monkeypatch, tmp_path):
+    from flyknot_app import runner
+
+    closed = []
+
+    class Closing:
+        base_pose = None
+
+        def close(self):
+            closed.append(True)
+
+    monkeypatch.setattr(runner, "open_cell", lambda kind, spec: Closing())
+
+    def boom(lab, *a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(runner, "_execute_on", boom)
+    spec = parse_scenario({"run": [{"name": "a"}]}, name="x").runs[0]
+    with pytest.raises(KeyboardInterrupt):
+        runner.execute_run(spec, tmp_path, None, resume=False, progress=False)
+    assert closed == [True]
