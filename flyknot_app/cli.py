@@ -217,6 +217,15 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_compare(args: argparse.Namespace) -> int:
+    from flyknot_app.compare import compare
+
+    path = compare(args.dirs, args.out)
+    print(path.read_text().split("\n\n![")[0].removeprefix("# Comparison\n\n"))
+    print(f"Written: {path} and figures beside it")
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from flyknot_app import bench
 
@@ -450,6 +459,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="the fingertip the motion capture saw at each pose, (k, 3) [m], mocap frame",
     )
     c.set_defaults(func=_cmd_calibrate)
+
+    cp = sub.add_parser("compare", help="several run directories side by side: table and figures")
+    cp.add_argument("dirs", nargs="+", metavar="RUN_DIR", help="flyknot run or baseline output")
+    cp.add_argument("--out", default="runs/compare", help="directory (default runs/compare)")
+    cp.set_defaults(func=_cmd_compare)
 
     b = sub.add_parser("bench", help="benchmarks: sim (lab speed per rope), learner")
     b.add_argument("what", choices=["sim", "learner"])
