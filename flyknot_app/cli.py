@@ -98,9 +98,21 @@ def _cmd_run(args: argparse.Namespace) -> int:
     elif args.dry_run:
         raise ConfigError("--dry-run", "needs --cell LAB.toml (the real lab it stands in for)")
     scen = load_scenario(args.scenario, overrides, ropes=args.ropes, cell=cell)
+    if args.seeds is not None:
+        from flyknot_app.scenario import expand_seeds
+
+        scen = expand_seeds(scen, _parse_seeds(args.seeds))
     out = Path(args.out) if args.out else _default_run_dir(scen.name, args.resume)
     print(f"scenario {scen.name!r} ({scen.kind}, {len(scen.runs)} runs) -> {out}")
-    summary = run_scenario(scen, out, workers=args.workers, resume=args.resume, overrides=overrides)
+    summary = run_scenario(
+        scen,
+        out,
+        workers=args.workers,
+        resume=args.resume,
+        overrides=overrides,
+        executor=args.executor,
+        address=args.address,
+    )
     from flyknot_app.report import outcome_line
 
     print(f"{outcome_line(scen.kind, summary['runs'])} Report: {out / 'report.md'}")
@@ -326,6 +338,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="your own ropes file (.toml), replacing the scenario's `ropes` "
         "(see assets/ropes_example.toml)",
     )
+    r.add_argument(
+        "--seeds",
+        default=None,
+        metavar="A-B",
+        help="run every run once per lab seed (A-B or A,B,...); runs are named NAME-seedS",
+    )
+    r.add_argument(
+        "--executor",
+        choices=["process", "ray"],
+        default="process",
+        help="process pool (default) or Ray tasks (pip install -e '.[ray]')",
+    )
+    r.add_argument("--address", default=None, help="with --executor ray: an existing cluster")
     r.add_argument(
         "--cell",
         default=None,

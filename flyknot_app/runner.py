@@ -304,14 +304,24 @@ def run_scenario(
     resume: bool = False,
     overrides: dict | None = None,
     progress: bool = True,
+    executor: str = "process",
+    address: str | None = None,
 ) -> dict[str, Any]:
-    """Run every run of a scenario (waves in order, runs of a wave in parallel)."""
+    """Run every run of a scenario (waves in order, runs of a wave in parallel).
+
+    ``executor``: ``"process"`` (a local process pool of ``workers``) or ``"ray"`` (Ray tasks
+    on a local Ray with ``workers`` CPUs, or on the existing cluster at ``address``; each
+    task writes its run into ``out_dir`` as it finishes, so the cluster's workers must see
+    that directory).
+    """
     import mujoco
     from tqdm import tqdm
 
     out_dir = Path(out_dir)
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ConfigError("--workers", f"must be an integer >= 1, got {workers!r}")
+    if executor not in EXECUTORS:
+        raise ConfigError("--executor", f"unknown executor {executor!r}", EXECUTORS)
     if resume and not (out_dir / "manifest.json").is_file():
         raise ConfigError(
             "--resume", f"{str(out_dir)!r} holds no run to resume (no manifest.json there)"
@@ -357,7 +367,12 @@ def run_scenario(
             if spec.start_from is not None:
                 knots0 = np.load(out_dir / "runs" / spec.start_from / "final_knots.npy")
             jobs.append((spec, out_dir, knots0, resume))
-        if workers == 1 or len(jobs) == 1:
+        if executor == "ray":
+            for name, res in _ray_results(jobs, workers, address):
+                results[name] = res
+                overall.update(1)
+                _print_run(res, overall)
+        elif workers == 1 or len(jobs) == 1:
             for spec, o, k0, r in jobs:
                 results[spec.name] = execute_run(spec, o, k0, resume=r, progress=progress)
                 overall.update(1)
@@ -381,6 +396,28 @@ def run_scenario(
 
     write_report(out_dir, summary)
     return summary
+
+
+EXECUTORS = ("process", "ray")
+
+
+def _ray_results(jobs: list, workers: int, address: str | None):
+    """Run ``jobs`` as Ray tasks; yield (run name, result) as they finish."""
+    try:
+        import ray
+    except ImportError:
+        raise ConfigError("--executor", "ray is not installed: pip install -e '.[ray]'") from None
+    if not ray.is_initialized():
+        kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False}
+        if address is None:
+            kwargs["num_cpus"] = workers
+        ray.init(address=address, **kwargs)
+    task = ray.remote(num_cpus=1)(_worker)
+    names = {task.remote(j): j[0].name for j in jobs}
+    pending = list(names)
+    while pending:
+        done, pending = ray.wait(pending, num_returns=1)
+        yield names[done[0]], ray.get(done[0])
 
 
 def _print_run(res: dict[str, Any], bar) -> None:

@@ -390,6 +390,19 @@ def parse_scenario(
     return scen
 
 
+def expand_seeds(scen: Scenario, seeds: list[int]) -> Scenario:
+    """Every run once per lab seed: run ``r`` becomes ``r-seedS`` with ``seed = S`` (a
+    transfer run starts from the same seed's source run)."""
+    if not seeds:
+        raise ConfigError("--seeds", "give at least one seed")
+    runs = []
+    for s in seeds:
+        for r in scen.runs:
+            start = None if r.start_from is None else f"{r.start_from}-seed{s}"
+            runs.append(replace(r, name=f"{r.name}-seed{s}", seed=s, start_from=start))
+    return replace(scen, runs=tuple(runs))
+
+
 def limit_runs(scen: Scenario, n: int) -> Scenario:
     """Keep the first ``n`` runs plus the runs they start from (smoke tests)."""
     if n < 1:

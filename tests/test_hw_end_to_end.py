@@ -39,12 +39,10 @@ import json
 import time
 from pathlib import Path
 
+import c3d  # noqa: F401 - the test extra installs it
 import numpy as np
 import pytest
-
-pytest.importorskip("xarm")
-pytest.importorskip("c3d")
-
+import xarm  # noqa: F401 - the test extra installs it
 from fakes.fake_lab import FakeLabProcess
 
 from flyknot.record import TrialRecord

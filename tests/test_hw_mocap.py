@@ -73,7 +73,8 @@ def test_raw_stream_validates_and_names_fields():
 
 
 def test_mock_backend_through_the_real_package():
-    mc = pytest.importorskip("motioncapture")
+    import motioncapture as mc
+
     src = MotioncaptureSource(
         "mock",
         {

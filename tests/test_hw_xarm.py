@@ -16,9 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-pytest.importorskip("xarm")
-
+import xarm  # noqa: F401 - the test extra installs it
 from fakes import SimFingertip, StandInMocap, lab_doc
 from fakes.fake_xarm import HOME, FakeXArm
 
