@@ -69,6 +69,37 @@ def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bo
     return {"ropes": out}
 
 
+def bench_sweep(runs: int = 4, progress: bool = True) -> dict:
+    """Wall time of a seed sweep of ``quick`` (``runs`` seeds, one trial each, judged 0.5 s
+    after the motion) as Ray tasks on 1 and on 2 CPUs, in one process one after the other."""
+    import tempfile
+    import time
+    from pathlib import Path
+
+    from flyknot_app.runner import run_scenario
+    from flyknot_app.scenario import expand_seeds, load_scenario
+
+    scen = expand_seeds(
+        load_scenario("quick", {"max_trials": 0, "settle_s": 0.5}), list(range(runs))
+    )
+    out: dict = {"runs": runs}
+    with tempfile.TemporaryDirectory() as tmp:
+        run_scenario(scen, Path(tmp) / "warm", progress=False)  # the initial guess, cached
+        cache = Path(tmp) / "warm" / "initial_guess"
+        for workers in (1, 2):
+            import ray
+
+            ray.shutdown()
+            d = Path(tmp) / f"w{workers}"
+            d.mkdir()
+            (d / "initial_guess").symlink_to(cache, target_is_directory=True)
+            t0 = time.perf_counter()
+            run_scenario(scen, d, workers=workers, executor="ray", progress=progress)
+            out[f"wall_s_{workers}"] = time.perf_counter() - t0
+    out["speedup"] = out["wall_s_1"] / out["wall_s_2"]
+    return out
+
+
 def main(what: str, *, as_json: bool = False, ropes=None, repeats: int = 1) -> int:
     """Run one benchmark and print it."""
     if repeats < 1:
@@ -96,4 +127,14 @@ def main(what: str, *, as_json: bool = False, ropes=None, repeats: int = 1) -> i
         res = bench_learner(repeats=repeats, progress=not as_json)
         print(json.dumps(res) if as_json else format_learner(res))
         return 0
-    raise ConfigError("bench", f"unknown benchmark {what!r}", ["sim", "learner"])
+    if what == "sweep":
+        res = bench_sweep(progress=not as_json)
+        if as_json:
+            print(json.dumps(res))
+        else:
+            print(
+                f"{res['runs']} runs as Ray tasks: 1 CPU {res['wall_s_1']:.1f} s, 2 CPUs "
+                f"{res['wall_s_2']:.1f} s, speed-up {res['speedup']:.2f}x"
+            )
+        return 0
+    raise ConfigError("bench", f"unknown benchmark {what!r}", ["sim", "learner", "sweep"])

@@ -490,8 +490,10 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument("--out", default="runs/compare", help="directory (default runs/compare)")
     cp.set_defaults(func=_cmd_compare)
 
-    b = sub.add_parser("bench", help="benchmarks: sim (lab speed per rope), learner")
-    b.add_argument("what", choices=["sim", "learner"])
+    b = sub.add_parser(
+        "bench", help="benchmarks: sim (lab speed per rope), learner, sweep (Ray 2 vs 1)"
+    )
+    b.add_argument("what", choices=["sim", "learner", "sweep"])
     b.add_argument("--json", action="store_true", help="print one JSON object")
     b.add_argument("--ropes", type=int, nargs="*", default=None, help="rope ids (default all)")
     b.add_argument("--repeats", type=int, default=1, help="repeats per measurement")
