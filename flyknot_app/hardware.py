@@ -140,6 +140,7 @@ class DryRunCell:
             torques=self.kinematics.torques(command),
             fingertip=self.kinematics.positions(command.q),
             workspace=self.config.safety.workspace,
+            tip_speed_max=self.config.safety.tip_speed_max,
         )
         return self.last_report
 

@@ -282,10 +282,21 @@ class SafetyConfig:
     Attributes:
         margins: Fractions of each limit kept in reserve.
         workspace: The fingertip's box in the base frame [m].
+        tip_speed_max: Largest fingertip speed [m/s]: the controller faults with C60 when
+            its TCP moves faster than 1.2 m/s in servo mode (UFACTORY's error-code table);
+            with the TCP set at the fingertip that is this speed.
     """
 
     margins: Margins
     workspace: Workspace
+    tip_speed_max: float = 1.2
+
+    def __post_init__(self) -> None:
+        object.__setattr__(
+            self, "tip_speed_max", _number("safety.tip_speed_max", self.tip_speed_max)
+        )
+        if self.tip_speed_max <= 0:
+            raise ConfigError("safety.tip_speed_max", f"must be > 0, got {self.tip_speed_max!r}")
 
 
 @dataclass(frozen=True)
@@ -387,7 +398,7 @@ def _rope(doc: Mapping[str, Any]) -> RopeConfig:
 
 
 def _safety(doc: Mapping[str, Any]) -> SafetyConfig:
-    table = _table(doc, "safety", ("margin", "workspace"))
+    table = _table(doc, "safety", ("margin", "workspace", "tip_speed_max"))
     margin = table.get("margin", 0.05)
     if isinstance(margin, Mapping):
         unknown = sorted(set(margin) - set(MARGIN_QUANTITIES))
@@ -401,7 +412,7 @@ def _safety(doc: Mapping[str, Any]) -> SafetyConfig:
     for k in ("min", "max"):
         if k not in ws:
             raise ConfigError(f"safety.workspace.{k}", "is required")
-    return SafetyConfig(margins, Workspace(ws["min"], ws["max"]))
+    return SafetyConfig(margins, Workspace(ws["min"], ws["max"]), table.get("tip_speed_max", 1.2))
 
 
 def parse_lab_config(doc: Mapping[str, Any], source: str = "") -> LabConfig:

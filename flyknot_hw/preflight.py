@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from flyknot.constants import N_JOINTS, Q4_MIN_NEW_SERIALS, QDD_MAX, TAU_MAX
-from flyknot.errors import CommandError, ConfigError, HardwareError
+from flyknot.errors import CommandError, ConfigError, HardwareError, check_positive
 from flyknot.limits import JointLimits
 from flyknot.record import JointCommand
 from flyknot_hw.config import Margins, Workspace
@@ -45,7 +45,7 @@ __all__ = [
     "published_robot_limits",
 ]
 
-QUANTITIES = ("position", "velocity", "acceleration", "torque", "workspace")
+QUANTITIES = ("position", "velocity", "acceleration", "torque", "workspace", "tip_speed")
 """What is checked, in the order that breaks ties on the same sample."""
 UNITS = {
     "position": "rad",
@@ -53,6 +53,7 @@ UNITS = {
     "acceleration": "rad/s^2",
     "torque": "N m",
     "workspace": "m",
+    "tip_speed": "m/s",
 }
 AXES = ("x", "y", "z")
 
@@ -155,7 +156,13 @@ class PreflightError(HardwareError):
         self.value, self.limit, self.raw_limit = value, limit, raw_limit
         u = UNITS[quantity]
         where = "" if sample is None else f" at sample {sample} (t = {time:.3f} s)"
-        if quantity == "workspace":
+        if quantity == "tip_speed":
+            msg = (
+                f"{what}: fingertip speed {_fmt(value)} m/s exceeds {_fmt(limit)} m/s "
+                f"(safety.tip_speed_max {_fmt(raw_limit)} m/s, the controller's servo-mode "
+                f"TCP speed limit (C60), with the safety margin){where}"
+            )
+        elif quantity == "workspace":
             side = "min" if value < limit else "max"
             msg = (
                 f"{what}: fingertip {axis} = {_fmt(value)} m leaves the workspace box "
@@ -262,6 +269,7 @@ def preflight(
     torques: np.ndarray | None = None,
     fingertip: np.ndarray | None = None,
     workspace: Workspace | None = None,
+    tip_speed_max: float | None = None,
 ) -> PreflightReport:
     """Check every sample of ``command``; raise on the first violation.
 
@@ -276,6 +284,9 @@ def preflight(
         fingertip: Fingertip positions along the command in the base frame, shape (n, 3)
             [m], or None (not checked).
         workspace: The box ``fingertip`` must stay in; required with ``fingertip``.
+        tip_speed_max: Largest fingertip speed [m/s] (the controller faults with C60 above
+            its TCP speed limit in servo mode), checked with the velocity margin when
+            ``fingertip`` is given; None: not checked.
 
     Returns:
         The peak use of each limit.
@@ -308,6 +319,11 @@ def preflight(
         p = _as_samples("fingertip", fingertip, n, 3)
         wc, wh = _centred(workspace.lo, workspace.hi)
         checks.append(("workspace", p, np.abs(p - wc) / wh, 1.0, wc, wh))
+        if tip_speed_max is not None:
+            check_positive("tip_speed_max", tip_speed_max)
+            v = np.linalg.norm(command_derivatives(p, dt)[0], axis=1)[:, None]
+            allowed = margins.allowed("velocity")
+            checks.append(("tip_speed", v, v / tip_speed_max, allowed, 0, tip_speed_max))
 
     first: tuple[int, int, int] | None = None  # (sample, check index, column)
     for k, (_, _, use, allowed, _, _) in enumerate(checks):
@@ -326,7 +342,7 @@ def preflight(
             v,
             centre_j + sign * allowed * half_j,
             centre_j + sign * half_j,
-            joint=None if quantity == "workspace" else j + 1,
+            joint=None if quantity in ("workspace", "tip_speed") else j + 1,
             axis=AXES[j] if quantity == "workspace" else None,
             sample=i,
             time=i * dt,

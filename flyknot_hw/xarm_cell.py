@@ -244,6 +244,7 @@ class XArmCell:
             torques=tau,
             fingertip=tip,
             workspace=safety.workspace,
+            tip_speed_max=safety.tip_speed_max,
         )
 
     def _codes(self) -> tuple[int, int]:

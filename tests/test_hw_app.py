@@ -82,16 +82,23 @@ def test_dry_run_without_a_lab_file_is_refused(capsys):
     )
 
 
-def test_run_with_cell_dry_run_plays_the_scenario_through_the_preflight(tmp_path):
-    out = tmp_path / "dry"
+def test_run_with_cell_dry_run_plays_the_scenario_through_the_preflight(tmp_path, capsys):
     args = ["run", "quick", "--cell", str(LAB), "--dry-run", "--set", "max_trials=0"]
+    # The example lab keeps the controller's servo-mode TCP speed limit (C60, 1.2 m/s): the
+    # learned throw is refused before anything moves.
+    assert cli.main([*args, "--out", str(tmp_path / "refused")]) == 2
+    assert "fingertip speed" in capsys.readouterr().err
+    fast = tmp_path / "fast_lab.toml"
+    fast.write_text(LAB.read_text().replace("tip_speed_max = 1.2", "tip_speed_max = 4.0"))
+    args[3] = str(fast)
+    out = tmp_path / "dry"
     assert cli.main([*args, "--out", str(out)]) == 0
     manifest = json.loads((out / "manifest.json").read_text())
-    run = manifest["runs"][0] if isinstance(manifest["runs"], list) else manifest["runs"]["rope1"]
+    run = manifest["runs"][0]
     assert run["cell"] == "xarm" and run["cell_options"]["dry_run"] is True
     rec = json.loads((out / "runs" / "rope1" / "learning" / "trial_0000_a0.json").read_text())
     assert rec["metadata"]["dry_run"] is True
-    assert rec["metadata"]["preflight"]["tip_speed_peak_m_s"] > 0
+    assert 1.2 < rec["metadata"]["preflight"]["tip_speed_peak_m_s"] < 4.0 * 0.95
 
 
 def test_calibration_recovers_a_base_pose(kin):

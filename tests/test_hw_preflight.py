@@ -278,3 +278,24 @@ def test_an_injected_violation_is_found_where_it_is(i, j, sign):
     assert e.value.joint == j + 1
     assert e.value.sample in (max(i - 1, 0), i)
     assert f"joint {j + 1} " in str(e.value) and f"sample {e.value.sample} " in str(e.value)
+
+
+def test_the_fingertip_speed_limit_c60_refuses_a_fast_throw():
+    n = 100
+    q = np.tile(np.array([0.0, -0.2, 0.0, 0.9, 0.0, 1.1, 0.0]), (n, 1))
+    cmd = JointCommand(q=q, rate_hz=250.0)
+    tip = np.zeros((n, 3))
+    tip[:, 0] = 0.3 + np.clip(np.arange(n) - 50, 0, None) * (2.0 / 250.0)  # 2 m/s from 50
+    box = Workspace([-1.0, -1.0, -1.0], [1.0, 1.0, 1.0])
+    limits = effective_limits()
+    with pytest.raises(PreflightError) as e:
+        preflight(cmd, limits, fingertip=tip, workspace=box, tip_speed_max=1.2)
+    assert e.value.quantity == "tip_speed" and e.value.sample == 51
+    assert str(e.value) == (
+        "command: fingertip speed 2 m/s exceeds 1.14 m/s (safety.tip_speed_max 1.2 m/s, the "
+        "controller's servo-mode TCP speed limit (C60), with the safety margin) at sample 51 "
+        "(t = 0.204 s); nothing was sent to the robot"
+    )
+    report = preflight(cmd, limits, fingertip=tip, workspace=box, tip_speed_max=2.5)
+    assert report.tip_speed_peak == pytest.approx(2.0)
+    assert "tip_speed" in report.checked

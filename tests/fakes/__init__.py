@@ -113,7 +113,13 @@ def lab_doc(fake: FakeXArm, **sections: dict) -> dict:
         "mocap": {"kind": "file", "system": "c3d", "file": "captures/trial_*.c3d"},
         "rope": {"id": 1},
         "base": {"pose": [0.1, -0.2, 0.8, 1.0, 0.0, 0.0, 0.0]},
-        "safety": {"margin": 0.05, "workspace": {"min": [-1, -1, -0.5], "max": [1, 1, 1.5]}},
+        # tip_speed_max: our fake controller does not model C60 (servo-mode TCP speed), so the
+        # learned throws (~2.6 m/s at the fingertip) may be streamed to it.
+        "safety": {
+            "margin": 0.05,
+            "workspace": {"min": [-1, -1, -0.5], "max": [1, 1, 1.5]},
+            "tip_speed_max": 4.0,
+        },
         "settle": {"mode": "seconds", "before_s": 0.02, "after_s": 0.1},
     }
     for name, table in sections.items():
