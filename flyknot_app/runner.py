@@ -77,8 +77,11 @@ def initial_knots(
     rope_dt: float,
     base_height: float,
     window: tuple[float, float] = (FOLLOW_THROUGH_S, PATH_FRAC),
+    progress: bool = False,
 ) -> tuple[np.ndarray, dict]:
     """kappa_0 for a demonstration, computed once per run directory and cached there.
+
+    ``progress``: show IPOPT's iterations (a bar on a terminal; nothing otherwise).
 
     ``base_height`` is the lab's robot base height above its floor, so that the fingertip
     starts at least z_min above the real floor (the rope hangs clear); ``window`` as in
@@ -96,7 +99,26 @@ def initial_knots(
     t = trimmed.t - trimmed.t[0]
     R = Rotation.from_quat(trimmed.hand_quat, scalar_first=True).as_matrix()
     params = InitialGuessParams(base_height=base_height)
-    res = initial_guess(t, trimmed.hand_pos, R, target.T, robot, params=params)
+    from tqdm import tqdm
+
+    bar = tqdm(
+        total=params.max_iter,
+        desc=f"initial guess {demo_name}",
+        unit="it",
+        disable=bar_disable(progress),
+        leave=False,
+    )
+
+    def on_iteration(k: int, f: float) -> None:
+        bar.set_postfix_str(f"objective {f:.4g}", refresh=False)
+        bar.update(1)
+
+    try:
+        res = initial_guess(
+            t, trimmed.hand_pos, R, target.T, robot, params=params, on_iteration=on_iteration
+        )
+    finally:
+        bar.close()
     info = {
         "status": res.status,
         "success": bool(res.success),
@@ -356,7 +378,8 @@ def run_scenario(
         dt = next(_rope_model(r).dt for r in scen.runs if r.demo == demo)
         if progress:
             print(f"initial guess for demo {demo!r} (trajectory optimisation)...", flush=True)
-        initial_knots(demo, out_dir, robot, dt, float(robot_base_pose(SceneParams())[2]), window)
+        z = float(robot_base_pose(SceneParams())[2])
+        initial_knots(demo, out_dir, robot, dt, z, window, progress=progress)
 
     results: dict[str, dict[str, Any]] = {}
     overall = tqdm(total=len(scen.runs), desc=scen.name, unit="run", disable=bar_disable(progress))

@@ -24,7 +24,7 @@ seed tracks the first sample exactly and stands still. A failed solve is reporte
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from types import MappingProxyType
 from typing import TYPE_CHECKING
@@ -243,12 +243,55 @@ def _ipopt_options(params: InitialGuessParams) -> dict:
     }
 
 
-def solve_problem(problem: InitialGuessProblem, robot: RobotModel) -> InitialGuessResult:
+class _IterationReport(ca.Callback):
+    """IPOPT's iteration callback: calls ``on_iteration(k, f)`` after iteration k (objective f);
+    it only reads, so the solution is the same with or without it."""
+
+    def __init__(self, nx: int, ng: int, on_iteration: Callable[[int, float], None]):
+        ca.Callback.__init__(self)
+        self.nx, self.ng, self.on_iteration, self.k = nx, ng, on_iteration, 0
+        self.construct("initial_guess_progress", {})
+
+    def get_n_in(self) -> int:
+        return ca.nlpsol_n_out()
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_name_in(self, i: int) -> str:
+        return ca.nlpsol_out(i)
+
+    def get_name_out(self, i: int) -> str:
+        return "ret"
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        name = ca.nlpsol_out(i)
+        if name == "f":
+            return ca.Sparsity.dense(1)
+        if name in ("x", "lam_x"):
+            return ca.Sparsity.dense(self.nx)
+        if name in ("g", "lam_g"):
+            return ca.Sparsity.dense(self.ng)
+        return ca.Sparsity(0, 0)
+
+    def eval(self, arg: list) -> list:
+        self.k += 1
+        self.on_iteration(self.k, float(arg[ca.nlpsol_out().index("f")]))
+        return [0]
+
+
+def solve_problem(
+    problem: InitialGuessProblem,
+    robot: RobotModel,
+    on_iteration: Callable[[int, float], None] | None = None,
+) -> InitialGuessResult:
     """Solve a built problem with IPOPT and evaluate the outcome.
 
     Args:
         problem: From :func:`build_problem`.
         robot: The robot model it was built with (for the checks).
+        on_iteration: Called after every IPOPT iteration with (iteration, objective), e.g.
+            for a progress display; None: nothing.
 
     Returns:
         The result; ``success`` is False (with IPOPT's ``status`` kept) unless IPOPT converged
@@ -258,6 +301,9 @@ def solve_problem(problem: InitialGuessProblem, robot: RobotModel) -> InitialGue
     t_build = time.perf_counter()
     nlp = {"x": problem.x, "f": problem.f(problem.x), "g": problem.g(problem.x)}
     opts = {**_ipopt_options(params), "jac_g": problem.jac_g, "hess_lag": problem.hess_lag}
+    if on_iteration is not None:
+        nx, ng = problem.x.numel(), problem.g(problem.x).numel()
+        opts["iteration_callback"] = _IterationReport(nx, ng, on_iteration)
     solver = ca.nlpsol("initial_guess", "ipopt", nlp, opts)
     build_time = time.perf_counter() - t_build
     t0 = time.perf_counter()
@@ -325,6 +371,7 @@ def initial_guess(
     *,
     params: InitialGuessParams | None = None,
     q_seed: np.ndarray | None = None,
+    on_iteration: Callable[[int, float], None] | None = None,
 ) -> InitialGuessResult:
     """The initial command kappa_0 tracking the demonstration hand (module docstring).
 
@@ -336,6 +383,7 @@ def initial_guess(
         robot: Robot model.
         params: Weights, limits and settings (default: the paper's).
         q_seed: Seed joint angles (7,) [rad]; default ``HOME_Q``.
+        on_iteration: Called after every IPOPT iteration with (iteration, objective).
 
     Returns:
         The result (check ``success`` or call :func:`require_success`).
@@ -348,7 +396,7 @@ def initial_guess(
         demo_hand_t, demo_hand_p, demo_hand_R, T, robot, params=params, q_seed=q_seed
     )
     built = time.perf_counter() - t0
-    result = solve_problem(problem, robot)
+    result = solve_problem(problem, robot, on_iteration)
     return replace(result, build_time=built + result.build_time)
 
 

@@ -478,3 +478,15 @@ def test_start_height_in_the_lab_frame_ignores_the_base_offset():
     assert z_lab >= 1.2 - 1e-6
     with pytest.raises(ConfigError, match="base_height: must be a finite number >= 0"):
         InitialGuessParams(base_height=-1.0)
+
+
+def test_iteration_reports_follow_ipopt_and_change_nothing(robot, reachable):
+    knots, _ = _knots_true()
+    T = 0.6
+    t, p, R = _demo_from_knots(robot, knots, T)
+    seen = []
+    res = initial_guess(t, p, R, T, robot, on_iteration=lambda k, f: seen.append((k, f)))
+    assert [k for k, _ in seen] == list(range(1, len(seen) + 1))
+    assert len(seen) >= 2 and all(np.isfinite(f) for _, f in seen)
+    assert seen[-1][1] == pytest.approx(res.cost, rel=1e-6)
+    np.testing.assert_array_equal(res.knots, reachable.knots)
