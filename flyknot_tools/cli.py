@@ -159,6 +159,33 @@ def _cmd_rope_study(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_lab_study(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from flyknot.progress import bar_disable
+    from flyknot_tools.lab_study import CANDIDATES, run_study, table_markdown, write_outputs
+
+    names = list(CANDIDATES) if not args.candidates else args.candidates
+    sways = [float(s) for s in args.sway]
+    bar = tqdm(
+        total=2 * len(names) * len(sways), desc="lab study", unit="cell", disable=bar_disable(True)
+    )
+    rows = run_study(
+        names,
+        sways,
+        n=args.trials,
+        seed=args.seed,
+        rope=args.rope,
+        workers=args.workers,
+        on_cell=lambda _cell: bar.update(1),
+    )
+    bar.close()
+    if args.out is not None:
+        write_outputs(rows, args.out)
+    print(table_markdown(rows), end="")
+    return 0
+
+
 def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add ``demo synthesize|robot|record`` to a ``flyknot-tools`` subparser set.
 
@@ -256,6 +283,29 @@ def build_parser() -> argparse.ArgumentParser:
     )
     rs.add_argument("args", nargs=argparse.REMAINDER, help="the rope study's own options")
     rs.set_defaults(func=_cmd_rope_study)
+    ls = sub.add_parser(
+        "lab-study",
+        help="what holds a knot: the lab's physics switches vs the robot command and Swipe",
+    )
+    ls.add_argument(
+        "--candidates",
+        nargs="*",
+        metavar="NAME",
+        help="rows to measure (default all; names in flyknot_tools.lab_study)",
+    )
+    ls.add_argument(
+        "--sway",
+        nargs="+",
+        default=["0", "1"],
+        metavar="DEG",
+        help="extra initial sways [deg] (0: the settled start); default 0 1",
+    )
+    ls.add_argument("--trials", type=int, default=40, help="trials per demonstration and row")
+    ls.add_argument("--seed", type=int, default=0, help="lab seed")
+    ls.add_argument("--rope", type=int, default=1, help="rope id")
+    ls.add_argument("--workers", type=int, default=1, help="worker processes")
+    ls.add_argument("--out", default=None, help="directory for lab_study.json / .md")
+    ls.set_defaults(func=_cmd_lab_study)
     return p
 
 

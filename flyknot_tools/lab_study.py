@@ -1,0 +1,285 @@
+"""What holds a knot in the simulated lab: each physics switch alone and in combination.
+
+``flyknot-tools lab-study`` plays, for every candidate lab (a row: the lab's defaults with
+one or more physics switches changed) and every start (the settled start, or an extra
+initial sway of ``sway_deg``):
+
+* the robot demonstration's command (``assets/demos/robot.npz``'s ``command_knots``) on the
+  arm in :class:`flyknot_sim.lab.SimLab`, trials ``0 .. n - 1`` of lab seed ``seed``;
+* the Swipe hand demonstration (``assets/demos/swipe.npz``) in the hand lab
+  (:func:`flyknot_sim.hand_replay.replay`), replays ``0 .. n - 1`` of seed ``seed``;
+
+and reports per row the knots tied, the failure anatomy of the rest
+(:func:`flyknot_app.anatomy.diagnose`, against each demonstration's t_c), how the verdict was
+reached (at rest, contact-free, at the cap), the mean simulated seconds per trial and the wall
+seconds per simulated second. The switches are the lab's own (``LabParams`` / ``HandParams``
+fields) and the rope table's (:class:`flyknot_sim.rope_table.RopeParams` fields); no value
+here is new physics: each comes with its source in ``assets/ropes.toml`` or
+``docs/rope-model.md``. The table of ``docs/rope-model.md`` ("step 3") is this tool's output.
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+import time
+from collections import Counter
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from flyknot.errors import ConfigError, check_int, check_nonnegative
+
+DEMOS = Path(__file__).resolve().parents[1] / "assets" / "demos"
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One row: a name and the switches it sets.
+
+    Attributes:
+        name: Row label (what differs from the lab's defaults).
+        rope: Rope-table fields replaced (``friction``, ``condim``, ``segments``, ``cd``).
+        lab: Lab fields replaced in both labs (``twist``, ``bend_friction`` moment [N m]).
+    """
+
+    name: str
+    rope: tuple[tuple[str, Any], ...] = ()
+    lab: tuple[tuple[str, Any], ...] = ()
+
+
+CANDIDATES: dict[str, Candidate] = {
+    c.name: c
+    for c in (
+        Candidate("default"),
+        Candidate("friction 0.3", rope=(("friction", 0.3),)),
+        Candidate("condim 4", rope=(("condim", 4),)),
+        Candidate("twist dofs", lab=(("twist", True),)),
+        Candidate("40 segments", rope=(("segments", 40),)),
+        Candidate("C_D 1.2", rope=(("cd", 1.2),)),
+        Candidate("bending friction 0.003", lab=(("bend_friction", 0.003),)),
+        Candidate(
+            "friction 0.3 + condim 4 + C_D 1.2",
+            rope=(("friction", 0.3), ("condim", 4), ("cd", 1.2)),
+        ),
+    )
+}
+"""The rows, by name (the session-3 table's switches plus one combination)."""
+
+
+def _labs(candidate: Candidate, rope_id: int, sway_deg: float):
+    """The arm's :class:`LabParams` and the hand's :class:`HandParams` of one row."""
+    from flyknot.demo import Demonstration
+    from flyknot_sim.bend_friction import BendFrictionParams
+    from flyknot_sim.hand_replay import hand_from_demo
+    from flyknot_sim.lab import LabParams, VariationParams
+    from flyknot_sim.rope_table import get_rope
+
+    rope = replace(get_rope(rope_id), **dict(candidate.rope))
+    lab_kw: dict[str, Any] = {}
+    for key, value in candidate.lab:
+        lab_kw[key] = BendFrictionParams(moment=value) if key == "bend_friction" else value
+    arm = LabParams(rope=rope, variation=VariationParams(sway_deg=sway_deg), **lab_kw)
+    swipe = Demonstration.load(DEMOS / "swipe.npz")
+    hand = hand_from_demo(swipe, rope_id, vary=True)
+    hand = replace(hand, rope=rope, variation=replace(hand.variation, sway_deg=sway_deg), **lab_kw)
+    return arm, hand
+
+
+def _settle_kind(settle: dict | None) -> str:
+    """``rest``, ``contact_free`` or ``cap``: how the verdict was reached."""
+    if settle and settle.get("settled"):
+        return "rest"
+    if settle and settle.get("contact_free"):
+        return "contact_free"
+    return "cap"
+
+
+def _robot_trials(arm, n: int) -> list[dict[str, Any]]:
+    """The robot command's trials ``0 .. n - 1`` in the arm's lab, diagnosed."""
+    from flyknot.demo import Demonstration
+    from flyknot_app.anatomy import diagnose
+    from flyknot_sim.lab import SimLab
+    from learner.bezier import BezierCommand
+
+    demo = Demonstration.load(DEMOS / "robot.npz")
+    meta = demo.metadata
+    command = BezierCommand(
+        np.asarray(meta["command_knots"], dtype=float), float(meta["command_T"])
+    ).joint_command()
+    lab = SimLab(arm)
+    rows = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        rec = lab.run(command)
+        wall = time.perf_counter() - t0
+        d = diagnose(rec, t_c=demo.t_c)
+        rows.append(
+            {
+                "label": d.label,
+                "settle": _settle_kind(rec.metadata.get("settle")),
+                "sim_s": float(rec.metadata["sim_duration_s"]),
+                "wall_s": wall,
+            }
+        )
+    return rows
+
+
+def _hand_trials(hand, n: int, seed: int) -> list[dict[str, Any]]:
+    """Swipe's replays ``0 .. n - 1`` in the hand lab, diagnosed."""
+    from flyknot.demo import Demonstration
+    from flyknot_app.anatomy import diagnose
+    from flyknot_app.anatomy_trials import load_replay
+    from flyknot_sim.hand import HandLab
+    from flyknot_sim.hand_replay import motion_from_demo, save_replay
+
+    swipe = Demonstration.load(DEMOS / "swipe.npz")
+    motion = motion_from_demo(swipe)
+    lab = HandLab(hand)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for i in range(n):
+            t0 = time.perf_counter()
+            trial = lab.run(motion, np.random.default_rng([seed, i]))
+            wall = time.perf_counter() - t0
+            path = save_replay(
+                Path(tmp) / f"replay_{i:03d}.npz",
+                trial,
+                lab.rope,
+                rope=swipe.rope,
+                seed=seed,
+                index=i,
+                source="swipe",
+            )
+            d = diagnose(load_replay(path), t_c=swipe.t_c)
+            rows.append(
+                {
+                    "label": d.label,
+                    "settle": _settle_kind(dict(trial.settle) if trial.settle else None),
+                    "sim_s": float(trial.t[-1]),
+                    "wall_s": wall,
+                }
+            )
+    return rows
+
+
+def _measure(job: tuple[str, float, str, int, int, int]) -> dict[str, Any]:
+    """One (row, sway, demonstration) cell of the table, in a worker process."""
+    name, sway, which, n, seed, rope_id = job
+    arm, hand = _labs(CANDIDATES[name], rope_id, sway)
+    trials = _robot_trials(arm, n) if which == "robot" else _hand_trials(hand, n, seed)
+    return {"candidate": name, "sway_deg": sway, "demo": which, "trials": trials}
+
+
+def _summary(trials: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Counts and means of one cell."""
+    labels = Counter(t["label"] for t in trials)
+    settle = Counter(t["settle"] for t in trials)
+    sim = sum(t["sim_s"] for t in trials)
+    return {
+        "n": len(trials),
+        "ties": labels.get("success", 0),
+        "failures": {k: v for k, v in sorted(labels.items()) if k != "success"},
+        "settle": {k: settle.get(k, 0) for k in ("rest", "contact_free", "cap")},
+        "sim_s_per_trial": sim / len(trials),
+        "wall_per_sim_s": sum(t["wall_s"] for t in trials) / sim,
+    }
+
+
+def run_study(
+    candidates: Sequence[str],
+    sways: Sequence[float],
+    *,
+    n: int = 40,
+    seed: int = 0,
+    rope: int = 1,
+    workers: int = 1,
+    on_cell: Callable[[dict[str, Any]], None] | None = None,
+) -> list[dict[str, Any]]:
+    """Measure every (candidate, sway) row with both demonstrations.
+
+    Args:
+        candidates: Names in :data:`CANDIDATES`.
+        sways: Extra initial sways [deg] (0: the settled start alone).
+        n: Trials per demonstration and row, >= 1.
+        seed: Lab seed.
+        rope: Rope id.
+        workers: Worker processes, >= 1.
+        on_cell: Called with each finished cell (for progress).
+
+    Returns:
+        One dict per row: ``candidate``, ``sway_deg``, ``robot`` and ``hand`` summaries.
+
+    Raises:
+        ConfigError: An unknown candidate (valid ones listed), or a bad count or sway.
+    """
+    for c in candidates:
+        if c not in CANDIDATES:
+            raise ConfigError("candidate", f"unknown candidate {c!r}", sorted(CANDIDATES))
+    for s in sways:
+        check_nonnegative("sway_deg", s)
+    check_int("n", n, 1)
+    check_int("workers", workers, 1)
+    jobs = [
+        (c, float(s), w, n, seed, rope)
+        for c in candidates
+        for s in sways
+        for w in ("robot", "hand")
+    ]
+    cells: dict[tuple[str, float, str], dict[str, Any]] = {}
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        for cell in pool.map(_measure, jobs):
+            cells[(cell["candidate"], cell["sway_deg"], cell["demo"])] = cell
+            if on_cell is not None:
+                on_cell(cell)
+    return [
+        {
+            "candidate": c,
+            "sway_deg": float(s),
+            "robot": _summary(cells[(c, float(s), "robot")]["trials"]),
+            "hand": _summary(cells[(c, float(s), "hand")]["trials"]),
+        }
+        for c in candidates
+        for s in sways
+    ]
+
+
+def _failures_text(f: dict[str, int]) -> str:
+    """``3 not_through, 12 shaken_loose``; ``-`` when none."""
+    return ", ".join(f"{v} {k}" for k, v in f.items()) or "-"
+
+
+def table_markdown(rows: Sequence[dict[str, Any]]) -> str:
+    """The study as a markdown table (one line per row)."""
+    head = (
+        "| lab | start | robot ties | robot failures | hand ties | hand failures | "
+        "at rest / contact-free / cap (robot; hand) | sim s per trial (robot; hand) | "
+        "wall s per sim s (robot; hand) |\n|---|---|---|---|---|---|---|---|---|\n"
+    )
+    lines = []
+    for r in rows:
+        a, h = r["robot"], r["hand"]
+        start = "settled" if r["sway_deg"] == 0 else f"+{r['sway_deg']:g} deg sway"
+        rest = "/".join(str(a["settle"][k]) for k in ("rest", "contact_free", "cap"))
+        rest_h = "/".join(str(h["settle"][k]) for k in ("rest", "contact_free", "cap"))
+        lines.append(
+            f"| {r['candidate']} | {start} | {a['ties']}/{a['n']} | "
+            f"{_failures_text(a['failures'])} | {h['ties']}/{h['n']} | "
+            f"{_failures_text(h['failures'])} | {rest}; {rest_h} | "
+            f"{a['sim_s_per_trial']:.1f}; {h['sim_s_per_trial']:.1f} | "
+            f"{a['wall_per_sim_s']:.2f}; {h['wall_per_sim_s']:.2f} |"
+        )
+    return head + "\n".join(lines) + "\n"
+
+
+def write_outputs(rows: Sequence[dict[str, Any]], out: str | Path) -> Path:
+    """Write ``lab_study.json`` and ``lab_study.md`` into ``out``; returns the directory."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "lab_study.json").write_text(json.dumps(list(rows), indent=1))
+    (out / "lab_study.md").write_text(table_markdown(rows))
+    return out

@@ -1,0 +1,69 @@
+"""The lab-study tool (``flyknot-tools lab-study``): its table, counts and errors."""
+
+from __future__ import annotations
+
+import pytest
+
+from flyknot.errors import ConfigError
+from flyknot_tools.lab_study import CANDIDATES, _settle_kind, _summary, run_study, table_markdown
+
+
+def _trial(label: str, settle: str, sim: float = 2.0, wall: float = 1.0) -> dict:
+    return {"label": label, "settle": settle, "sim_s": sim, "wall_s": wall}
+
+
+def test_summary_counts_ties_failures_and_how_each_was_judged():
+    trials = [
+        _trial("success", "rest", 10.0, 5.0),
+        _trial("shaken_loose", "cap", 15.0, 6.0),
+        _trial("not_through", "contact_free", 3.0, 1.0),
+        _trial("success", "cap", 12.0, 6.0),
+    ]
+    s = _summary(trials)
+    assert s["n"] == 4 and s["ties"] == 2
+    assert s["failures"] == {"not_through": 1, "shaken_loose": 1}
+    assert s["settle"] == {"rest": 1, "contact_free": 1, "cap": 2}
+    assert s["sim_s_per_trial"] == pytest.approx(40.0 / 4)
+    assert s["wall_per_sim_s"] == pytest.approx(18.0 / 40.0)
+
+
+def test_settle_kind_reads_the_records_settle_metadata():
+    assert _settle_kind({"settled": True, "contact_free": False}) == "rest"
+    assert _settle_kind({"settled": False, "contact_free": True}) == "contact_free"
+    assert _settle_kind({"settled": False, "contact_free": False}) == "cap"
+    assert _settle_kind(None) == "cap"
+
+
+def test_table_has_one_line_per_row_with_the_numbers():
+    a = _summary([_trial("success", "rest"), _trial("slipped_out", "cap")])
+    h = _summary([_trial("success", "cap")])
+    md = table_markdown([{"candidate": "condim 4", "sway_deg": 1.0, "robot": a, "hand": h}])
+    lines = md.strip().splitlines()
+    assert len(lines) == 3
+    assert lines[2] == (
+        "| condim 4 | +1 deg sway | 1/2 | 1 slipped_out | 1/1 | - | 1/0/1; 0/0/1 | 2.0; 2.0 "
+        "| 0.50; 0.50 |"
+    )
+
+
+def test_unknown_candidate_lists_the_valid_ones():
+    with pytest.raises(ConfigError) as e:
+        run_study(["drag off"], [0.0], n=1)
+    assert str(e.value).startswith("candidate: unknown candidate 'drag off'")
+    for name in CANDIDATES:
+        assert name in str(e.value)
+    with pytest.raises(ConfigError, match="sway_deg"):
+        run_study(["default"], [-1.0], n=1)
+
+
+def test_one_robot_trial_of_a_row_is_diagnosed_in_the_rows_lab():
+    from flyknot_app.anatomy import LABELS
+    from flyknot_tools.lab_study import _labs, _robot_trials
+
+    arm, hand = _labs(CANDIDATES["friction 0.3 + condim 4 + C_D 1.2"], 1, 1.0)
+    assert (arm.rope_params.friction, arm.rope_params.condim, arm.rope_params.cd) == (0.3, 4, 1.2)
+    assert arm.variation.sway_deg == 1.0 and hand.variation.sway_deg == 1.0
+    assert hand.rope_params.cd == 1.2
+    (row,) = _robot_trials(arm, 1)
+    assert row["label"] in LABELS and row["settle"] in ("rest", "contact_free", "cap")
+    assert row["sim_s"] > 1.0 and row["wall_s"] > 0
