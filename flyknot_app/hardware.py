@@ -7,8 +7,11 @@ here: the learner's fingertip kinematics and inverse dynamics (:class:`LearnerKi
 - :class:`DryRunCell` is the dry run: every command is preflighted exactly as on the arm
   (the lab file's margins and workspace, the published limits of the robot) and then played
   in the simulated lab with the lab file's rope; nothing connects to a robot.
-- :func:`calibrate` moves the arm through a few joint poses, takes the fingertip body from
-  the motion capture at each, and fits the robot base pose in the mocap frame.
+- :func:`calibrate_arm` drives the arm through the calibration poses, takes the fingertip
+  cluster from the motion capture at each and fits the robot base pose in the mocap frame
+  (:mod:`flyknot_hw.calibrate_driver`); :func:`plan_arm_calibration` is its dry run (every
+  move preflighted, nothing connected).
+- :func:`calibrate` fits the base pose to fingertips measured elsewhere (at given poses).
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ from flyknot.errors import ConfigError
 from flyknot.geometry import matrix_to_quat
 from flyknot.judge import KnotJudge
 from flyknot.record import JointCommand, TrialRecord
+from flyknot_hw.calibrate_driver import CalibrationResult, run_calibration
+from flyknot_hw.calibrate_plan import CalibrationPlan, dry_run_plan
 from flyknot_hw.config import LabConfig, load_lab_config
 from flyknot_hw.preflight import PreflightReport, command_derivatives, effective_limits, preflight
 from learner.kinematics import RobotModel
@@ -167,12 +172,14 @@ class Calibration:
         residual_rms: RMS distance between measured and predicted fingertips [m].
         residual_max: Largest such distance [m].
         poses: The joint poses used, shape (k, 7) [rad].
+        per_pose: The distance at each pose, shape (k,) [m].
     """
 
     base_pose: np.ndarray
     residual_rms: float
     residual_max: float
     poses: np.ndarray
+    per_pose: np.ndarray
 
     def toml(self) -> str:
         """The lab file's ``[base]`` table with this pose."""
@@ -205,4 +212,131 @@ def calibrate(
     kin = kinematics if kinematics is not None else LearnerKinematics()
     measured = np.array([np.asarray(fingertip_in_mocap(row), dtype=float) for row in q])
     pose, res = calibrate_base(kin.positions(q), measured)
-    return Calibration(np.asarray(pose), float(res.rms_m), float(res.max_m), q)
+    return Calibration(np.asarray(pose), float(res.rms_m), float(res.max_m), q, res.per_pose)
+
+
+def plan_arm_calibration(
+    lab: str | Path | LabConfig,
+    *,
+    poses: np.ndarray | None = None,
+    kinematics: LearnerKinematics | None = None,
+) -> CalibrationPlan:
+    """The dry run of :func:`calibrate_arm`: every pose and move preflighted (the published
+    limits, the tour from the lab file's ``calibration.start``); nothing connects.
+
+    Args:
+        lab: A lab file or its parsed :class:`LabConfig`.
+        poses: Calibration poses (k, 7) [rad]; None: the default ones.
+        kinematics: The learner's robot model wrapper (built from the MJCF if None).
+
+    Raises:
+        PreflightError: A pose or a move breaks a limit (the message names it).
+    """
+    kin = kinematics if kinematics is not None else LearnerKinematics()
+    return dry_run_plan(_config(lab), kin, poses=poses, torques=kin.torques)
+
+
+def calibrate_arm(
+    lab: str | Path | LabConfig,
+    *,
+    poses: np.ndarray | None = None,
+    mocap: Any = None,
+    kinematics: LearnerKinematics | None = None,
+    emit: Callable[[str], Any] | None = None,
+) -> CalibrationResult:
+    """Drive the arm of the lab file through the calibration poses and fit its base pose.
+
+    Args:
+        lab: A lab file or its parsed :class:`LabConfig`.
+        poses: Calibration poses (k, 7) [rad]; None: the default ones.
+        mocap: A motion-capture source instead of the lab file's.
+        kinematics: The learner's robot model wrapper (fingertip and inverse dynamics).
+        emit: Called with each line of progress.
+
+    Returns:
+        The fit (:class:`~flyknot_hw.calibrate_driver.CalibrationResult`).
+
+    Raises:
+        See :func:`flyknot_hw.calibrate_driver.run_calibration`.
+    """
+    kin = kinematics if kinematics is not None else LearnerKinematics()
+    return run_calibration(
+        _config(lab), fingertip=kin, torques=kin.torques, poses=poses, mocap=mocap, emit=emit
+    )
+
+
+def read_rows(flag: str, path: str, width: int) -> np.ndarray:
+    """A (k, width) table from a .npy or .csv file (CSV: one row per line, header allowed)."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(flag, f"no file {str(p)!r}")
+    try:
+        a = np.load(p) if p.suffix == ".npy" else np.genfromtxt(p, delimiter=",", comments="#")
+    except ValueError as e:
+        raise ConfigError(flag, f"{str(p)!r} is not a numeric table: {e}") from None
+    a = np.atleast_2d(np.asarray(a, dtype=float))
+    a = a[np.all(np.isfinite(a), axis=1)]  # a CSV header row reads as NaN
+    if a.ndim != 2 or a.shape[1] != width:
+        raise ConfigError(flag, f"{str(p)!r} must hold rows of {width} numbers, got {a.shape}")
+    return a
+
+
+def _calibrate_files(args: Any) -> str:
+    """``calibrate --poses P --measured M``: fit fingertips measured elsewhere; the table."""
+    if args.poses is None:
+        raise ConfigError("--measured", "needs --poses (the joint poses it was measured at)")
+    if args.dry_run:
+        raise ConfigError("--dry-run", "moves nothing with --measured (a fit of two files)")
+    poses = read_rows("--poses", args.poses, 7)
+    measured = read_rows("--measured", args.measured, 3)
+    if len(measured) != len(poses):
+        raise ConfigError(
+            "--measured", f"has {len(measured)} rows for {len(poses)} poses (one per pose)"
+        )
+    rows = iter(measured)
+    cal = calibrate(lambda q: next(rows), poses)  # the poses were measured in this order
+    print("pose  residual [mm]")
+    for i, r in enumerate(cal.per_pose, start=1):
+        print(f"{i:4d}  {r * 1e3:13.2f}")
+    print(
+        f"base pose fitted from {len(poses)} poses: residual rms {cal.residual_rms * 1e3:.2f} mm, "
+        f"max {cal.residual_max * 1e3:.2f} mm"
+    )
+    return cal.toml()
+
+
+def calibrate_command(args: Any) -> int:
+    """``flyknot calibrate``: the driven calibration, its dry run, or a fit of two files.
+
+    ``args``: ``cell`` (lab file), ``poses`` (file or None), ``measured`` (file or None: drive
+    the arm), ``dry_run``, ``out`` (file for the ``[base]`` table, or None). Prints the plan
+    or the progress, the per-pose residuals and the table; returns the exit code.
+    """
+    from flyknot_hw.calibrate_driver import CalibrationError
+
+    config = load_lab_config(args.cell)
+    if args.out is not None and Path(args.out).resolve() == Path(args.cell).resolve():
+        raise ConfigError("--out", "must not be the lab file (it would be overwritten)")
+    if args.measured is not None:
+        table = _calibrate_files(args)
+    else:
+        poses = None if args.poses is None else read_rows("--poses", args.poses, 7)
+        if args.dry_run:
+            print("\n".join(plan_arm_calibration(config, poses=poses).describe()))
+            print("dry run: every move passed the preflight; nothing connected, nothing moved")
+            return 0
+        try:
+            result = calibrate_arm(config, poses=poses, emit=print)
+        except CalibrationError as e:
+            if e.result is not None:
+                print("\n".join(e.result.report()))
+            raise
+        print("\n".join(result.report()))
+        table = result.toml()
+    old = ", ".join(f"{v:.4f}" for v in config.base_pose)
+    print(f"(the lab file's [base] pose now: [{old}])")
+    print(table, end="")
+    if args.out is not None:
+        Path(args.out).write_text(table)
+        print(f"Written: {args.out}")
+    return 0

@@ -11,6 +11,7 @@ Unknown keys are errors too (a misspelt key must not silently fall back to a def
     [base]      the robot base in the mocap frame: pose = [x, y, z, qw, qx, qy, qz]
     [safety]    margins on the joint limits, fingertip workspace box (base frame)
     [settle]    how the lab waits for the rope to hang still: seconds, markers or operator
+    [calibration] the driven base-pose calibration: start pose, averaging, outlier rule
 """
 
 from __future__ import annotations
@@ -34,6 +35,8 @@ __all__ = [
     "JOINT_SOURCES",
     "MOCAP_KINDS",
     "SETTLE_MODES",
+    "UFACTORY_HOME",
+    "CalibrationConfig",
     "LabConfig",
     "Margins",
     "MocapConfig",
@@ -52,6 +55,9 @@ JOINT_SOURCES = ("auto", "report", "poll")
 MOCAP_KINDS = ("live", "file")
 SETTLE_MODES = ("seconds", "markers", "operator")
 MARGIN_QUANTITIES = ("position", "velocity", "acceleration", "torque")
+UFACTORY_HOME = readonly([0.0, -0.247, 0.0, 0.909, 0.0, 1.15644, 0.0])
+"""The xArm 7's home pose (UFACTORY's) [rad]: the default ``calibration.start``, and the start
+of the simulated lab's commands."""
 
 
 def _number(field_name: str, value: object) -> float:
@@ -325,6 +331,56 @@ class SettleConfig:
 
 
 @dataclass(frozen=True, eq=False)
+class CalibrationConfig:
+    """The driven calibration of the base pose (``flyknot calibrate``,
+    :mod:`flyknot_hw.calibrate_driver`).
+
+    Attributes:
+        start: The pose the default calibration poses are derived from, shape (7,) [rad]
+            (default :data:`UFACTORY_HOME`).
+        window_s: Averaging window at each pose [s]: the measured joints and the fingertip
+            marker cluster (frames without it dropped).
+        still_s: The arm counts as still when no joint moved more than ``still_rad`` over
+            this long [s] (the wait before the window).
+        still_rad: See ``still_s`` [rad]; also the largest joint motion allowed within the
+            window.
+        min_poses: Fewest poses whose fingertip the motion capture saw for a fit (>= 4).
+        outlier_mm: A pose is an outlier, and the fit refused, when its fingertip is further
+            than this from the fit of the other poses (and 4 times their median) [mm].
+    """
+
+    start: np.ndarray = field(default_factory=lambda: UFACTORY_HOME.copy())
+    window_s: float = 0.5
+    still_s: float = 0.3
+    still_rad: float = 5e-4
+    min_poses: int = 6
+    outlier_mm: float = 5.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "start", _vector("calibration.start", self.start, 7))
+        for name in ("window_s", "still_s", "still_rad", "outlier_mm"):
+            value = _number(f"calibration.{name}", getattr(self, name))
+            check_positive(f"calibration.{name}", value)
+            object.__setattr__(self, name, value)
+        n = self.min_poses
+        if isinstance(n, bool) or not isinstance(n, int) or n < 4:
+            raise ConfigError(
+                "calibration.min_poses",
+                f"must be an integer >= 4 (6 parameters, and one pose to spare to find an "
+                f"outlier), got {n!r}",
+            )
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, CalibrationConfig):
+            return NotImplemented
+        return bool(np.array_equal(self.start, other.start)) and all(
+            getattr(self, k) == getattr(other, k) for k in CALIBRATION_KEYS if k != "start"
+        )
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+@dataclass(frozen=True, eq=False)
 class LabConfig:
     """The whole lab file.
 
@@ -337,6 +393,7 @@ class LabConfig:
         safety: Margins and workspace.
         settle: The rope-settling wait.
         source: The file it was read from ("" when parsed from a mapping).
+        calibration: The driven base-pose calibration's settings.
     """
 
     robot: RobotConfig
@@ -346,6 +403,7 @@ class LabConfig:
     safety: SafetyConfig
     settle: SettleConfig = field(default_factory=SettleConfig)
     source: str = ""
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
 
     def __post_init__(self) -> None:
         pose = _vector("base.pose", self.base_pose, 7)
@@ -360,8 +418,9 @@ class LabConfig:
 
 
 # --- parsing -------------------------------------------------------------------------------
-_SECTIONS = ("robot", "mocap", "rope", "base", "safety", "settle")
+_SECTIONS = ("robot", "mocap", "rope", "base", "safety", "settle", "calibration")
 SETTLE_KEYS = ("mode", "before_s", "after_s", "timeout_s")
+CALIBRATION_KEYS = ("start", "window_s", "still_s", "still_rad", "min_poses", "outlier_mm")
 
 
 def _table(
@@ -435,6 +494,9 @@ def parse_lab_config(doc: Mapping[str, Any], source: str = "") -> LabConfig:
         safety=_safety(doc),
         settle=SettleConfig(**_table(doc, "settle", SETTLE_KEYS, required=False)),
         source=source,
+        calibration=CalibrationConfig(
+            **_table(doc, "calibration", CALIBRATION_KEYS, required=False)
+        ),
     )
 
 

@@ -21,6 +21,10 @@ One trial (:meth:`XArmCell.run`):
 7. back to position mode; the motion capture's recording becomes the record's markers;
    the knot is judged by the injected judge (an operator by default).
 
+The connection, the controller checks and the slow move of steps 1-3 are
+:mod:`flyknot_hw.xarm_motion`'s, shared with the base-pose calibration
+(:mod:`flyknot_hw.calibrate_driver`).
+
 Measured joints come from the controller's real-time report (port 30000, timestamped at
 200 Hz, interpolated onto the 250 Hz ticks) or, without it, from one ``get_servo_angle`` per
 tick; ``metadata["joint_source"]`` says which. ``metadata["timing"]``: the stream's
@@ -57,7 +61,7 @@ from flyknot.geometry import matrix_to_quat, quat_to_matrix
 from flyknot.judge import KnotJudge, OperatorJudge
 from flyknot.limits import JointLimits
 from flyknot.record import JointCommand, TrialRecord
-from flyknot_hw import xarm_sdk
+from flyknot_hw import xarm_motion, xarm_sdk
 from flyknot_hw.config import LabConfig
 from flyknot_hw.mocap.stream import MocapSource, RawStream
 from flyknot_hw.mocap.trial import (
@@ -67,7 +71,7 @@ from flyknot_hw.mocap.trial import (
     open_source,
     trial_capture,
 )
-from flyknot_hw.preflight import PreflightError, PreflightReport, check_pose, preflight
+from flyknot_hw.preflight import PreflightReport, preflight
 from flyknot_hw.rt_report import RealtimeReport
 from flyknot_hw.timing import DeadlineClock, SigintLatch, timing_stats
 
@@ -82,8 +86,6 @@ SettleCheck = Callable[[str], Mapping[str, Any] | None]
 """Called with ``"before"`` (the throw) and ``"after"`` (the verdict); returns when the rope
 hangs still (or raises to abort); may return plain data for the record's metadata."""
 
-START_TOLERANCE = 5e-3  # [rad] the start pose is reached when every joint is this close
-REACH_POLL_S = 0.01  # [s]
 SERVO_MODE_TIMEOUT_S = 1.0  # [s]
 
 
@@ -100,8 +102,7 @@ def console_confirm(phase: str) -> None:
     input(f"Rope hanging still {what}? Press Enter to go on (Ctrl-C aborts): ")
 
 
-class _LostConnectionError(Exception):
-    pass
+_LostConnectionError = xarm_motion.LostConnectionError
 
 
 @contextlib.contextmanager
@@ -187,10 +188,9 @@ class XArmCell:
                 return
             with contextlib.suppress(Exception):
                 self._api.disconnect()
-        self._api = xarm_sdk.connect(self.config.robot)
-        self.robot_limits, info = xarm_sdk.read_robot_limits(self._api)
-        self.limits = JointLimits.stricter(JointLimits(), self.robot_limits)
-        self.robot_info = {**info, "firmware": str(self._api.version)}
+        self._api, self.robot_limits, self.limits, self.robot_info = xarm_motion.connect_arm(
+            self.config.robot
+        )
 
     def close(self) -> None:
         """Disconnect from the controller."""
@@ -249,29 +249,10 @@ class XArmCell:
 
     def _codes(self) -> tuple[int, int]:
         """The controller's (error, warning) codes, asked now."""
-        code, codes = self._api.get_err_warn_code()
-        if code in xarm_sdk.CONNECTION_LOST_CODES or not isinstance(codes, (list, tuple)):
-            raise _LostConnectionError(f"no reply from the controller (SDK code {code})")
-        return int(codes[0]), int(codes[1])
-
-    def _check_controller(self, what: str) -> None:
-        try:
-            err, warn = self._codes()
-        except _LostConnectionError as e:
-            raise HardwareError(f"{e} {what}") from None
-        for kind, c in (("error", err), ("warn", warn)):
-            if c:
-                info = xarm_sdk.controller_code(kind, c)
-                raise HardwareError(
-                    f"the controller reports {info['label']} {info['title']} {what}; check the "
-                    "robot, then clear it (XArmCell.recover())"
-                )
+        return xarm_motion.controller_codes(self._api)
 
     def _joints(self) -> np.ndarray:
-        code, q = self._api.get_servo_angle(is_radian=True)
-        if code != 0:
-            raise HardwareError(f"cannot read the joints: SDK code {code}")
-        return np.asarray(q, dtype=float)[:7]
+        return xarm_motion.read_joints(self._api)
 
     def _fingertip_now(self) -> np.ndarray:
         """The fingertip now, mocap frame (3,) [m] (for the live markers' settle check)."""
@@ -279,30 +260,16 @@ class XArmCell:
         r_base = quat_to_matrix(self.base_pose[3:])
         return r_base @ np.asarray(p, dtype=float)[0] + self.base_pose[:3]
 
-    def _check_start_path(self, q_now: np.ndarray, q0: np.ndarray) -> None:
-        margins = self.config.safety.margins
-        check_pose(q_now, self.limits, margins, what="the robot's current pose")  # type: ignore[arg-type]
-        path = q_now + np.linspace(0.0, 1.0, 51)[:, None] * (q0 - q_now)[None, :]
-        tip, _ = self._fk(path)
-        ws = self.config.safety.workspace
-        bad = np.argwhere((tip < ws.lo) | (tip > ws.hi))
-        if bad.size:
-            k, a = (int(x) for x in bad[0])
-            limit = ws.lo[a] if tip[k, a] < ws.lo[a] else ws.hi[a]
-            raise PreflightError(
-                "workspace", float(tip[k, a]), float(limit), float(limit),
-                axis="xyz"[a], what="the move to the start pose",
-            )  # fmt: skip
-
     # --- one trial -------------------------------------------------------------------------
     def run(self, command: JointCommand) -> TrialRecord:
         """Play ``command`` once from rest and return what was measured (module docstring)."""
         report = self.preflight(command)
         api = self._api
-        self._check_controller("before the trial")
+        xarm_motion.check_controller(api, "before the trial")
         q_now = self._joints()
         q0 = np.asarray(command.q[0], dtype=float)
-        self._check_start_path(q_now, q0)
+        limits: JointLimits = self.limits  # type: ignore[assignment]
+        xarm_motion.check_move_path(q_now, q0, self._fk, limits, self.config.safety)
         ready = getattr(self._mocap, "ready", None)
         if callable(ready):
             ready()  # the motion capture can record, before anything moves
@@ -312,8 +279,8 @@ class XArmCell:
         settle_meta: dict[str, Any] = {}
         try:
             with latch:
-                self._position_mode()
-                self._move_to(q0, q_now, latch)
+                xarm_motion.position_mode(api)
+                xarm_motion.move_joints(api, self.config.robot, q0, q_now, latch)
             settle_meta["before"] = self._settle("before")
             self._mocap.start()
             mocap_on = True
@@ -364,41 +331,6 @@ class XArmCell:
                 raise
             return None, "poll:get_servo_angle (report port refused)"
         return rt, f"report{robot.report_port}"
-
-    def _position_mode(self) -> None:
-        api = self._api
-        api.motion_enable(True)
-        api.set_mode(0)
-        api.set_state(0)
-        code, state = api.get_state()
-        if code != 0 or state == 4:
-            raise HardwareError(f"the controller does not get ready (state {state}, code {code})")
-
-    def _move_to(self, q0: np.ndarray, q_now: np.ndarray, latch: SigintLatch) -> None:
-        api, robot = self._api, self.config.robot
-        code = api.set_servo_angle(
-            angle=q0.tolist(), speed=robot.start_speed, mvacc=robot.start_acc,
-            is_radian=True, wait=False,
-        )  # fmt: skip
-        if code != 0:
-            self._check_controller("during the move to the start pose")
-            raise HardwareError(f"the move to the start pose was refused: SDK code {code}")
-        dist = float(np.max(np.abs(q0 - q_now)))
-        timeout = 2.0 * dist / robot.start_speed + robot.start_speed / robot.start_acc + 5.0
-        end = time.perf_counter() + timeout
-        while True:
-            latch.check()
-            if api.has_err_warn:
-                self._check_controller("during the move to the start pose")
-            q = self._joints()
-            if np.max(np.abs(q - q0)) < START_TOLERANCE and api.get_state()[1] != 1:
-                return
-            if time.perf_counter() > end:
-                raise HardwareError(
-                    f"the start pose was not reached within {timeout:.1f} s (off by "
-                    f"{np.max(np.abs(q - q0)):.4f} rad)"
-                )
-            time.sleep(REACH_POLL_S)
 
     def _settle(self, phase: str) -> dict[str, Any]:
         cfg = self.config.settle

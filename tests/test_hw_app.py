@@ -132,3 +132,32 @@ def test_calibrate_command_prints_the_base_table(tmp_path, capsys, kin):
     np.save(tmp_path / "few.npy", (kin.positions(poses) + t)[:4])
     assert cli.main([*args, "--measured", str(tmp_path / "few.npy")]) == 2
     assert "--measured: has 4 rows for 5 poses" in capsys.readouterr().err
+
+
+def test_calibrate_command_file_fit_options(tmp_path, capsys, kin):
+    """The fit of two files: per-pose residuals, --out, and the options it refuses."""
+    rng = np.random.default_rng(5)
+    poses = HOME_Q + rng.normal(scale=0.4, size=(6, 7))
+    measured = kin.positions(poses) + np.array([0.2, -0.1, 0.9])
+    measured[2] += [0.0, 0.004, 0.0]  # pose 3 off by 4 mm
+    np.save(tmp_path / "poses.npy", poses)
+    np.save(tmp_path / "measured.npy", measured)
+    out = tmp_path / "base.toml"
+    args = ["calibrate", "--cell", str(LAB), "--poses", str(tmp_path / "poses.npy")]
+    assert cli.main([*args, "--measured", str(tmp_path / "measured.npy"), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    rows = [line.split() for line in text.splitlines() if line[:4].strip().isdigit()]
+    per_pose = {int(r[0]): float(r[1]) for r in rows}
+    assert len(per_pose) == 6 and max(per_pose, key=per_pose.get) == 3
+    pose = tomllib.loads(out.read_text())["base"]["pose"]
+    np.testing.assert_allclose(pose[:3], [0.2, -0.1, 0.9], atol=3e-3)
+    assert f"Written: {out}" in text
+    lab_only = ["calibrate", "--cell", str(LAB)]
+    refused = [
+        ([*lab_only, "--measured", "m.npy"], "--measured: needs --poses"),
+        ([*args, "--measured", "m.npy", "--dry-run"], "--dry-run: moves nothing with --measured"),
+        ([*args, "--out", str(LAB), "--dry-run"], "--out: must not be the lab file"),
+    ]
+    for argv, message in refused:
+        assert cli.main(argv) == 2
+        assert message in capsys.readouterr().err

@@ -20,6 +20,21 @@ misread counts less. Without it the closed form is already the exact least-squar
 
 The pose is returned as the records store it: (x, y, z, qw, qx, qy, qz) with
 p_mocap = R p_base + t.
+
+**Conditioning** (:func:`fit_conditioning`): how well the poses determine the pose. With the
+fingertips centred on their centroid, c_i = a_i - a_bar, a small rotation dtheta moves them by
+dtheta x c_i, so the rotation's normal matrix is N = sum_i (|c_i|^2 I - c_i c_i^T); its
+condition sqrt(lambda_max / lambda_min) is 1 for an even spread and grows as the poses approach
+a line. With independent noise sigma on every measured coordinate, the fit's covariance is
+sigma^2 (J^T J)^-1 with the Jacobian J_i = [-[a_i]_x, I] of the residual in (dtheta, dt):
+reported as the largest standard deviation of the base position and orientation per 1 mm of
+noise (the base origin lies away from the poses, so its position error includes the rotation's
+lever arm).
+
+**Outliers** (:func:`leave_one_out`, :func:`find_outlier`): each pose is compared with the fit
+of the other poses (a misread marker pulls a fit of all poses towards itself and hides in it);
+a pose is an outlier when that distance exceeds both a fixed bound and
+:data:`OUTLIER_FACTOR` times the median of those distances over all poses.
 """
 
 from __future__ import annotations
@@ -33,9 +48,14 @@ from flyknot.geometry import matrix_to_quat, quat_to_matrix, readonly
 
 __all__ = [
     "MIN_SPREAD_M",
+    "OUTLIER_FACTOR",
     "CalibrationResidual",
+    "FitConditioning",
     "apply_pose",
     "calibrate_base",
+    "find_outlier",
+    "fit_conditioning",
+    "leave_one_out",
     "pose_from_rt",
     "rigid_fit",
 ]
@@ -43,6 +63,11 @@ __all__ = [
 MIN_SPREAD_M = 0.01
 """The poses must span a plane: the second singular value of the centred fingertip positions,
 divided by sqrt(k), must exceed this [m] (an RMS spread off the best line of 1 cm)."""
+
+OUTLIER_FACTOR = 4.0
+"""A pose is an outlier only if its leave-one-out distance also exceeds this many times the
+median over all poses (a fit whose every pose is off by the kinematics' own error has no
+outlier)."""
 
 _REFINE_ITERS = 50
 _REFINE_TOL = 1e-12  # [m] change of the translation that ends the reweighting
@@ -168,3 +193,87 @@ def calibrate_base(
         per_pose=per, rms_m=float(np.sqrt(np.mean(per**2))), max_m=float(per.max()), n_poses=k
     )
     return pose_from_rt(R, t), residual
+
+
+@dataclass(frozen=True)
+class FitConditioning:
+    """How well a set of fingertip positions determines the base pose (module docstring).
+
+    Attributes:
+        spread_m: RMS distance of the fingertips from their centroid along their principal
+            axes, largest first, shape (3,) [m].
+        condition: sqrt(lambda_max / lambda_min) of the rotation's normal matrix [-]; 1 is
+            an even spread, infinite for collinear poses.
+        position_mm_per_mm: Largest standard deviation of the fitted base position per 1 mm
+            of noise on every measured coordinate [mm / mm].
+        rotation_deg_per_mm: The same for the base orientation (worst axis) [deg / mm].
+    """
+
+    spread_m: np.ndarray
+    condition: float
+    position_mm_per_mm: float
+    rotation_deg_per_mm: float
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "spread_m", readonly(self.spread_m))
+
+    def summary(self) -> str:
+        """One line for a report."""
+        spread = " / ".join(f"{1e3 * x:.0f}" for x in self.spread_m)
+        return (
+            f"spread {spread} mm (rms along the principal axes), condition "
+            f"{self.condition:.2f}; 1 mm of noise per pose moves the base by up to "
+            f"{self.position_mm_per_mm:.2f} mm and {self.rotation_deg_per_mm:.3f} deg"
+        )
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    x, y, z = v
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def fit_conditioning(fk_points: np.ndarray) -> FitConditioning:
+    """The conditioning of a fit to the fingertips ``fk_points`` (k, 3) [m], base frame."""
+    a = _points("fk_points", fk_points)
+    k = a.shape[0]
+    c = a - a.mean(axis=0)
+    spread = np.linalg.svd(c, compute_uv=False) / np.sqrt(k)
+    spread = np.concatenate([spread, np.zeros(3 - spread.size)])
+    normal = np.sum(c * c) * np.eye(3) - c.T @ c
+    ev = np.linalg.eigvalsh(normal)
+    condition = float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 1e-12 * max(ev[-1], 1e-300) else np.inf
+    jac = np.concatenate([np.hstack([-_skew(p), np.eye(3)]) for p in a])
+    try:
+        cov = np.linalg.inv(jac.T @ jac)  # per (1 m)^2 of noise
+    except np.linalg.LinAlgError:
+        return FitConditioning(spread, np.inf, np.inf, np.inf)
+    rot = float(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], 0.0)))
+    pos = float(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:])[-1], 0.0)))
+    return FitConditioning(spread, condition, pos, float(np.degrees(rot)) * 1e-3)
+
+
+def leave_one_out(fk_points: np.ndarray, mocap_points: np.ndarray) -> np.ndarray:
+    """For each pose, the distance of its measured fingertip from the rigid fit of all the
+    other poses, shape (k,) [m]; k >= 4."""
+    a = _points("fk_points", fk_points)
+    b = _points("mocap_points", mocap_points)
+    if a.shape != b.shape or a.shape[0] < 4:
+        raise ConfigError(
+            "mocap_points", f"needs the shape of fk_points and k >= 4, got {a.shape}, {b.shape}"
+        )
+    out = np.empty(a.shape[0])
+    for i in range(a.shape[0]):
+        keep = np.arange(a.shape[0]) != i
+        R, t = rigid_fit(a[keep], b[keep])
+        out[i] = np.linalg.norm(R @ a[i] + t - b[i])
+    return out
+
+
+def find_outlier(loo_m: np.ndarray, bound_m: float) -> int | None:
+    """The index of the worst pose whose leave-one-out distance ``loo_m`` (k,) [m] exceeds
+    both ``bound_m`` [m] and :data:`OUTLIER_FACTOR` times the median; None if there is none."""
+    check_positive("bound_m", bound_m)
+    loo = np.asarray(loo_m, dtype=float)
+    limit = max(bound_m, OUTLIER_FACTOR * float(np.median(loo)))
+    worst = int(np.argmax(loo))
+    return worst if loo[worst] > limit else None
