@@ -145,7 +145,9 @@ class DryRunCell:
             torques=self.kinematics.torques(command),
             fingertip=self.kinematics.positions(command.q),
             workspace=self.config.safety.workspace,
-            tip_speed_max=self.config.safety.tip_speed_max,
+            tip_speed_max=(
+                self.config.safety.tip_speed_max if self.config.robot.stream == "servo" else None
+            ),
         )
         return self.last_report
 

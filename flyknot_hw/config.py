@@ -50,8 +50,16 @@ __all__ = [
 ]
 
 JOINT_SOURCES = ("auto", "report", "poll")
+STREAM_MODES = ("servo", "velocity")
+"""How a command is streamed: ``servo`` = ``set_servo_angle_j`` in mode 1 (the controller
+faults with C60 when its TCP moves faster than 1.2 m/s); ``velocity`` = joint velocities with
+``vc_set_joint_velocity`` in mode 4 (C60 is a servo_j code; unverified on a real arm)."""
 """Where measured joints come from: the controller's 30000 report stream (``report``), one
 ``get_servo_angle`` request per tick (``poll``), or the report when it connects (``auto``)."""
+VELOCITY_GAIN_MAX = 50.0
+"""Largest position gain of the velocity stream [1/s]: with ~10 ms from a measured joint to
+the velocity it corrects (200 Hz report, one 4 ms tick, the network), gain x delay = 0.5 rad
+keeps the loop well damped."""
 MOCAP_KINDS = ("live", "file")
 SETTLE_MODES = ("seconds", "markers", "operator")
 MARGIN_QUANTITIES = ("position", "velocity", "acceleration", "torque")
@@ -101,6 +109,12 @@ class RobotConfig:
             (:data:`JOINT_SOURCES`).
         reply_timeout_s: Longest wait for the controller's reply to one streamed target [s].
         max_late_s: Abort a stream whose tick is sent later than this after its deadline [s].
+        stream: :data:`STREAM_MODES`: ``servo`` (default, the SDK's documented path) or
+            ``velocity`` (for throws faster than servo mode's 1.2 m/s TCP limit).
+        velocity_gain: In ``velocity`` mode, the joint velocity sent at tick i is the
+            command's forward difference (q[i+1] - q[i]) / dt plus this gain times the
+            position error q[i] - q_measured [1/s]; 0 = feed-forward only. At most
+            :data:`VELOCITY_GAIN_MAX`.
     """
 
     address: str
@@ -112,6 +126,8 @@ class RobotConfig:
     joint_source: str = "auto"
     reply_timeout_s: float = 0.2
     max_late_s: float = 0.02
+    stream: str = "servo"
+    velocity_gain: float = 10.0
 
     def __post_init__(self) -> None:
         address = _text("robot.address", self.address)
@@ -144,6 +160,14 @@ class RobotConfig:
         check_choice("robot.joint_source", self.joint_source, JOINT_SOURCES)
         check_positive("robot.reply_timeout_s", self.reply_timeout_s)
         check_positive("robot.max_late_s", self.max_late_s)
+        check_choice("robot.stream", self.stream, STREAM_MODES)
+        check_nonnegative("robot.velocity_gain", self.velocity_gain)
+        if self.velocity_gain > VELOCITY_GAIN_MAX:
+            raise ConfigError(
+                "robot.velocity_gain",
+                f"must be at most {VELOCITY_GAIN_MAX:g} 1/s (the loop closes over the "
+                f"report's ~5 ms delay), got {self.velocity_gain}",
+            )
 
 
 @dataclass(frozen=True)

@@ -160,7 +160,8 @@ class PreflightError(HardwareError):
             msg = (
                 f"{what}: fingertip speed {_fmt(value)} m/s exceeds {_fmt(limit)} m/s "
                 f"(safety.tip_speed_max {_fmt(raw_limit)} m/s, the controller's servo-mode "
-                f"TCP speed limit (C60), with the safety margin){where}"
+                f"TCP speed limit (C60), with the safety margin){where}; streaming joint "
+                'velocities instead (robot.stream = "velocity") has no such limit'
             )
         elif quantity == "workspace":
             side = "min" if value < limit else "max"

@@ -154,6 +154,11 @@ class RealtimeReport:
         with self._lock:
             return None if not self._rows else (self._rows[-1][2], self._rows[-1][3])
 
+    def latest_q(self) -> np.ndarray | None:
+        """Measured joints (7,) [rad] of the newest frame, or None."""
+        with self._lock:
+            return None if not self._rows else np.array(self._rows[-1][5], dtype=float)
+
     def count(self) -> int:
         """Frames received so far."""
         with self._lock:

@@ -74,6 +74,7 @@ from flyknot_hw.mocap.trial import (
 from flyknot_hw.preflight import PreflightReport, preflight
 from flyknot_hw.rt_report import RealtimeReport
 from flyknot_hw.timing import DeadlineClock, SigintLatch, timing_stats
+from flyknot_hw.velocity_stream import VelocityStream
 
 __all__ = ["XArmCell", "console_ask", "console_confirm"]
 
@@ -87,6 +88,11 @@ SettleCheck = Callable[[str], Mapping[str, Any] | None]
 hangs still (or raises to abort); may return plain data for the record's metadata."""
 
 SERVO_MODE_TIMEOUT_S = 1.0  # [s]
+STREAM_CONTROLLER_MODE = {"servo": 1, "velocity": 4}
+"""The controller mode of each ``robot.stream``."""
+VELOCITY_WATCHDOG_TICKS = 5
+"""In velocity mode each velocity lasts this many ticks unless replaced (the controller then
+stops the joints itself: a stalled host cannot leave the arm moving)."""
 
 
 def console_ask(record: TrialRecord, suggestion: str | None) -> bool | None:
@@ -244,7 +250,8 @@ class XArmCell:
             torques=tau,
             fingertip=tip,
             workspace=safety.workspace,
-            tip_speed_max=safety.tip_speed_max,
+            # C60 is servo_j's TCP speed limit: checked only when streaming in servo mode.
+            tip_speed_max=safety.tip_speed_max if self.config.robot.stream == "servo" else None,
         )
 
     def _codes(self) -> tuple[int, int]:
@@ -343,17 +350,31 @@ class XArmCell:
         return {"mode": cfg.mode, "waited_s": round(time.perf_counter() - t, 3), **(extra or {})}
 
     def _servo_mode(self, rt: RealtimeReport | None) -> None:
+        """Enter the streaming mode of ``robot.stream``: 1 (servo) or 4 (joint velocity)."""
         api = self._api
-        api.set_mode(1)
+        mode = STREAM_CONTROLLER_MODE[self.config.robot.stream]
+        api.set_mode(mode)
         api.set_state(0)
         end = time.perf_counter() + SERVO_MODE_TIMEOUT_S
-        ok = rt is None or rt.wait_for(lambda s, m: m == 1 and s != 4, SERVO_MODE_TIMEOUT_S)
+        ok = rt is None or rt.wait_for(lambda s, m: m == mode and s != 4, SERVO_MODE_TIMEOUT_S)
         # The SDK's own idea of the mode (rich report, 5 Hz) must catch up too, or it warns
         # "the mode may be incorrect" on every target.
-        while ok and api.mode != 1 and time.perf_counter() < end:
+        while ok and api.mode != mode and time.perf_counter() < end:
             time.sleep(0.005)
-        if not ok or api.mode != 1:
-            raise HardwareError("the controller did not enter servo mode (mode 1) within 1 s")
+        if not ok or api.mode != mode:
+            raise HardwareError(
+                f"the controller did not enter {self.config.robot.stream} mode (mode {mode}) "
+                "within 1 s"
+            )
+
+    @staticmethod
+    def _latest_q(rt: RealtimeReport | None, q_poll: np.ndarray, i: int) -> np.ndarray | None:
+        """The newest measured joints before tick ``i`` (report, or the last poll), or None."""
+        if rt is not None:
+            return rt.latest_q()
+        if i > 0 and np.all(np.isfinite(q_poll[i - 1])):
+            return q_poll[i - 1]
+        return None
 
     def _fault_text(self, code: int) -> tuple[str | None, dict[str, Any]]:
         api = self._api
@@ -377,6 +398,9 @@ class XArmCell:
         api, robot = self._api, self.config.robot
         q, n, dt = np.asarray(command.q, dtype=float), command.n, command.dt
         self._servo_mode(rt)
+        velocity = None
+        if robot.stream == "velocity":
+            velocity = VelocityStream(q, dt, robot.velocity_gain, self.limits.qd_max)
         end = n + round(self.config.settle.after_s / dt)
         poll = rt is None
         q_poll = np.full((end + round(self.brake_s / dt) + 1, 7), np.nan)
@@ -400,8 +424,18 @@ class XArmCell:
                         "was stopped"
                     )
                 sent[i] = t
-                code = api.set_servo_angle_j(q[i].tolist(), is_radian=True)
+                if velocity is None:
+                    code = api.set_servo_angle_j(q[i].tolist(), is_radian=True)
+                else:
+                    code = api.vc_set_joint_velocity(
+                        velocity.at(i, self._latest_q(rt, q_poll, i)).tolist(),
+                        is_radian=True,
+                        is_sync=True,
+                        duration=VELOCITY_WATCHDOG_TICKS * dt,
+                    )
                 replied[i] = time.perf_counter()
+            elif velocity is not None and i == n and fault is None:
+                code = api.vc_set_joint_velocity([0.0] * 7, is_radian=True, is_sync=True)
             if code in xarm_sdk.CONNECTION_LOST_CODES or not api.connected:
                 raise _LostConnectionError(
                     f"connection to the controller lost at tick {i} (t = {i * dt:.3f} s, "

@@ -294,7 +294,8 @@ def test_the_fingertip_speed_limit_c60_refuses_a_fast_throw():
     assert str(e.value) == (
         "command: fingertip speed 2 m/s exceeds 1.14 m/s (safety.tip_speed_max 1.2 m/s, the "
         "controller's servo-mode TCP speed limit (C60), with the safety margin) at sample 51 "
-        "(t = 0.204 s); nothing was sent to the robot"
+        '(t = 0.204 s); streaming joint velocities instead (robot.stream = "velocity") has '
+        "no such limit; nothing was sent to the robot"
     )
     report = preflight(cmd, limits, fingertip=tip, workspace=box, tip_speed_max=2.5)
     assert report.tip_speed_peak == pytest.approx(2.0)

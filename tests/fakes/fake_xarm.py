@@ -17,7 +17,8 @@ Wire protocol (read from xarm-python-sdk 1.18.4, ``core/comm/base.py``,
 
 Registers served: 1 version, 2 serial, 11 motion enable, 12/13 set/get state, 14 cmdnum,
 15 error/warn, 16/17 clean error/warn, 19 set mode, 23 joint move (position mode), 29 servo_j,
-41 TCP pose, 42 joint positions (and states), 53 reduced-mode states. Anything else is answered
+41 TCP pose, 42 joint positions (and states), 53 reduced-mode states, 81 joint velocity (mode 4:
+integrated into the target, for its duration). Anything else is answered
 "invalid" and logged in :attr:`FakeXArm.unknown`.
 
 The arm: ``arm="mujoco"`` (default) is the simulated lab's xArm 7 (``flyknot_sim.robot``:
@@ -29,7 +30,9 @@ with the same interface as ``_Arm`` (``q``, ``qd``, ``tau``, ``advance``, ``tcp_
 Firmware behaviour modelled: the joint ranges of ``xarm.core.config.x_config.XCONF`` for the
 fake's serial (C23 when a target leaves them), a joint speed limit of pi rad/s on the implied
 speed of consecutive servo targets at the nominal 4 ms (C24), injectable errors/warnings at the
-k-th servo target (e.g. C31 collision), and a dropped connection (closed or silent). An error
+k-th servo target (e.g. C31 collision), a dropped connection (closed or silent), and, when
+``servo_tcp_speed_max`` is given, C60 for servo targets whose implied flange speed exceeds it
+(the firmware's 1.2 m/s; off by default); velocities above pi rad/s give C24. An error
 stops the arm (state 4, targets ignored) until ``clean_error`` + ``motion_enable`` +
 ``set_state(0)``; ``set_mode`` takes effect at the next ``set_state(0)``.
 
@@ -144,6 +147,15 @@ class _Arm:
             mujoco.mj_step(self.model, self.data)
         self.qd = self.data.qvel[:7].copy()
 
+    def flange(self, q: np.ndarray) -> np.ndarray:
+        """Flange position [m] at joints ``q`` (forward kinematics only; the state is kept)."""
+        keep = self.data.qpos[:7].copy()
+        self.data.qpos[:7] = q
+        mujoco.mj_kinematics(self.model, self.data)
+        p = self.data.xpos[self.body].copy()
+        self.data.qpos[:7] = keep
+        return p
+
     def tcp_pose(self) -> np.ndarray:
         """Flange pose (x, y, z [mm], roll, pitch, yaw [rad])."""
         mujoco.mj_kinematics(self.model, self.data)
@@ -179,6 +191,7 @@ class FakeXArm:
         report_hz: dict[int, float] | None = None,
         rt_epoch_s: float = 1234.5,
         reduced: tuple[float, np.ndarray] | None = None,
+        servo_tcp_speed_max: float | None = None,
     ):
         self.serial, self.version = serial, version
         self.ranges = firmware_ranges(serial)
@@ -186,6 +199,9 @@ class FakeXArm:
         self.report_hz = {**REPORT_HZ, **(report_hz or {})}
         self.rt_epoch_s = rt_epoch_s
         self.reduced = reduced
+        self._tcp_max = servo_tcp_speed_max
+        self._fk = _Arm("exact", self.arm.q) if servo_tcp_speed_max is not None else None
+        self._vel: tuple[float, np.ndarray, np.ndarray, float] | None = None
         self._lock = threading.RLock()
         self.enabled = True
         self.state = 4 if initial_error else 2
@@ -320,6 +336,9 @@ class FakeXArm:
 
     # --- the arm ---------------------------------------------------------------------------
     def _ctrl_at(self, t: float) -> np.ndarray:
+        if self._vel is not None:
+            t0, q0, v, dur = self._vel
+            return q0 + v * min(max(t - t0, 0.0), dur if dur > 0 else math.inf)
         if self._plan is None:
             return self._target
         t0, qa, qb, dur = self._plan
@@ -333,6 +352,7 @@ class FakeXArm:
         if self.state in (1, 2) and self.error_code == 0:
             busy = self._plan is not None and now < self._plan[0] + self._plan[3]
             busy = busy or (self.mode == 1 and now - self._last_servo_t < 0.05)
+            busy = busy or (self._vel is not None and now - self._vel[0] < self._vel[3])
             self.state = 1 if busy or np.max(np.abs(self.arm.qd)) > 1e-2 else 2
             if not busy and self._plan is not None:
                 self._target, self._plan = self._plan[2], None
@@ -344,7 +364,7 @@ class FakeXArm:
     def _fault(self, code: int) -> None:
         self.error_code = code
         self.state = 4
-        self._plan = None
+        self._plan = self._vel = None
         self._target = self.arm.q
         self.events.append((time.perf_counter(), "error", code))
 
@@ -442,12 +462,12 @@ class FakeXArm:
         if want == 0:
             if self.error_code == 0 and self.enabled:
                 self.mode = self.pending_mode
-                self._plan, self._target = None, self.arm.q
+                self._plan, self._vel, self._target = None, None, self.arm.q
                 self._last_servo = None
                 self.state = 2
         elif want in (3, 4, 6):
             self.state = 4 if want in (4, 6) else 3
-            self._plan, self._target = None, self.arm.q
+            self._plan, self._vel, self._target = None, None, self.arm.q
 
     def _r13(self, p: bytes, now: float) -> bytes:
         return bytes([self.state])
@@ -510,8 +530,29 @@ class FakeXArm:
             self.servo[-1].applied = False
             self._fault(24)
             return
+        if self._tcp_max is not None and self._tcp_speed(prev, q) > self._tcp_max:
+            self.servo[-1].applied = False
+            self._fault(60)
+            return
         self._last_servo, self._last_servo_t = q, now
         self._target = q
+        self.state = 1
+
+    def _tcp_speed(self, qa: np.ndarray, qb: np.ndarray) -> float:
+        """Flange speed implied by two servo targets one nominal period apart [m/s]."""
+        pa, pb = (self._fk.flange(q) for q in (qa, qb))
+        return float(np.linalg.norm(pb - pa)) / SERVO_PERIOD
+
+    def _r81(self, p: bytes, now: float) -> None:  # joint velocity: 7 floats, sync, duration
+        v = _floats(p, 7).astype(float)
+        dur = struct.unpack("<f", p[29:33])[0] if len(p) >= 33 else -1.0
+        self.events.append((now, "velocity", v))
+        if not (self._ready() and self.mode == 4 and self.error_code == 0):
+            return
+        if np.max(np.abs(v)) > QD_MAX_FW * (1 + 1e-6):
+            self._fault(24)
+            return
+        self._vel = (now, self._ctrl_at(now), v, float(dur))
         self.state = 1
 
     def _r41(self, p: bytes, now: float) -> bytes:
