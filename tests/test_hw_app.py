@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import tomllib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -99,6 +100,22 @@ def test_run_with_cell_dry_run_plays_the_scenario_through_the_preflight(tmp_path
     rec = json.loads((out / "runs" / "rope1" / "learning" / "trial_0000_a0.json").read_text())
     assert rec["metadata"]["dry_run"] is True
     assert 1.2 < rec["metadata"]["preflight"]["tip_speed_peak_m_s"] < 4.0 * 0.95
+
+
+def test_a_velocity_stream_dry_run_passes_and_view_opens_its_run(tmp_path, capsys, monkeypatch):
+    import flyknot_app.viewer as viewer
+
+    served = []
+    monkeypatch.setattr(viewer, "serve", lambda path, **kw: served.append((Path(path), kw)))
+    lab = tmp_path / "velocity_lab.toml"
+    lab.write_text(LAB.read_text().replace('stream = "servo"', 'stream = "velocity"'))
+    out = tmp_path / "dry"
+    args = ["run", "quick", "--cell", str(lab), "--dry-run", "--set", "max_trials=0"]
+    assert cli.main([*args, "--out", str(out)]) == 0  # C60 is servo mode's: not checked
+    assert capsys.readouterr().out.rstrip().endswith(f"flyknot view {out}")
+    assert served == []
+    assert cli.main([*args, "--out", str(tmp_path / "dry2"), "--view", "--port", "8123"]) == 0
+    assert served == [(tmp_path / "dry2", {"port": 8123})]
 
 
 def test_calibration_recovers_a_base_pose(kin):
