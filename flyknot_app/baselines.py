@@ -1,19 +1,29 @@
-"""Black-box baselines to compare Task-Level ILC with, played through the gym env.
+"""Baselines to compare Task-Level ILC with, played through the gym envs.
 
-Both search the offset x (80,) of the command's knots from the initial command (the one ILC
-starts from), scaled by ``scale`` [rad per unit for joint rows, m per unit for base rows],
-made a valid command by :meth:`flyknot_app.gym_env.FlyknotEnv.constrain`, and see only the
-env's reward (minus the critical-point cost, plus the knot bonus) and whether the knot tied:
+The black-box searches ``random`` and ``cma`` play whole commands through
+:class:`flyknot_app.gym_env.FlyknotEnv`. Both search the offset x (80,) of the command's
+knots from the initial command (the one ILC starts from), scaled by ``scale`` [rad per unit
+for joint rows, m per unit for base rows], made a valid command by
+:meth:`flyknot_app.gym_env.FlyknotEnv.constrain`, and see only the env's reward (minus the
+critical-point cost, plus the knot bonus) and whether the knot tied:
 
 - ``random``: random search around the best offset so far, x = x_best + sigma N(0, I); the
   first trial plays the initial command (x = 0).
 - ``cma``: CMA-ES (the ``cma`` package) on the loss -reward from x = 0 with step sigma; the
   first trial plays the mean (the initial command).
 
-A search stops at the first knot (like the paper's ILC) or after ``budget`` trials; its best
-command (the knotted one, else the highest reward) is then repeated ``repeats`` times on the
-same lab (the success rate). ``flyknot baseline NAME --rope R --budget B --seeds 0-4`` runs
-it per seed and writes ``baseline.json`` and ``baseline.md``.
+``ppo`` (the ``rl`` extra: stable-baselines3 and torch) trains PPO on the tick-level env
+:class:`flyknot_app.gym_tick_env.FlyknotTickEnv`, one episode per trial: a Gaussian policy
+with state-dependent exploration (gSDE, its noise matrix drawn anew for every episode: the
+smooth exploration a 250 Hz arm needs, see the env's docstring) from the initial command (a
+zero action replays it); reward, cost and knot are the env's (:class:`PPOParams`).
+
+A baseline stops at the first knot (like the paper's ILC) or after ``budget`` trials; its
+best command (the knotted one, else the highest reward; for PPO the actions of that episode,
+replayed open loop) is then repeated ``repeats`` times on the same lab: the success rate
+after the budget. ``flyknot baseline NAME --rope R --budget B --seeds 0-4 [--repeats N]``
+runs it per seed and writes ``baseline.json`` and ``baseline.md`` (the success rates with
+95 % Wilson intervals).
 """
 
 from __future__ import annotations
@@ -28,7 +38,12 @@ import numpy as np
 
 from flyknot.errors import ConfigError, check_positive
 
-BASELINES = ("random", "cma")
+BASELINES = ("random", "cma", "ppo")
+RL_HINT = (
+    "pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu (the CPU "
+    "wheel first), then pip install -e '.[rl]'"
+)
+"""How to install the ``rl`` extra (a plain ``torch`` from PyPI is a multi-GB CUDA build)."""
 
 
 @dataclass(frozen=True)
@@ -141,17 +156,140 @@ SEARCHES: dict[str, Callable[[_Search, np.random.Generator], None]] = {
 }
 
 
+@dataclass(frozen=True)
+class PPOParams:
+    """PPO's settings (stable-baselines3's names) for the tick-level env.
+
+    Attributes:
+        episodes_per_update: Rollout length in episodes (``n_steps`` = this times the
+            command's ticks, rounded up to a multiple of 4; 4 minibatches per epoch).
+        n_epochs: Passes over a rollout per update.
+        learning_rate: Adam's step.
+        gamma: Discount (1: the only reward comes at the episode's end).
+        gae_lambda: GAE's lambda.
+        log_std_init: Initial log std of the gSDE noise weights.
+    """
+
+    episodes_per_update: int = 2
+    n_epochs: int = 10
+    learning_rate: float = 3e-4
+    gamma: float = 1.0
+    gae_lambda: float = 0.95
+    log_std_init: float = -1.0
+
+    def __post_init__(self) -> None:
+        for name in ("episodes_per_update", "n_epochs"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ConfigError(name, f"must be an integer >= 1, got {v!r}")
+        check_positive("learning_rate", self.learning_rate)
+        for name in ("gamma", "gae_lambda"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and 0 < v <= 1):
+                raise ConfigError(name, f"must lie in (0, 1], got {v!r}")
+        if not (isinstance(self.log_std_init, (int, float)) and np.isfinite(self.log_std_init)):
+            raise ConfigError("log_std_init", f"must be a finite number, got {self.log_std_init!r}")
+
+
+def require_rl() -> None:
+    """Raise :class:`ConfigError` (with how to install it) unless the ``rl`` extra is there."""
+    import importlib.util
+
+    missing = [m for m in ("torch", "stable_baselines3") if importlib.util.find_spec(m) is None]
+    if missing:
+        raise ConfigError(
+            "baseline", f"ppo needs the rl extra ({', '.join(missing)} missing): {RL_HINT}"
+        )
+
+
+def run_ppo(
+    env: Any, params: BaselineParams = BaselineParams(), seed: int = 0, ppo: PPOParams = PPOParams()
+) -> BaselineResult:
+    """Train PPO on ``env`` (a :class:`~flyknot_app.gym_tick_env.FlyknotTickEnv`) until its
+    first knot or ``params.budget`` episodes, then replay the best episode's actions
+    ``params.repeats`` times. The lab's variation starts at trial 0 of ``seed``; the policy's
+    initial weights and noise come from ``seed`` too. Torch runs on one CPU thread.
+
+    Raises:
+        ConfigError: The ``rl`` extra is not installed.
+    """
+    require_rl()
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    torch.set_num_threads(1)
+    result = BaselineResult("ppo", seed)
+    episodes: list[tuple[float, bool, np.ndarray]] = []
+
+    class _Trials(BaseCallback):
+        """Books every finished episode as a trial; stops at the first knot or the budget."""
+
+        def _on_step(self) -> bool:
+            go = True
+            loc = self.locals
+            for done, info, reward in zip(loc["dones"], loc["infos"], loc["rewards"], strict=True):
+                if not done:
+                    continue
+                tied = bool(info["success"])
+                result.rewards.append(float(reward))
+                result.costs.append(float(info["cost"]))
+                result.knots.append(tied)
+                episodes.append((float(reward), tied, np.array(info["actions"])))
+                if tied and result.trials_to_success is None:
+                    result.trials_to_success = len(result.knots)
+                go = go and not tied and len(result.knots) < params.budget
+                self.model.policy.reset_noise(1)  # a new exploration for the next episode
+            return go
+
+    n_steps = 4 * -(-ppo.episodes_per_update * env.n_ticks // 4)
+    model = PPO(
+        "MlpPolicy",
+        env,
+        n_steps=n_steps,
+        batch_size=n_steps // 4,
+        n_epochs=ppo.n_epochs,
+        learning_rate=ppo.learning_rate,
+        gamma=ppo.gamma,
+        gae_lambda=ppo.gae_lambda,
+        use_sde=True,
+        policy_kwargs={"log_std_init": ppo.log_std_init},
+        seed=seed,
+        device="cpu",
+        verbose=0,
+    )
+    model.learn(total_timesteps=(params.budget + 1) * env.n_ticks + n_steps, callback=_Trials())
+    if episodes and params.repeats:
+        best = max(range(len(episodes)), key=lambda i: (episodes[i][1], episodes[i][0]))
+        actions = episodes[best][2]
+        for _ in range(params.repeats):
+            env.reset()
+            for a in actions:
+                *_, terminated, _, info = env.step(a)
+                if terminated:
+                    break
+            result.repeats.append("fault" if info["fault"] else info["knot"])
+    return result
+
+
 def run_baseline(
     name: str, env: Any, params: BaselineParams = BaselineParams(), seed: int = 0
 ) -> BaselineResult:
-    """Search with baseline ``name`` on ``env`` (a :class:`~flyknot_app.gym_env.FlyknotEnv`).
+    """Search with baseline ``name`` on ``env`` (a :class:`~flyknot_app.gym_env.FlyknotEnv`;
+    for ``ppo`` a :class:`~flyknot_app.gym_tick_env.FlyknotTickEnv`, see :func:`run_ppo`).
 
     ``env.reset(seed=seed)`` plays nothing of the search: its one trial (the initial command)
-    is not counted; the search's own first trial plays the initial command again.
+    is not counted, and the lab is rewound (``env.restart_variation()``), so the search's
+    trial i (from 1) meets the lab's trial i - 1 of ``seed``, as ILC's trial i does in
+    ``flyknot run`` and PPO's episode i does: paired comparisons. The search's own first
+    trial plays the initial command again.
     """
-    if name not in SEARCHES:
+    if name not in BASELINES:
         raise ConfigError("baseline", f"unknown baseline {name!r}", BASELINES)
+    if name == "ppo":
+        return run_ppo(env, params, seed)
     env.reset(seed=seed)
+    env.restart_variation()
     result = BaselineResult(name, seed)
     search = _Search(env, params, result)
     SEARCHES[name](search, np.random.default_rng(seed))
@@ -163,25 +301,55 @@ def run_baseline(
 
 
 def write_results(
-    out: str | Path, results: Sequence[BaselineResult], params: BaselineParams, rope: int | str
+    out: str | Path,
+    results: Sequence[BaselineResult],
+    params: BaselineParams,
+    rope: int | str,
+    settings: dict[str, Any] | None = None,
 ) -> Path:
-    """``baseline.json`` and a ``baseline.md`` table of the searches in ``out``."""
+    """``baseline.json`` and ``baseline.md`` of the searches in ``out``: per seed the trials
+    until the first knot, the best cost and the knots in the repeats with a 95 % Wilson
+    interval; below, the mean trials until the first knot (a seed without a knot counted as
+    its trials + 1: then a lower bound, >=) and the repeats pooled over the seeds (the success
+    rate after the budget). ``settings``: more to record in the JSON (e.g. the env's)."""
+    from flyknot_app.report import wilson_interval
+
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     doc = {
         "rope": rope,
         "params": asdict(params),
+        **({"settings": settings} if settings else {}),
         "runs": [{**asdict(r), "success_rate": r.success_rate} for r in results],
     }
     (out / "baseline.json").write_text(json.dumps(doc, indent=2))
     lines = [
-        "| baseline | seed | trials until knot | best cost | repeats tied |",
+        "| baseline | seed | trials until knot | best cost | repeats tied (95 % CI) |",
         "|---|---|---|---|---|",
     ]
+
+    def tied(reps: Sequence[str | None]) -> str:
+        if not reps:
+            return "-"
+        k = sum(x == "trefoil" for x in reps)
+        lo, hi = wilson_interval(k, len(reps))
+        return f"{k}/{len(reps)} ({lo:.0%}-{hi:.0%})"
+
     for r in results:
         ttk = r.trials_to_success if r.trials_to_success is not None else f">{len(r.knots)}"
-        rep = f"{sum(x == 'trefoil' for x in r.repeats)}/{len(r.repeats)}" if r.repeats else "-"
-        lines.append(f"| {r.name} | {r.seed} | {ttk} | {min(r.costs):.3g} | {rep} |")
+        lines.append(f"| {r.name} | {r.seed} | {ttk} | {min(r.costs):.3g} | {tied(r.repeats)} |")
+    if results:
+        trials = [r.trials_to_success or len(r.knots) + 1 for r in results]
+        bound = ">=" if any(r.trials_to_success is None for r in results) else ""
+        n_tied = sum(r.trials_to_success is not None for r in results)
+        lines += [
+            "",
+            f"Knot within the budget of {params.budget}: {n_tied} of {len(results)} seeds; "
+            f"mean trials until the first knot: {bound}{np.mean(trials):.3g}.",
+        ]
+        pooled = [x for r in results for x in r.repeats]
+        if pooled:
+            lines.append(f"Success after the budget (repeats, pooled): {tied(pooled)}.")
     path = out / "baseline.md"
     path.write_text("\n".join(lines) + "\n")
     return path

@@ -116,13 +116,28 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from flyknot_app.report import outcome_line
 
     print(f"{outcome_line(scen.kind, summary['runs'])} Report: {out / 'report.md'}")
+    if args.view:
+        from flyknot_app.viewer import serve
+
+        serve(out, port=args.port)
+    elif args.dry_run:
+        print(f"look at the dry run's motions: flyknot view {out}")
     return 0
 
 
 def _cmd_view(args: argparse.Namespace) -> int:
     from flyknot_app.viewer import serve
 
-    serve(args.record, host=args.host, port=args.port)
+    serve(args.path, host=args.host, port=args.port)
+    return 0
+
+
+def _cmd_render(args: argparse.Namespace) -> int:
+    from flyknot_app.render import RenderParams, render_trial
+
+    params = RenderParams(width=args.width, height=args.height, fps=args.fps)
+    out = render_trial(args.record, args.out, time=args.time, params=params)
+    print(f"rendered: {out}")
     return 0
 
 
@@ -171,62 +186,52 @@ def _cmd_baseline(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from flyknot.progress import bar_disable
-    from flyknot_app.baselines import BaselineParams, run_baseline, write_results
-    from flyknot_app.gym_env import FlyknotEnv
+    from flyknot_app.baselines import (
+        BaselineParams,
+        PPOParams,
+        require_rl,
+        run_baseline,
+        write_results,
+    )
 
     params = BaselineParams(
         budget=args.budget, sigma=args.sigma, scale=args.scale, repeats=args.repeats
     )
     seeds = _parse_seeds(args.seeds)
-    env = FlyknotEnv(
-        rope=args.rope, max_trials=params.budget + params.repeats + 1, settle_s=args.settle
-    )
+    settings = None
+    if args.name == "ppo":
+        from dataclasses import asdict
+
+        from flyknot_app.gym_tick_env import FlyknotTickEnv
+
+        require_rl()  # before the initial guess is computed
+        env = FlyknotTickEnv(rope=args.rope, settle_s=args.settle)
+        settings = {
+            "env": "flyknot/FlyingKnotTick-v0",
+            "action_scale": env.action_scale,
+            "smoothing_s": env.smoothing_s,
+            "ppo": asdict(PPOParams()),
+        }
+    else:
+        from flyknot_app.gym_env import FlyknotEnv
+
+        env = FlyknotEnv(
+            rope=args.rope, max_trials=params.budget + params.repeats + 1, settle_s=args.settle
+        )
     results = []
     for seed in tqdm(seeds, desc=args.name, unit="seed", disable=bar_disable(not args.quiet)):
         results.append(run_baseline(args.name, env, params, seed))
     out = Path(args.out or f"runs/baseline-{args.name}-rope{args.rope}")
-    table = write_results(out, results, params, args.rope)
+    table = write_results(out, results, params, args.rope, settings)
     print(table.read_text(), end="")
     print(f"Written: {out / 'baseline.json'}")
     return 0
 
 
-def _read_rows(flag: str, path: str, width: int) -> np.ndarray:
-    """A (k, width) table from a .npy or .csv file (CSV: one row per line, header allowed)."""
-    p = Path(path)
-    if not p.is_file():
-        raise ConfigError(flag, f"no file {str(p)!r}")
-    try:
-        a = np.load(p) if p.suffix == ".npy" else np.genfromtxt(p, delimiter=",", comments="#")
-    except ValueError as e:
-        raise ConfigError(flag, f"{str(p)!r} is not a numeric table: {e}") from None
-    a = np.atleast_2d(np.asarray(a, dtype=float))
-    a = a[np.all(np.isfinite(a), axis=1)]  # a CSV header row reads as NaN
-    if a.ndim != 2 or a.shape[1] != width:
-        raise ConfigError(flag, f"{str(p)!r} must hold rows of {width} numbers, got {a.shape}")
-    return a
-
-
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from flyknot_app.hardware import calibrate
-    from flyknot_hw.config import load_lab_config
+    from flyknot_app.hardware import calibrate_command
 
-    config = load_lab_config(args.cell)
-    poses = _read_rows("--poses", args.poses, 7)
-    measured = _read_rows("--measured", args.measured, 3)
-    if len(measured) != len(poses):
-        raise ConfigError(
-            "--measured", f"has {len(measured)} rows for {len(poses)} poses (one per pose)"
-        )
-    rows = iter(measured)
-    cal = calibrate(lambda q: next(rows), poses)  # the poses were measured in this order
-    old = ", ".join(f"{v:.4f}" for v in config.base_pose)
-    print(
-        f"base pose fitted from {len(poses)} poses: residual rms {cal.residual_rms * 1e3:.2f} mm, "
-        f"max {cal.residual_max * 1e3:.2f} mm (lab file now: [{old}])"
-    )
-    print(cal.toml(), end="")
-    return 0
+    return calibrate_command(args)
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
@@ -364,6 +369,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --cell: preflight every command as on the arm, then play it in the "
         "simulated lab; nothing connects to the robot",
     )
+    r.add_argument(
+        "--view",
+        action="store_true",
+        help="when the run ends, serve the 3D viewer on its run directory (Ctrl-C stops it); "
+        "with --dry-run: look at the motions before the arm makes them",
+    )
+    r.add_argument("--port", type=int, default=8080, help="with --view: the viewer's port")
     r.set_defaults(func=_cmd_run)
 
     k = sub.add_parser("knot", help="classify a rope centreline (.npy or .csv, (n, 3))")
@@ -403,11 +415,30 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_demo_parser(sub)
 
-    v = sub.add_parser("view", help="3D viewer of a trial record in the browser (viser)")
-    v.add_argument("record", help="trial record (.json/.npz stem, e.g. runs/x/trial)")
+    v = sub.add_parser(
+        "view", help="3D viewer of a trial record or a run directory in the browser (viser)"
+    )
+    v.add_argument(
+        "path",
+        metavar="PATH",
+        help="trial record (.json/.npz or stem, e.g. runs/x/trial) or run directory (flyknot run)",
+    )
     v.add_argument("--host", default="127.0.0.1", help="address to serve on")
     v.add_argument("--port", type=int, default=8080, help="port to serve on")
     v.set_defaults(func=_cmd_view)
+
+    rn = sub.add_parser("render", help="render a trial offscreen (MuJoCo) to a .png or an .mp4")
+    rn.add_argument("record", help="trial record (.json/.npz or stem)")
+    rn.add_argument("--out", required=True, help="image (.png, one frame) or video (.mp4)")
+    rn.add_argument(
+        "--time", type=float, default=None, help="time of a .png [s] (default: end of motion)"
+    )
+    rn.add_argument("--width", type=int, default=640, help="pixels (default 640)")
+    rn.add_argument("--height", type=int, default=480, help="pixels (default 480)")
+    rn.add_argument(
+        "--fps", type=float, default=30.0, help="frames per second of an .mp4 (default 30)"
+    )
+    rn.set_defaults(func=_cmd_render)
 
     m = sub.add_parser(
         "model-check",
@@ -456,13 +487,16 @@ def build_parser() -> argparse.ArgumentParser:
     e.set_defaults(func=_cmd_explain)
 
     bl = sub.add_parser(
-        "baseline", help="a black-box baseline (random search, CMA-ES) through the gym env"
+        "baseline",
+        help="a baseline through the gym envs: random search, CMA-ES, PPO (the rl extra)",
     )
-    bl.add_argument("name", choices=["random", "cma"])
+    bl.add_argument("name", choices=["random", "cma", "ppo"])
     bl.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
     bl.add_argument("--budget", type=int, default=30, help="trials per seed (default 30)")
     bl.add_argument("--seeds", default="0", help="lab seeds: A-B or A,B,... (default 0)")
-    bl.add_argument("--repeats", type=int, default=0, help="plays of the best command after")
+    bl.add_argument(
+        "--repeats", type=int, default=0, help="plays of the best command after (success rate)"
+    )
     bl.add_argument("--sigma", type=float, default=0.3, help="search step (offset units)")
     bl.add_argument("--scale", type=float, default=0.1, help="knot change per unit [rad]")
     bl.add_argument("--out", default=None, help="directory (default runs/baseline-NAME-ropeR)")
@@ -474,15 +508,28 @@ def build_parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser(
         "calibrate",
-        help="fit the robot base pose in the mocap frame from fingertip positions at joint poses",
+        help="drive the arm through joint poses, see its fingertip in the motion capture, fit "
+        "the robot base pose in the mocap frame (or fit fingertips measured elsewhere)",
     )
     c.add_argument("--cell", required=True, metavar="LAB.toml", help="the lab file")
-    c.add_argument("--poses", required=True, help="joint poses, (k, 7) [rad] (.csv or .npy)")
+    c.add_argument(
+        "--poses",
+        default=None,
+        help="joint poses, (k, 7) [rad] (.csv or .npy); default: 8 poses around the lab "
+        "file's calibration.start",
+    )
     c.add_argument(
         "--measured",
-        required=True,
-        help="the fingertip the motion capture saw at each pose, (k, 3) [m], mocap frame",
+        default=None,
+        help="fit only, nothing moves: the fingertip the motion capture saw at each of "
+        "--poses, (k, 3) [m], mocap frame",
     )
+    c.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="preflight every pose and move and print the plan; connect to nothing",
+    )
+    c.add_argument("--out", default=None, help="also write the fitted [base] table to this file")
     c.set_defaults(func=_cmd_calibrate)
 
     cp = sub.add_parser("compare", help="several run directories side by side: table and figures")

@@ -1,17 +1,27 @@
-"""``flyknot compare RUN_DIR ...``: several runs side by side, in a table and figures.
+"""``flyknot compare RUN_DIR ...``: several runs side by side, in tables and figures.
 
-Each RUN_DIR is what ``flyknot run`` wrote (its ``summary.json``) or what ``flyknot
-baseline`` wrote (its ``baseline.json``). Per directory: how many of its runs tied the knot,
-the trials until the knot (median and range, over the runs that tied), the knots in the
-repeats pooled over its runs with a 95 % Wilson interval, and the learning curves (the cost
-per trial of every run, and their median). Written into ``--out``: ``compare.md``,
-``compare_costs.png``, ``compare_trials.png`` and (when any directory has repeats)
+Each RUN_DIR is what ``flyknot run`` wrote (its ``summary.json``: ILC) or what ``flyknot
+baseline`` wrote (its ``baseline.json``: random search, CMA-ES or PPO). Per directory: how
+many of its runs tied the knot, the trials until the knot (median and range, over the runs
+that tied), the knots in the repeats pooled over its runs with a 95 % Wilson interval (the
+success rate after the budget), and the learning curves (the cost per trial of every run,
+and their median).
+
+ILC beside each baseline, run by run: a table of the trials until the first knot per (rope,
+seed) with each directory in a column (a run without a knot shows ``>n``, its n trials), the
+mean trials until the first knot, and the ratio of each baseline's mean to ILC's over the
+(rope, seed) pairs both have (a run without a knot counts as n + 1 trials, so a mean with
+one is a lower bound, marked >=; a ratio is then a bound too, or undetermined when both
+are). The seed of an ILC run is its ``seed`` field or its name's ``-seedS`` suffix
+(``flyknot run --seeds``). Written into ``--out``: ``compare.md``, ``compare_costs.png``,
+``compare_trials.png``, ``compare_seeds.png`` and (when any directory has repeats)
 ``compare_success.png``.
 """
 
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -37,6 +47,8 @@ class RunSet:
         trials_to_success: Per run, trials until the first knot, or None.
         repeats_tied: Trefoils in the repeats, pooled over the runs.
         repeats: Repeats, pooled over the runs.
+        kind: ``"ilc"`` (a run directory) or the baseline's name.
+        keys: Per run, its (rope, seed); the seed None when unknown.
     """
 
     label: str
@@ -44,6 +56,23 @@ class RunSet:
     trials_to_success: tuple[int | None, ...]
     repeats_tied: int
     repeats: int
+    kind: str = "ilc"
+    keys: tuple[tuple[Any, int | None], ...] = ()
+
+    @property
+    def trials(self) -> tuple[int, ...]:
+        """Per run, the trials until the first knot, or its trials + 1 when it has none."""
+        return tuple(
+            len(c) + 1 if n is None else n
+            for n, c in zip(self.trials_to_success, self.costs, strict=True)
+        )
+
+
+def _seed(run: dict[str, Any]) -> int | None:
+    if isinstance(run.get("seed"), int):
+        return run["seed"]
+    m = re.search(r"-seed(\d+)$", str(run.get("name", "")))
+    return int(m.group(1)) if m else None
 
 
 def _tts(run: dict[str, Any]) -> int | None:
@@ -57,9 +86,12 @@ def load_runset(directory: str | Path) -> RunSet:
     """Read a run directory (``summary.json``) or a baseline directory (``baseline.json``)."""
     d = Path(directory)
     if (d / "summary.json").is_file():
-        runs = json.loads((d / "summary.json").read_text())["runs"]
+        doc = json.loads((d / "summary.json").read_text())
+        runs, kind = doc["runs"], "ilc"
     elif (d / "baseline.json").is_file():
-        runs = json.loads((d / "baseline.json").read_text())["runs"]
+        doc = json.loads((d / "baseline.json").read_text())
+        runs = doc["runs"]
+        kind = runs[0].get("name", "baseline") if runs else "baseline"
     else:
         raise ConfigError("RUN_DIR", f"{str(d)!r} holds neither summary.json nor baseline.json")
     costs = tuple(tuple(np.nan if c is None else float(c) for c in r["costs"]) for r in runs)
@@ -70,7 +102,84 @@ def load_runset(directory: str | Path) -> RunSet:
         trials_to_success=tuple(_tts(r) for r in runs),
         repeats_tied=sum(x == "trefoil" for x in reps),
         repeats=len(reps),
+        kind=kind,
+        keys=tuple((r.get("rope", doc.get("rope")), _seed(r)) for r in runs),
     )
+
+
+def mean_trials(runs: RunSet, keys=None) -> tuple[float, bool]:
+    """Mean trials until the first knot over the runs (of ``keys`` only, if given), and whether
+    it is a lower bound (a run without a knot counted as its trials + 1)."""
+    rows = [
+        (t, n is None)
+        for k, t, n in zip(runs.keys, runs.trials, runs.trials_to_success, strict=True)
+        if keys is None or k in keys
+    ]
+    if not rows:
+        return float("nan"), False
+    return float(np.mean([t for t, _ in rows])), any(c for _, c in rows)
+
+
+def _mean_text(mean: float, bound: bool) -> str:
+    return "-" if not np.isfinite(mean) else f"{'>=' if bound else ''}{mean:.3g}"
+
+
+def ratios(sets: list[RunSet]) -> list[tuple[RunSet, RunSet, float, str, int]]:
+    """Each baseline against the first ILC directory: (baseline, ilc, mean trials of the
+    baseline / mean trials of ILC over the (rope, seed) pairs both have, its kind: ``"="``,
+    ``">="`` (a lower bound), ``"<="`` or ``"?"`` (undetermined), pairs compared)."""
+    ilc = next((s for s in sets if s.kind == "ilc"), None)
+    out = []
+    if ilc is None:
+        return out
+    for s in sets:
+        if s.kind == "ilc":
+            continue
+        common = set(s.keys) & set(ilc.keys)
+        keys = common or None
+        m_b, b_bound = mean_trials(s, keys)
+        m_i, i_bound = mean_trials(ilc, keys)
+        kind = {(False, False): "=", (True, False): ">=", (False, True): "<="}.get(
+            (b_bound, i_bound), "?"
+        )
+        n = len(common) if common else len(s.keys)
+        out.append((s, ilc, m_b / m_i, kind, n))
+    return out
+
+
+def _key_text(key: tuple[Any, int | None]) -> str:
+    rope, seed = key
+    return f"rope {rope}, seed {'?' if seed is None else seed}"
+
+
+def seed_table(sets: list[RunSet]) -> str:
+    """Trials until the first knot per (rope, seed), a column per directory, the means and
+    each baseline's ratio to ILC (module docstring), as markdown."""
+    keys = sorted({k for s in sets for k in s.keys}, key=lambda k: (str(k[0]), k[1] or -1))
+    lines = [
+        "| rope, seed | " + " | ".join(s.label for s in sets) + " |",
+        "|---|" + "---|" * len(sets),
+    ]
+    for key in keys:
+        cells = []
+        for s in sets:
+            hits = [
+                str(n) if n is not None else f">{len(c)}"
+                for k, n, c in zip(s.keys, s.trials_to_success, s.costs, strict=True)
+                if k == key
+            ]
+            cells.append(", ".join(hits) or "-")
+        lines.append(f"| {_key_text(key)} | " + " | ".join(cells) + " |")
+    means = [_mean_text(*mean_trials(s)) for s in sets]
+    lines.append("| mean trials until knot | " + " | ".join(means) + " |")
+    text = "\n".join(lines) + "\n"
+    for b, ilc, r, kind, n in ratios(sets):
+        rel = "" if kind == "=" else {">=": ">= ", "<=": "<= ", "?": "~ (undetermined) "}[kind]
+        text += (
+            f"\nMean trials until the first knot, {b.label} / {ilc.label}: {rel}{r:.3g}x "
+            f"(over {n} (rope, seed) pairs)\n"
+        )
+    return text
 
 
 def table(sets: list[RunSet]) -> str:
@@ -132,6 +241,39 @@ def _plot_trials(sets: list[RunSet], path: Path) -> Path:
     return path
 
 
+def _plot_seeds(sets: list[RunSet], path: Path) -> Path:
+    """Trials until the first knot per (rope, seed), a marker per directory (open: no knot,
+    drawn at its trials + 1), the ratios to ILC in the title."""
+    keys = sorted({k for s in sets for k in s.keys}, key=lambda k: (str(k[0]), k[1] or -1))
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.5 * len(keys) + 3), 4.0), constrained_layout=True)
+    width = 0.6 / max(1, len(sets))
+    markers = "os^DvP*X"
+    for i, s in enumerate(sets):
+        x = (
+            np.array([keys.index(k) for k in s.keys], dtype=float)
+            + (i - (len(sets) - 1) / 2) * width
+        )
+        tied = np.array([n is not None for n in s.trials_to_success], dtype=bool)
+        y = np.array(s.trials, dtype=float)
+        style = {"color": f"C{i}", "marker": markers[i % len(markers)], "ls": "none"}
+        ax.plot(x[tied], y[tied], label=s.label, **style)
+        ax.plot(x[~tied], y[~tied], mfc="none", **style)
+    ax.set_xticks(range(len(keys)), [_key_text(k) for k in keys], rotation=30, ha="right")
+    ax.set(ylabel="trials until the first knot (open: none, at n + 1)")
+    ax.set_ylim(bottom=0)
+    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+    title = "; ".join(
+        f"{b.label}/{ilc.label} {'' if kind == '=' else kind}{r:.2g}x"
+        for b, ilc, r, kind, _ in ratios(sets)
+    )
+    if title:
+        ax.set_title("mean trials, " + title, fontsize=9)
+    ax.legend(fontsize=7)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def _plot_success(sets: list[RunSet], path: Path) -> Path | None:
     rows = [s for s in sets if s.repeats]
     if not rows:
@@ -159,12 +301,18 @@ def compare(directories: list[str | Path], out: str | Path) -> Path:
     figs = [
         _plot_costs(sets, out / "compare_costs.png"),
         _plot_trials(sets, out / "compare_trials.png"),
+        _plot_seeds(sets, out / "compare_seeds.png"),
     ]
     success = _plot_success(sets, out / "compare_success.png")
     if success is not None:
         figs.append(success)
     text = (
-        "# Comparison\n\n" + table(sets) + "\n" + "".join(f"![{f.stem}]({f.name})\n" for f in figs)
+        "# Comparison\n\n"
+        + table(sets)
+        + "\n## Trials until the first knot, run by run\n\n"
+        + seed_table(sets)
+        + "\n"
+        + "".join(f"![{f.stem}]({f.name})\n" for f in figs)
     )
     path = out / "compare.md"
     path.write_text(text)

@@ -9,8 +9,8 @@ state error at the critical time, from the motion-capture markers) plus the knot
   demonstration frame (66: 11 marker positions [m], clipped to +-:data:`POS_BOUND`, then
   velocities [m/s], clipped to +-:data:`VEL_BOUND`; zeros when the trial faulted or lost
   tracking before t_c) followed by the current knots (80: 7 joint rows [rad] within the
-  paper's joint limits, 3 base-offset rows [m] within +-:data:`BASE_BOUND`; 8 knots each,
-  row-major).
+  paper's joint limits widened by :data:`KNOT_MARGIN`, so the paper's initial guess is kept
+  as it is, 3 base-offset rows [m] within +-:data:`BASE_BOUND`; 8 knots each, row-major).
 * Action (80,) in [-1, 1]: the knot change divided by ``action_scale`` (joint rows [rad],
   base rows [m]); the base rows' change is averaged over the knots (the base stays fixed
   within a command) and the first/last two knots of each joint row move together (the
@@ -50,7 +50,73 @@ VEL_BOUND = 100.0
 """Bound of the marker velocity errors in the observation [m/s]."""
 BASE_BOUND = 1.0
 """Bound of the base-offset knots [m]."""
+KNOT_MARGIN = 0.5
+"""How far the joint rows' knots may lie beyond the paper's joint limits [rad]: a Bezier
+command stays within its knots' range, not the knots within the command's, and the paper's
+initial guess for the robot demonstration has a knot 0.017 rad beyond joint 2's limit (the
+command's limits are the lab controller's to check)."""
 N_ERR = 66
+
+_KNOTS0: dict[tuple, np.ndarray] = {}
+
+
+def paper_initial_knots(
+    demo: str, window: tuple[float, float], base_height: float, robot=None
+) -> np.ndarray:
+    """The paper's initial guess (10, 8) for ``demo`` with ``window``, as ILC starts from it
+    (:func:`flyknot_app.runner.initial_knots`), computed once per process (about 15 s)."""
+    import tempfile
+    from pathlib import Path
+
+    from flyknot_app.runner import initial_knots
+    from learner.kinematics import RobotModel
+    from learner.rope_model import RopeModelParams
+
+    key = (demo, tuple(float(w) for w in window), float(base_height))
+    if key not in _KNOTS0:
+        robot = RobotModel.from_mjcf() if robot is None else robot
+        with tempfile.TemporaryDirectory() as tmp:
+            k0, _ = initial_knots(
+                demo, Path(tmp), robot, RopeModelParams().dt, float(base_height), key[1]
+            )
+        _KNOTS0[key] = np.asarray(k0, dtype=float)
+    return _KNOTS0[key].copy()
+
+
+def score_trial(
+    record, target, base_offset: np.ndarray, weights, fault_penalty: float
+) -> tuple[np.ndarray, float, dict[str, Any]]:
+    """The learner's view of a finished trial, the terms of both environments' rewards.
+
+    Returns:
+        ``(err, cost, info)``: the critical-point error x(t_c) - x_demo(t_c) (66,) in the
+        demonstration frame (``base_offset`` (3,) [m]: the base's position there; zeros when
+        the trial faulted or lost tracking before t_c), its cost ||err||^2_Q
+        (:func:`learner.ilc.critical_cost`; ``fault_penalty`` instead when the trial faulted or
+        lost tracking) and ``info``: ``fault``, ``knot``, ``failure`` (the class of
+        :mod:`flyknot_app.anatomy`), ``cost`` and, when tracking was lost, ``tracking_lost``.
+    """
+    from flyknot.errors import RecordError
+    from flyknot_app.anatomy import diagnose
+    from learner.critical_state import critical_state_from_record
+    from learner.ilc import critical_cost
+
+    info: dict[str, Any] = {
+        "fault": record.fault,
+        "knot": record.knot,
+        "failure": diagnose(record, t_c=target.t_c).label,
+    }
+    err = np.zeros(N_ERR)
+    cost = float(fault_penalty)
+    if record.fault is None:
+        try:
+            err = critical_state_from_record(record, target.t_c, base_offset) - target.x_c
+            cost = critical_cost(err, weights)
+        except RecordError as e:
+            err = np.zeros(N_ERR)
+            info["tracking_lost"] = str(e)
+    info["cost"] = cost
+    return err, cost, info
 
 
 class FlyknotEnv(gym.Env):
@@ -100,13 +166,13 @@ class FlyknotEnv(gym.Env):
         limits = JointLimits()
         self._knot_lo = np.concatenate(
             [
-                np.repeat(limits.q_min[:, None], N_KNOTS, 1),
+                np.repeat(limits.q_min[:, None] - KNOT_MARGIN, N_KNOTS, 1),
                 np.full((N_ROWS - N_JOINTS, N_KNOTS), -BASE_BOUND),
             ]
         )
         self._knot_hi = np.concatenate(
             [
-                np.repeat(limits.q_max[:, None], N_KNOTS, 1),
+                np.repeat(limits.q_max[:, None] + KNOT_MARGIN, N_KNOTS, 1),
                 np.full((N_ROWS - N_JOINTS, N_KNOTS), BASE_BOUND),
             ]
         )
@@ -131,31 +197,15 @@ class FlyknotEnv(gym.Env):
 
     # ------------------------------------------------------------------------------------
     def initial_knots(self) -> np.ndarray:
-        """The paper's initial guess for the demonstration (computed once)."""
+        """The paper's initial guess for the demonstration (computed once per process)."""
         if self._knots0 is None:
-            import tempfile
-            from pathlib import Path
-
-            from flyknot_app.runner import initial_knots
-
-            with tempfile.TemporaryDirectory() as tmp:
-                k0, _ = initial_knots(
-                    self._demo,
-                    Path(tmp),
-                    self._robot,
-                    self.target.dt,
-                    float(self._lab.base_pose[2]),
-                    self._window,
-                )
-            self._knots0 = np.asarray(k0)
+            self._knots0 = paper_initial_knots(
+                self._demo, self._window, float(self._lab.base_pose[2]), self._robot
+            )
         return self._knots0.copy()
 
     def _trial(self) -> tuple[np.ndarray, float, bool, dict[str, Any]]:
-        from flyknot.errors import RecordError
-        from flyknot_app.anatomy import diagnose
         from learner.bezier import BezierCommand
-        from learner.critical_state import critical_state_from_record
-        from learner.ilc import critical_cost
 
         # Named by the lab's variation (seed, trial index): the same seed replays the same trial.
         lab_trial = self._lab.trial_index
@@ -163,25 +213,10 @@ class FlyknotEnv(gym.Env):
         rec = self._lab.run(BezierCommand(self.knots, self.target.T).joint_command())
         self.trials += 1
         rec.save(stem)
-        info: dict[str, Any] = {
-            "fault": rec.fault,
-            "knot": rec.knot,
-            "trial": self.trials,
-            "record": str(stem.with_suffix(".json")),
-            "failure": diagnose(rec, t_c=self.target.t_c).label,
-        }
-        err = np.zeros(N_ERR)
-        if rec.fault is None:
-            try:
-                x = critical_state_from_record(rec, self.target.t_c, self.knots[N_JOINTS:, 0])
-                err = x - self.target.x_c
-                cost = critical_cost(err, self._weights)
-            except RecordError as e:
-                cost = self.fault_penalty
-                info["tracking_lost"] = str(e)
-        else:
-            cost = self.fault_penalty
-        info["cost"] = cost
+        err, cost, info = score_trial(
+            rec, self.target, self.knots[N_JOINTS:, 0], self._weights, self.fault_penalty
+        )
+        info = {**info, "trial": self.trials, "record": str(stem.with_suffix(".json"))}
         success = rec.succeeded
         reward = -cost + (self.knot_bonus if success else 0.0)
         obs = np.concatenate([np.clip(err, -self._err_hi, self._err_hi), self.knots.ravel()])
@@ -199,6 +234,12 @@ class FlyknotEnv(gym.Env):
         self.trials = 0
         obs, _, _, info = self._trial()
         return obs, info
+
+    def restart_variation(self) -> None:
+        """Make the next trial the lab's trial 0 of the current seed again (the one
+        :meth:`reset` played), for paired comparisons: a learner's trial i then meets the
+        variation that ILC's trial i meets in ``flyknot run`` with the same seed."""
+        self._lab.trial_index = 0
 
     def constrain(self, knots: np.ndarray) -> np.ndarray:
         """``knots`` (10, 8) made a valid command: each base row constant, each joint row at

@@ -1,9 +1,10 @@
-"""The xArm controller's fault checks on a joint command, as pure functions.
+"""The xArm controller's fault checks on a joint command.
 
 A command ``q`` (n, 7) [rad] is played at a fixed rate (250 Hz); the robot is at rest at
 ``q[0]`` before the first sample and holds ``q[-1]`` after the last. The controller faults
 mid-motion at the first sample whose position, velocity, acceleration or torque leaves the
-limits; :func:`first_fault` finds that sample the same way.
+limits; :func:`first_fault` finds that sample the same way on a whole command (pure
+functions), :class:`StreamCheck` sample by sample as a stream arrives (tick-level play).
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ __all__ = [
     "UNITS",
     "Fault",
     "JointLimits",
+    "StreamCheck",
+    "check_sample",
     "command_derivatives",
     "command_torques",
     "first_fault",
@@ -146,15 +149,27 @@ def command_torques(
     tau = np.empty_like(q)
     row = np.empty(N_JOINTS)
     for i in range(q.shape[0]):
-        data.qpos[:] = q[i]
-        data.qvel[:] = qd[i]
-        data.qacc[:] = qdd[i]
-        mujoco.mj_kinematics(model, data)
-        mujoco.mj_comPos(model, data)
-        mujoco.mj_comVel(model, data)
-        mujoco.mj_rne(model, data, 1, row)
-        tau[i] = row
+        tau[i] = _rne(model, data, q[i], qd[i], qdd[i], row)
     return tau
+
+
+def _rne(
+    model: mujoco.MjModel,
+    data: mujoco.MjData,
+    q: np.ndarray,
+    qd: np.ndarray,
+    qdd: np.ndarray,
+    out: np.ndarray,
+) -> np.ndarray:
+    """tau = M(q) qdd + C(q, qd) qd + g(q) of one sample into ``out`` (7,) [N m]."""
+    data.qpos[:] = q
+    data.qvel[:] = qd
+    data.qacc[:] = qdd
+    mujoco.mj_kinematics(model, data)
+    mujoco.mj_comPos(model, data)
+    mujoco.mj_comVel(model, data)
+    mujoco.mj_rne(model, data, 1, out)
+    return out
 
 
 def _first(value: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[int, int, float] | None:
@@ -220,3 +235,123 @@ def first_fault(
             i, j, bound = hit
             best = Fault(i, i * dt, j + 1, quantity, float(value[i, j]), bound)
     return best
+
+
+class StreamCheck:
+    """The controller's checks on a command that arrives one sample at a time.
+
+    The derivatives are those of :func:`command_derivatives`, centred on a sample, so sample
+    i's velocity, acceleration and torque are known when sample i + 1 arrives (or the stream
+    ends: q_n = q_{n-1}, the hold); its position as it arrives. Before the first sample the
+    arm rests at ``q_start`` (q_{-1} = ``q_start``; a stream that starts at its own first
+    sample, as a whole command does, pads exactly like :func:`command_derivatives`).
+
+    So :meth:`push` of sample i checks sample i - 1's velocity, acceleration and torque, then
+    sample i's position; :meth:`close` checks the last sample's. The first :class:`Fault` is
+    the one :func:`first_fault` finds on the samples pushed so far (same values, same order:
+    the earliest sample, then position, velocity, acceleration, torque, then the lowest
+    joint), reported as soon as the controller can know it: at the same sample for a
+    position, one sample later for the rest. After a fault the check is over: further pushes
+    are refused.
+    """
+
+    def __init__(
+        self,
+        q_start: np.ndarray,
+        dt: float,
+        *,
+        limits: JointLimits | None = None,
+        torque_model: mujoco.MjModel | None = None,
+    ):
+        """Check a stream at period ``dt`` [s] from rest at ``q_start`` (7,) [rad] against
+        ``limits`` (the paper's if None); torques too with ``torque_model`` (the robot alone,
+        as for :func:`command_torques`)."""
+        check_positive("dt", dt)
+        self.dt = float(dt)
+        self.limits = JointLimits() if limits is None else limits
+        self._model = torque_model
+        if torque_model is not None:
+            if torque_model.nq != N_JOINTS or torque_model.nv != N_JOINTS:
+                raise ConfigError(
+                    "torque_model",
+                    f"must be the robot alone (nq = nv = {N_JOINTS}), got nq={torque_model.nq}",
+                )
+            self._data = mujoco.MjData(torque_model)
+            self._row = np.empty(N_JOINTS)
+        self._prev = check_sample(q_start)  # q_{i-2} when sample i arrives
+        self._last: np.ndarray | None = None  # q_{i-1}
+        self._closed = False
+        self.n = 0
+        """Samples pushed."""
+        self.fault: Fault | None = None
+        """The first fault, once found."""
+
+    def _derivatives(self, q_next: np.ndarray) -> Fault | None:
+        """Velocity, acceleration and torque of the last sample, now that q_next is known."""
+        i, lim = self.n - 1, self.limits
+        p0, p1, p2 = self._prev, self._last, q_next
+        qd = (p2 - p0) / (2.0 * self.dt)
+        qdd = (p2 - 2.0 * p1 + p0) / self.dt**2
+        checks = [
+            ("velocity", qd, -lim.qd_max, lim.qd_max),
+            ("acceleration", qdd, -lim.qdd_max, lim.qdd_max),
+        ]
+        if self._model is not None:
+            tau = _rne(self._model, self._data, p1, qd, qdd, self._row)
+            checks.append(("torque", tau, -lim.tau_max, lim.tau_max))
+        return self._first_of(i, checks)
+
+    def _first_of(self, i: int, checks) -> Fault | None:
+        for quantity, value, lo, hi in checks:
+            hit = _first(value[None, :], lo, hi)
+            if hit is not None:
+                _, j, bound = hit
+                return Fault(i, i * self.dt, j + 1, quantity, float(value[j]), bound)
+        return None
+
+    def push(self, q: np.ndarray) -> Fault | None:
+        """Take the next sample (7,) [rad]; the first fault if this sample reveals it.
+
+        Raises:
+            CommandError: The sample is not 7 finite numbers, or the stream has already
+                faulted or been closed (nothing changes then).
+        """
+        if self.fault is not None:
+            raise CommandError(f"the stream faulted at sample {self.fault.tick}: {self.fault}")
+        if self._closed:
+            raise CommandError("the stream is closed")
+        q = check_sample(q)
+        fault = None
+        if self._last is not None:
+            fault = self._derivatives(q)
+            self._prev = self._last
+        if fault is None:
+            lim = self.limits
+            fault = self._first_of(self.n, [("position", q, lim.q_min, lim.q_max)])
+        self._last = q
+        self.n += 1
+        self.fault = fault
+        return fault
+
+    def close(self) -> Fault | None:
+        """End the stream (the arm holds the last sample); the last sample's fault, if any.
+
+        Closing again, or after a fault, finds nothing more.
+        """
+        if self._closed or self.fault is not None or self._last is None:
+            self._closed = True
+            return None
+        self._closed = True
+        self.fault = self._derivatives(self._last)
+        return self.fault
+
+
+def check_sample(q: object) -> np.ndarray:
+    """``q`` as a new (7,) float array [rad]; :class:`CommandError` unless 7 finite numbers."""
+    arr = np.array(q, dtype=float, copy=True)
+    if arr.shape != (N_JOINTS,):
+        raise CommandError(f"sample must have shape ({N_JOINTS},), got {arr.shape}")
+    bad = np.flatnonzero(~np.isfinite(arr))
+    if bad.size:
+        raise CommandError(f"sample is not finite at joint {bad[0] + 1}")
+    return arr

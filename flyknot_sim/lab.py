@@ -19,37 +19,34 @@
 5. returns what the real lab would measure: commanded and measured joints at 250 Hz,
    fingertip pose, 11 rope markers at 200 Hz through the motion-capture emulation (noise,
    tracking lost shortly after the first self-contact), plus sim-only ``truth``.
+
+:meth:`SimLab.run` plays a whole command; :meth:`SimLab.start` opens a trial for play one
+4 ms tick at a time (the controller then checks the stream online). Both run the same loop,
+:class:`flyknot_sim.session.TrialSession`.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-import platform
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import mujoco
 import numpy as np
-from tqdm import tqdm
 
-from flyknot import __version__
-from flyknot.constants import N_JOINTS
+from flyknot.constants import COMMAND_RATE_HZ
 from flyknot.errors import ConfigError, check_int, check_nonnegative, check_positive
-from flyknot.knot import classify_centreline
-from flyknot.progress import bar_disable
 from flyknot.record import JointCommand, TrialRecord
-from flyknot.rest import SettleMonitor, SettleParams, start_with_sway
-from flyknot_sim import faults as faults_mod
+from flyknot.rest import SettleParams, start_with_sway
 from flyknot_sim import mocap, robot
-from flyknot_sim.aero import DRAG_HOLD_S, AeroParams, RopeDrag
+from flyknot_sim.aero import AeroParams, RopeDrag
 from flyknot_sim.bend_friction import BendFrictionParams, RopeBendFriction
 from flyknot_sim.rope import add_rope, configure_options
-from flyknot_sim.rope_custom import resolve_rope, rope_record
+from flyknot_sim.rope_custom import resolve_rope
 from flyknot_sim.rope_table import RopeParams
 from flyknot_sim.scene import ROBOT_PREFIX, SceneParams, robot_base_pose, scene_spec
-
-_BAR = "{desc}: {percentage:3.0f}%|{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}]"
+from flyknot_sim.session import TrialSession
 
 
 @dataclass(frozen=True)
@@ -144,6 +141,8 @@ class LabParams:
             )
         if not isinstance(self.aero, AeroParams):
             raise ConfigError("aero", f"must be AeroParams, got {type(self.aero).__name__}")
+        check_nonnegative("brake_s", self.brake_s)
+        check_positive("truth_rate_hz", self.truth_rate_hz)
 
     @property
     def rope_params(self) -> RopeParams:
@@ -154,8 +153,6 @@ class LabParams:
     def settle_rule(self) -> SettleParams:
         """The settle in force: ``settle``, or a fixed wait of ``settle_s``."""
         return self.settle if self.settle_s is None else SettleParams.fixed(self.settle_s)
-        check_nonnegative("brake_s", self.brake_s)
-        check_positive("truth_rate_hz", self.truth_rate_hz)
 
 
 class SimLab:
@@ -234,6 +231,15 @@ class SimLab:
         mujoco.mj_forward(m, d)
         return float(rng.uniform(0.0, var.start_delay_max_s)) if var.start_delay_max_s else 0.0
 
+    def start(self, q0: np.ndarray, dt: float = 1.0 / COMMAND_RATE_HZ) -> TrialSession:
+        """Open the next trial for tick-by-tick play from rest at ``q0`` (7,) [rad].
+
+        Send one joint target per tick of ``dt`` [s] (:meth:`TrialSession.tick`), then
+        :meth:`TrialSession.finish` for the record; the controller checks the stream online
+        (:mod:`flyknot_sim.session`).
+        """
+        return TrialSession(self, q0, dt)
+
     def run(self, command: JointCommand, *, progress: bool = False) -> TrialRecord:
         """Play ``command`` once from rest and return what the lab measured.
 
@@ -241,193 +247,9 @@ class SimLab:
             command: Joint targets at their rate (250 Hz on the xArm).
             progress: Show a progress bar over simulated time.
         """
-        rng = self._rng(self._trial_index)  # see the trial_index property
-        trial_index = self._trial_index
-        self._trial_index += 1
-        m, d = self.model, self.data
         q_cmd = np.asarray(command.q)
-        tick = command.dt
-        substeps = max(1, round(tick / m.opt.timestep))
-        sim_dt = tick / substeps
-        m.opt.timestep = sim_dt
-
-        # Controller's limit checks, evaluated on the whole stream up front; the fault
-        # takes effect at its tick, mid-motion, like the real controller.
-        qd, qdd = faults_mod.command_derivatives(q_cmd, tick)
-        tau = faults_mod.command_torques(self._robot_only, q_cmd, qd, qdd)
-        fault = faults_mod.first_fault(q_cmd, tick, torques=tau)
-
-        delay = self.reset(q_cmd[0], rng)
-        n_cmd = command.n
-        rule = self.params.settle_rule
-        # Room for the longest trial: the command, then the settle cap (or the brake).
-        n_ticks = n_cmd + math.ceil(rule.max_s / tick - 1e-9)
-        if fault is not None:
-            n_ticks = fault.tick + round(self.params.brake_s / tick) + 1
-
-        # Ticks run on the robot clock: tick i starts at sim time delay + i * tick.
-        # The arm holds q0 during the delay; the trial's clock starts before it.
-        # Timing: after mj_step number j, body positions and contacts in MjData are those of
-        # the state *before* that step (MuJoCo computes them in the step's forward pass), so
-        # the reading after step j is stored as sample j - 1 (time (j - 1) * sim_dt); the last
-        # sample comes from one mj_kinematics at the end.
-        pre_steps = round(delay / sim_dt)
-        n_steps_max = pre_steps + n_ticks * substeps
-        bound, drag = self._bound, self._drag
-        n_vert = bound.n_vert
-        vert_hist = np.empty((n_steps_max + 1, n_vert, 3))
-        j = 0  # steps taken
-        first_contact: float | None = None
-
-        drag_every = max(1, round(DRAG_HOLD_S / sim_dt))
-        bend = self._bend
-
-        def step() -> None:
-            nonlocal j, first_contact
-            if j % drag_every == 0:
-                drag.apply(d)
-            bend.apply(d)  # adds to the drag; every step (it is solved at the step's end)
-            mujoco.mj_step(m, d)
-            j += 1
-            vert_hist[j - 1] = d.flexvert_xpos[bound.vert_adr : bound.vert_adr + n_vert]
-            if first_contact is None and bound.self_contact(m, d):
-                first_contact = (j - 1) * sim_dt
-
-        def verdict() -> str:
-            return classify_centreline(d.qpos[bound.vert_qpos] + bound.body_pos0)
-
-        for _ in range(pre_steps):
-            step()
-        q_meas = np.empty((n_ticks, N_JOINTS))
-        tip_pos = np.empty((n_ticks, 3))
-        tip_quat = np.empty((n_ticks, 4))
-        q_sent = np.empty((n_ticks, N_JOINTS))
-        hold = None
-        # The settle starts when the last command sample has been sent and held one tick.
-        monitor = SettleMonitor(rule, t_end=pre_steps * sim_dt + n_cmd * tick)
-        end_dof = bound.vert_dof[-1]
-        bar = tqdm(
-            total=round((n_cmd * tick + rule.min_s) if fault is None else n_ticks * tick, 2),
-            unit="sim s",
-            disable=bar_disable(progress),
-            desc=f"trial (rope {self.rope_params.id})",
-            bar_format=_BAR,
-        )
-        n_done = n_ticks
-        for i in range(n_ticks):
-            if i % 25 == 0:
-                bar.n = min(round(i * tick, 2), bar.total)
-                bar.refresh()
-            mujoco.mj_kinematics(m, d)  # fingertip pose of the current joint angles
-            q_meas[i] = d.qpos[self._qadr]
-            tip_pos[i] = d.site_xpos[self._tip_site]
-            mujoco.mju_mat2Quat(tip_quat[i], d.site_xmat[self._tip_site])
-            if fault is not None and i == fault.tick:
-                hold = q_meas[i].copy()  # brake: hold where the arm is
-            target = hold if hold is not None else q_cmd[min(i, n_cmd - 1)]
-            q_sent[i] = target
-            d.ctrl[self._act] = target
-            for _ in range(substeps):
-                step()
-            if fault is None and i + 1 >= n_cmd:
-                speed = float(np.linalg.norm(d.qvel[end_dof]))
-                touching = bound.self_contact(m, d)
-                if monitor.observe(j * sim_dt, speed, verdict, touching):
-                    n_done = i + 1
-                    break
-        n_ticks = n_done
-        n_steps = pre_steps + n_ticks * substeps
-        q_meas, tip_pos, tip_quat, q_sent = (
-            a[:n_ticks] for a in (q_meas, tip_pos, tip_quat, q_sent)
-        )
-        vert_hist = vert_hist[: n_steps + 1]
-        t_hist = sim_dt * np.arange(n_steps + 1)
-        mujoco.mj_kinematics(m, d)
-        vert_hist[n_steps] = bound.vertex_positions(m, d)
-        bar.n = bar.total
-        bar.close()
-        # Joints are stamped on the robot's clock (0 at the first command sample); markers
-        # and contact times on the motion-capture clock (0 at the nominal start). The two
-        # differ by the unknown start delay, as unsynchronised lab clocks do.
-        t_joint = np.arange(n_ticks) * tick
-        markers_true = bound.markers_from_vertices(vert_hist)
-        t_mocap = mocap.sample_times(t_hist[-1], self.params.mocap.rate_hz)
-        markers = mocap.emulate(
-            t_hist, markers_true, t_mocap, first_contact, self.params.mocap, rng
-        )
-        knot = None
-        settle_meta = None
-        if fault is None:
-            outcome = monitor.outcome
-            knot = outcome.verdict
-            settle_meta = outcome.as_metadata(rule)
-        truth = _truth(
-            t_hist,
-            vert_hist,
-            bound,
-            self.params.truth_rate_hz,
-            sim_dt,
-            t_full=monitor.t_end + rule.min_s,
-        )
-        return TrialRecord(
-            t_joint=t_joint,
-            q_cmd=q_sent,
-            q_meas=q_meas,
-            t_marker=t_mocap,
-            markers=markers,
-            fingertip_pos=tip_pos,
-            fingertip_quat=tip_quat,
-            base_pose=self.base_pose,
-            fault=None if fault is None else fault.reason,
-            fault_time=None if fault is None else float(t_joint[fault.tick]),
-            first_contact_time=first_contact,
-            knot=knot,
-            metadata={
-                "cell": "sim",
-                **rope_record(self.rope_params, self.params.ropes),
-                "seed": self.params.seed,
-                "trial_index": trial_index,
-                "start_delay_s": delay,
-                "command_duration_s": command.duration,
-                "sim_duration_s": float(t_hist[-1]),
-                "sim_timestep_s": sim_dt,
-                "settle": settle_meta,
-                "aero": self.params.aero.enabled,
-                "versions": {
-                    "flyknot": __version__,
-                    "mujoco": mujoco.__version__,
-                    "python": platform.python_version(),
-                },
-            },
-            truth=truth,
-        )
-
-
-# Truth frames after this long past the command's end are kept at this interval only (the
-# rope hangs still; a long settle would otherwise fill the record) [s].
-_TRUTH_TAIL_INTERVAL_S = 0.1
-
-
-def _truth(
-    t_hist: np.ndarray,
-    vert_hist: np.ndarray,
-    rope,
-    rate_hz: float,
-    sim_dt: float,
-    *,
-    t_full: float,
-) -> dict[str, np.ndarray]:
-    """Sim-only truth: centreline and markers at ``rate_hz`` until ``t_full`` [s], then every
-    :data:`_TRUTH_TAIL_INTERVAL_S`, always with the last sample."""
-    stride = max(1, round(1.0 / (rate_hz * sim_dt)))
-    tail = max(stride, round(_TRUTH_TAIL_INTERVAL_S / sim_dt))
-    k_full = int(np.searchsorted(t_hist, t_full))
-    idx = np.r_[np.arange(0, min(k_full, len(t_hist)), stride)]
-    start = idx[-1] + tail if len(idx) else 0
-    idx = np.unique(np.r_[idx, np.arange(start, len(t_hist), tail), len(t_hist) - 1])
-    verts = vert_hist[idx]
-    return {
-        "t_truth": t_hist[idx],
-        "centreline": rope.centrelines_from_vertices(verts),
-        "markers": rope.markers_from_vertices(verts),
-    }
+        session = TrialSession(self, q_cmd[0], command.dt, plan=command, progress=progress)
+        for target in q_cmd:
+            if session.send(target) is not None:
+                break  # the controller faulted: the arm brakes, the trial is aborted
+        return session.finish()

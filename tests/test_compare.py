@@ -8,7 +8,7 @@ import pytest
 
 from flyknot.errors import ConfigError
 from flyknot_app import cli
-from flyknot_app.compare import compare, load_runset
+from flyknot_app.compare import compare, load_runset, mean_trials, ratios, seed_table
 
 
 def _write(d, runs, name="summary.json"):
@@ -43,3 +43,70 @@ def test_table_and_figures(tmp_path, capsys):
 def test_a_directory_without_results_is_named(tmp_path):
     with pytest.raises(ConfigError, match=r"^RUN_DIR: '.*empty' holds neither summary.json"):
         compare([tmp_path / "empty"], tmp_path / "out")
+
+
+def _runs(tts, n_used, extra):
+    return [
+        {"costs": [0.5] * (n if t is None else t), "trials_to_success": t, **extra(i)}
+        for i, (t, n) in enumerate(zip(tts, n_used, strict=True))
+    ]
+
+
+def test_ilc_beside_each_baseline_seed_by_seed(tmp_path, capsys):
+    ilc = _write(
+        tmp_path / "ilc",
+        _runs([2, 4, 3], [10] * 3, lambda i: {"name": f"rope1-seed{i}", "rope": 1}),
+    )
+    cma = tmp_path / "cma"
+    cma.mkdir()
+    runs = _runs(
+        [12, None, 27],
+        [30] * 3,
+        lambda i: {"name": "cma", "seed": i, "repeats": ["trefoil", "unknot"]},
+    )
+    (cma / "baseline.json").write_text(json.dumps({"rope": 1, "runs": runs}))
+    rnd = tmp_path / "random"
+    rnd.mkdir()
+    runs = _runs([6, 9, 3, 5], [30] * 4, lambda i: {"name": "random", "seed": i})
+    (rnd / "baseline.json").write_text(json.dumps({"rope": 1, "runs": runs}))
+
+    sets = [load_runset(d) for d in (ilc, cma, rnd)]
+    assert [s.kind for s in sets] == ["ilc", "cma", "random"]
+    assert sets[0].keys == ((1, 0), (1, 1), (1, 2))
+    assert sets[1].trials == (12, 31, 27)  # no knot in 30 trials: counted as 31
+    assert mean_trials(sets[1]) == (pytest.approx(70 / 3), True)
+    (b, ref, r, kind, n), (b2, _, r2, kind2, n2) = ratios(sets)
+    assert (b.label, ref.label, kind, n) == ("cma", "ilc", ">=", 3)
+    assert r == pytest.approx((70 / 3) / 3)
+    # random has a seed ILC lacks: the ratio is over the three pairs both have.
+    assert (b2.label, kind2, n2) == ("random", "=", 3) and r2 == pytest.approx(6 / 3)
+
+    text = seed_table(sets)
+    lines = text.splitlines()
+    assert lines[0] == "| rope, seed | ilc | cma | random |"
+    assert "| rope 1, seed 1 | 4 | >30 | 9 |" in lines
+    assert "| rope 1, seed 3 | - | - | 5 |" in lines
+    assert "| mean trials until knot | 3 | >=23.3 | 5.75 |" in lines
+    assert (
+        "Mean trials until the first knot, cma / ilc: >= 7.78x (over 3 (rope, seed) pairs)" in text
+    )
+    assert "Mean trials until the first knot, random / ilc: 2x (over 3 (rope, seed) pairs)" in text
+
+    assert cli.main(["compare", str(ilc), str(cma), str(rnd), "--out", str(tmp_path / "o")]) == 0
+    out = capsys.readouterr().out
+    assert "| cma | 2 of 3 | 19.5 (12-27) | 3/6 (19%-81%) |" in out  # success after the budget
+    assert "cma / ilc: >= 7.78x" in out
+    for f in ("compare_seeds.png", "compare_success.png"):
+        assert (tmp_path / "o" / f).stat().st_size > 1000
+    assert "![compare_seeds](compare_seeds.png)" in (tmp_path / "o" / "compare.md").read_text()
+
+
+def test_without_ilc_no_ratio_is_stated(tmp_path):
+    d = tmp_path / "ppo"
+    d.mkdir()
+    runs = _runs([None], [5], lambda i: {"name": "ppo", "seed": 0})
+    (d / "baseline.json").write_text(json.dumps({"rope": 2, "runs": runs}))
+    s = load_runset(d)
+    assert s.kind == "ppo" and s.keys == ((2, 0),)
+    assert ratios([s]) == [] and "Mean trials until the first knot," not in seed_table([s])
+    assert "| rope 2, seed 0 | >5 |" in seed_table([s])
