@@ -87,11 +87,21 @@ def test_errors_name_the_field():
 def test_ppo_without_the_rl_extra_says_how_to_install_it(monkeypatch):
     import importlib.util
 
+    # Whatever is installed here: torch missing, stable-baselines3 present (a stand-in spec).
     real = importlib.util.find_spec
     monkeypatch.setattr(
-        importlib.util, "find_spec", lambda name: None if name == "torch" else real(name)
+        importlib.util,
+        "find_spec",
+        lambda name: (
+            None
+            if name == "torch"
+            else (real("json") if name == "stable_baselines3" else real(name))
+        ),
     )
     with pytest.raises(ConfigError, match=r"^baseline: ppo needs the rl extra \(torch missing\)"):
+        require_rl()
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: None)
+    with pytest.raises(ConfigError, match=r"\(torch, stable_baselines3 missing\)"):
         require_rl()
     with pytest.raises(ConfigError, match=r"download.pytorch.org/whl/cpu"):
         run_baseline("ppo", QuadraticEnv())

@@ -607,7 +607,11 @@ def test_demo_commands_are_split_between_flyknot_and_flyknot_tools(capsys):
     }
     assert _actions(_help(cli.main, ["demo", "--help"], capsys)) == {"replay"}
     assert _actions(_help(demo_cli.main, ["demo", "--help"], capsys)) == {"replay"}
-    assert _actions(_help(tools_cli.main, ["--help"], capsys)) == {"demo", "rope-study"}
+    assert _actions(_help(tools_cli.main, ["--help"], capsys)) == {
+        "demo",
+        "rope-study",
+        "lab-study",
+    }
 
 
 def test_rope_study_takes_its_own_options(capsys):
