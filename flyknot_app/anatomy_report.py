@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from flyknot.errors import ConfigError, FlyknotError, check_choice, check_nonnegative
+from flyknot.errors import ConfigError, FlyknotError, check_choice, check_int, check_nonnegative
 from flyknot.record import TrialRecord
 from flyknot_app.anatomy import (
     COLOURS,
@@ -103,6 +103,7 @@ def explain_directory(
     t_c: float | None = None,
     params: AnatomyParams | None = None,
     progress: Callable[[Iterable[TrialFile]], Iterable[TrialFile]] | None = None,
+    workers: int = 1,
 ) -> Anatomy:
     """Diagnose every trial under a run or replay directory (:func:`find_trials`).
 
@@ -115,6 +116,8 @@ def explain_directory(
             ``summary.json``) or each replay's demonstration t_c, where found.
         params: Thresholds.
         progress: Optional wrapper of the file iteration (e.g. ``tqdm``).
+        workers: Worker processes diagnosing the trials (>= 1); the result does not depend
+            on it (each trial is diagnosed alone, in the files' order).
 
     Returns:
         The :class:`Anatomy`.
@@ -126,6 +129,7 @@ def explain_directory(
     """
     if t_c is not None:
         check_nonnegative("t_c", t_c)
+    check_int("workers", workers, 1)
     files = find_trials(directory)
     if not files:
         raise ConfigError(
@@ -133,16 +137,20 @@ def explain_directory(
             f"{str(directory)!r} holds no trial records (<stem>.json with <stem>.npz) "
             "and no replay files (replay_*.npz)",
         )
-    diagnoses = []
-    for f in progress(files) if progress is not None else files:
-        ev = load_evidence(f)
-        group = f.group
-        if not group:
-            rope = ev.metadata.get("rope")
-            group = f"rope {rope}" if rope is not None else Path(directory).name
-        diagnoses.append(
-            diagnose(ev, t_c=f.t_c if t_c is None else t_c, params=params, group=group)
-        )
+    jobs = [(f, t_c, params, Path(directory).name) for f in files]
+    if workers > 1 and len(files) > 1:
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(max_workers=min(workers, len(files))) as pool:
+            done = pool.map(_diagnose_file, jobs, chunksize=max(1, len(jobs) // (8 * workers)))
+            diagnoses = [
+                d for _, d in zip(progress(files) if progress else files, done, strict=True)
+            ]
+    else:
+        diagnoses = [
+            _diagnose_file(job)
+            for job, _ in zip(jobs, progress(files) if progress else files, strict=True)
+        ]
     if t_c is not None:
         sources = (f"t_c {t_c:.3f} s (given)",)
     else:
@@ -155,6 +163,17 @@ def explain_directory(
             for g, vals in per_group.items()
         )
     return Anatomy(str(directory), tuple(diagnoses), sources)
+
+
+def _diagnose_file(job: tuple[TrialFile, float | None, AnatomyParams | None, str]) -> Diagnosis:
+    """Diagnose one found trial (a module-level function: worker processes run it)."""
+    f, t_c, params, dir_name = job
+    ev = load_evidence(f)
+    group = f.group
+    if not group:
+        rope = ev.metadata.get("rope")
+        group = f"rope {rope}" if rope is not None else dir_name
+    return diagnose(ev, t_c=f.t_c if t_c is None else t_c, params=params, group=group)
 
 
 def _sorted_t_c(values: Iterable[float | None]) -> list[float | None]:
@@ -352,7 +371,9 @@ def markdown_section(anatomy: Anatomy, figure: str | None = None) -> list[str]:
     return [*lines, ""]
 
 
-def report_section(run_dir: str | Path, figure_name: str = "anatomy.png") -> list[str]:
+def report_section(
+    run_dir: str | Path, figure_name: str = "anatomy.png", *, workers: int = 1
+) -> list[str]:
     """The anatomy section of a run directory's ``report.md`` (writes its figure there).
 
     Never raises for a directory without trials or with a malformed record: the section then
@@ -361,13 +382,14 @@ def report_section(run_dir: str | Path, figure_name: str = "anatomy.png") -> lis
     Args:
         run_dir: The run directory.
         figure_name: File name of the figure inside ``run_dir``.
+        workers: Worker processes for the diagnoses (:func:`explain_directory`).
 
     Returns:
         Markdown lines.
     """
     run_dir = Path(run_dir)
     try:
-        anatomy = explain_directory(run_dir)
+        anatomy = explain_directory(run_dir, workers=workers)
     except FlyknotError as exc:
         return ["## Failure anatomy", "", f"Not available: {exc}", ""]
     plot_anatomy(anatomy, run_dir / figure_name, title=f"failure anatomy: {run_dir.name}")

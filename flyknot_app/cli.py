@@ -157,7 +157,7 @@ def _cmd_explain(args: argparse.Namespace) -> int:
     figure = Path(args.out) if args.out else Path(args.dir) / "anatomy.png"
     if figure.suffix.lower() != ".png":
         raise ConfigError("--out", f"must be a .png file, got {str(figure)!r}")
-    anatomy = explain_directory(args.dir, t_c=args.tc, progress=progress)
+    anatomy = explain_directory(args.dir, t_c=args.tc, progress=progress, workers=args.workers)
     plot_anatomy(anatomy, figure)
     if args.json:
         print(json.dumps({**anatomy.as_dict(), "figure": str(figure)}))
@@ -483,6 +483,7 @@ def build_parser() -> argparse.ArgumentParser:
         "demonstration's)",
     )
     e.add_argument("--trials", action="store_true", help="also list every trial and why")
+    e.add_argument("--workers", type=int, default=1, help="worker processes for the diagnoses")
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.set_defaults(func=_cmd_explain)
 

@@ -230,8 +230,9 @@ def settings_lines(out_dir: Path) -> list[str]:
     return [f"Overrides (`--set`): {text}. Cell: {', '.join(cells)}.", ""]
 
 
-def write_report(out_dir: str | Path, summary: dict[str, Any]) -> Path:
-    """Write figures and ``report.md`` for a scenario's ``summary.json`` content."""
+def write_report(out_dir: str | Path, summary: dict[str, Any], *, workers: int = 1) -> Path:
+    """Write figures and ``report.md`` for a scenario's ``summary.json`` content (the failure
+    anatomy's diagnoses on ``workers`` processes)."""
     out_dir = Path(out_dir)
     runs = summary["runs"]
     kind = summary["kind"]
@@ -277,7 +278,9 @@ def write_report(out_dir: str | Path, summary: dict[str, Any]) -> Path:
             )
     lines += ["", outcome_line(kind, runs), ""]
     lines += settings_lines(out_dir)
-    lines += report_section(out_dir)  # failure anatomy of every trial; writes anatomy.png
+    lines += report_section(
+        out_dir, workers=workers
+    )  # failure anatomy of every trial; writes anatomy.png
     lines += ["## Figures", ""]
     lines += [f"![{p.stem}]({p.name})" for p in figs]
     path = out_dir / "report.md"

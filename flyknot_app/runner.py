@@ -417,7 +417,7 @@ def run_scenario(
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     from flyknot_app.report import write_report
 
-    write_report(out_dir, summary)
+    write_report(out_dir, summary, workers=max(1, workers))
     return summary
 
 

@@ -404,6 +404,19 @@ def test_run_directory_groups_by_run(tmp_path):
     ]
     assert [d.t_c for d in anatomy.diagnoses] == [0.15, 0.15, 0.25, 0.25]
     assert anatomy.t_c_sources == ("rope1: 0.150 s", "rope2: 0.250 s")
+    # Diagnosed on two worker processes: the same anatomy, in the same order; a progress
+    # wrapper sees every file.
+    seen = []
+
+    def count(files):
+        for f in files:
+            seen.append(f.name)
+            yield f
+
+    assert ar.explain_directory(root, workers=2, progress=count) == anatomy
+    assert len(seen) == 4
+    with pytest.raises(ConfigError, match=r"^workers: must be an integer >= 1, got 0$"):
+        ar.explain_directory(root, workers=0)
     # A run's own learning folder finds the run's result.json one level up.
     (d,) = ar.explain_directory(root / "runs" / "rope1" / "learning").diagnoses[1:]
     assert (d.t_c, d.group) == (0.15, "rope 1")
