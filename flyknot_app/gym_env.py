@@ -119,6 +119,20 @@ def score_trial(
     return err, cost, info
 
 
+def checked_action(action, shape: tuple[int, ...]) -> np.ndarray:
+    """``action`` as a float array of ``shape``, finite; checked before an env changes anything.
+
+    Raises:
+        ConfigError: Wrong shape, or NaN / infinity.
+    """
+    a = np.asarray(action, dtype=float)
+    if a.shape != shape:
+        raise ConfigError("action", f"must have shape {shape}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ConfigError("action", "must be finite (NaN or infinity given); nothing changed")
+    return a
+
+
 class FlyknotEnv(gym.Env):
     """Trial-level flying-knot environment on the simulated lab."""
 
@@ -262,11 +276,7 @@ class FlyknotEnv(gym.Env):
 
     def step(self, action):
         """Change the command's knots by ``action`` (scaled, in [-1, 1]) and play it once."""
-        a = np.asarray(action, dtype=float)
-        if a.shape != self.action_space.shape:
-            raise ConfigError("action", f"must have shape {self.action_space.shape}, got {a.shape}")
-        if not np.all(np.isfinite(a)):
-            raise ConfigError("action", "must be finite (NaN or infinity given); nothing changed")
+        a = checked_action(action, self.action_space.shape)
         a = np.clip(a.reshape(N_ROWS, N_KNOTS), -1.0, 1.0)
         d = self.action_scale * a
         d[N_JOINTS:] = d[N_JOINTS:].mean(axis=1, keepdims=True)  # base fixed within a command

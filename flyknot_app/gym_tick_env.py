@@ -65,7 +65,7 @@ from flyknot.constants import COMMAND_RATE_HZ, N_JOINTS, N_MARKERS
 from flyknot.errors import CommandError, ConfigError, check_nonnegative, check_positive
 from flyknot.limits import JointLimits
 from flyknot.record import JointCommand
-from flyknot_app.gym_env import POS_BOUND, paper_initial_knots, score_trial
+from flyknot_app.gym_env import POS_BOUND, checked_action, paper_initial_knots, score_trial
 
 JOINT_VEL_BOUND = 10.0
 """Bound of the joint velocities in the observation [rad/s]."""
@@ -183,11 +183,7 @@ class FlyknotTickEnv(gym.Env):
     def step(self, action):
         """Send the next tick's targets (the initial command's sample plus the scaled offset
         ``action``); the last tick, or a fault, ends the episode with the knot's verdict."""
-        a = np.asarray(action, dtype=float)
-        if a.shape != self.action_space.shape:
-            raise ConfigError("action", f"must have shape {self.action_space.shape}, got {a.shape}")
-        if not np.all(np.isfinite(a)):
-            raise ConfigError("action", "must be finite (NaN or infinity given); nothing changed")
+        a = checked_action(action, self.action_space.shape)
         s = self._session
         if s is None or s.n_sent >= self.n_ticks or s.fault is not None:
             raise ConfigError("step", "the episode has ended (or not begun): reset() first")

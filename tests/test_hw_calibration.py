@@ -254,22 +254,10 @@ FAST = {"window_s": 0.3, "still_s": 0.2}
 def make_fake(monkeypatch):
     """Start fakes on loopback (127.x.y.z); patch the SDK's command port only when the fake
     could not bind 502."""
+    from fakes import fake_factory
     from fakes.fake_calibration import MoveFaultXArm
-    from xarm.core.config.x_config import XCONF
 
-    fakes = []
-
-    def make(**kw) -> MoveFaultXArm:
-        fk = MoveFaultXArm(**kw).start()
-        fakes.append(fk)
-        assert fk.host.startswith("127."), fk.host
-        for name, port in fk.sdk_port_overrides().items():
-            monkeypatch.setattr(XCONF.SocketConf, name, port)
-        return fk
-
-    yield make
-    for fk in fakes:
-        fk.stop()
+    yield from fake_factory(monkeypatch, MoveFaultXArm)
 
 
 def _toml(doc: dict) -> str:

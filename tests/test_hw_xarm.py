@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import xarm  # noqa: F401 - the test extra installs it
-from fakes import SimFingertip, StandInMocap, lab_doc
+from fakes import SimFingertip, StandInMocap, fake_factory, lab_doc
 from fakes.fake_xarm import HOME, FakeXArm
 
 from flyknot.errors import ConfigError, HardwareError
@@ -37,22 +37,7 @@ FK = SimFingertip()
 def make_fake(monkeypatch):
     """Start fakes (loopback only); patch the SDK's port constants only when the fake could
     not bind the SDK's own ports."""
-    from xarm.core.config.x_config import XCONF
-
-    fakes = []
-
-    def make(**kw) -> FakeXArm:
-        fk = FakeXArm(**kw).start()
-        fakes.append(fk)
-        assert fk.host.startswith("127."), fk.host
-        if not fk.uses_sdk_ports:
-            for name, port in fk.sdk_port_overrides().items():
-                monkeypatch.setattr(XCONF.SocketConf, name, port)
-        return fk
-
-    yield make
-    for fk in fakes:
-        fk.stop()
+    yield from fake_factory(monkeypatch)
 
 
 @pytest.fixture

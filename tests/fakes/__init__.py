@@ -100,6 +100,30 @@ class StandInMocap:
         return RawStream(t, pts, {"fingertip": body}, source="stand-in")
 
 
+def fake_factory(monkeypatch, cls=None):
+    """Body of a ``make_fake`` fixture: yields ``make(**kw)``, which starts a ``cls`` (default
+    :class:`~fakes.fake_xarm.FakeXArm`) on its own loopback alias 127.x.y.z and patches the
+    SDK's command port only when the fake could not bind 502; stops every fake afterwards."""
+    from xarm.core.config.x_config import XCONF
+
+    from fakes.fake_xarm import FakeXArm
+
+    cls = FakeXArm if cls is None else cls
+    fakes = []
+
+    def make(**kw):
+        fk = cls(**kw).start()
+        fakes.append(fk)
+        assert fk.host.startswith("127."), fk.host
+        for name, port in fk.sdk_port_overrides().items():
+            monkeypatch.setattr(XCONF.SocketConf, name, port)
+        return fk
+
+    yield make
+    for fk in fakes:
+        fk.stop()
+
+
 def lab_doc(fake: FakeXArm, **sections: dict) -> dict:
     """A lab-file mapping pointing at ``fake``; ``sections`` update its tables."""
     doc = {
