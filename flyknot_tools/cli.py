@@ -43,7 +43,20 @@ def _cmd_synthesize(args: argparse.Namespace) -> int:
 
     variant = get_variant(args.variant)
     pace = {}
-    for flag, f in (("max_speed", "speed_limit"), ("max_axis_rate", "axis_rate_limit")):
+    if args.envelope:
+        from flyknot_tools.hand_demos.envelope import arm_envelope, shared_envelope
+
+        env = shared_envelope(arm_envelope().envelope)
+        pace = {
+            "speed_limit": env.speed,
+            "axis_rate_limit": env.axis_rate,
+            "accel_limit": env.accel,
+        }
+    for flag, f in (
+        ("max_speed", "speed_limit"),
+        ("max_axis_rate", "axis_rate_limit"),
+        ("max_accel", "accel_limit"),
+    ):
         value = getattr(args, flag)
         if value is not None:
             if not (math.isfinite(value) and value > 0):
@@ -60,7 +73,12 @@ def _cmd_synthesize(args: argparse.Namespace) -> int:
     if args.budget is not None:
         check_int("--budget", args.budget, 1)
         config = replace(config, total_budget=args.budget)
-    config = replace(config, search=replace(config.search, hand=HandParams(rope=args.rope)))
+    search = replace(config.search, hand=HandParams(rope=args.rope))
+    if args.target_rate is not None:
+        if not 0.0 < args.target_rate <= 1.0:
+            raise ConfigError("--target-rate", f"must lie in (0, 1], got {args.target_rate!r}")
+        search = replace(search, target_rate=args.target_rate)
+    config = replace(config, search=replace(search, confirm_abort=args.confirm_abort))
     result = synthesize(
         variant,
         args.seed,
@@ -216,6 +234,24 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
         type=float,
         default=None,
         help="peak turn rate of the rope's exit axis allowed [rad/s] (a robot-paced demo)",
+    )
+    s.add_argument("--max-accel", type=float, default=None, help="peak hand acceleration [m/s^2]")
+    s.add_argument(
+        "--envelope",
+        action="store_true",
+        help="pace limits from the envelope the arm and a person share (the --max-* flags "
+        "override its values; flyknot_tools/hand_demos/envelope.py)",
+    )
+    s.add_argument(
+        "--target-rate",
+        type=float,
+        default=None,
+        help="confirmation rate that ends the last stage (default 0.8)",
+    )
+    s.add_argument(
+        "--confirm-abort",
+        action="store_true",
+        help="stop a candidate's confirmation once the target rate is out of reach",
     )
     s.add_argument(
         "--check-repeats",

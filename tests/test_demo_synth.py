@@ -9,6 +9,7 @@ import json
 import math
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -46,7 +47,13 @@ from flyknot_tools.hand_demos.score import (
     score,
     writhe,
 )
-from flyknot_tools.hand_demos.search import SearchConfig, motion_summary, search, within_limits
+from flyknot_tools.hand_demos.search import (
+    SearchConfig,
+    evaluate,
+    motion_summary,
+    search,
+    within_limits,
+)
 from flyknot_tools.hand_demos.synthesis import (
     GENERATOR,
     GENERATOR_VERSION,
@@ -308,25 +315,30 @@ def test_variants_limits_and_stages():
 
 def test_pace_matches_finite_differences_of_the_exit_axis():
     ref = load_reference_motion()
-    speed, rate = FAST.pace(ref, dt=1e-4)
+    speed, rate, accel = FAST.pace(ref, dt=1e-4)
     t = np.arange(0.0, ref.duration, 1e-4)
     y = ref.curves(t)
     axis = -hand_rotation(y[:, 4], y[:, 3])[:, :, 2]  # the rope leaves along the hand's -z
     fd_rate = np.linalg.norm(np.gradient(axis, t, axis=0), axis=1).max()
-    fd_speed = np.linalg.norm(np.gradient(y[:, :3], t, axis=0), axis=1).max()
+    vel = np.gradient(y[:, :3], t, axis=0)
+    fd_speed = np.linalg.norm(vel, axis=1).max()
+    fd_accel = np.linalg.norm(np.gradient(vel, t, axis=0)[1:-1], axis=1).max()
     assert rate == pytest.approx(fd_rate, rel=1e-3)
     assert speed == pytest.approx(fd_speed, rel=1e-3)
+    assert accel == pytest.approx(fd_accel, rel=1e-3)
     assert rate > 20.0  # the hand-paced reference flicks its wrist
 
 
 def test_pace_limits_count_in_the_violation():
     ref = load_reference_motion()
-    speed, rate = FAST.pace(ref)
+    speed, rate, accel = FAST.pace(ref)
     paced = replace(FAST, axis_rate_limit=rate / 2, speed_limit=speed * 2)
     assert paced.violation(ref) == pytest.approx(PACE_WEIGHT * 1.0)
     both = replace(FAST, axis_rate_limit=rate / 2, speed_limit=speed / 4)
     assert both.violation(ref) == pytest.approx(PACE_WEIGHT * 4.0)
-    assert replace(FAST, axis_rate_limit=2 * rate).violation(ref) == 0.0
+    three = replace(both, accel_limit=accel / 2)
+    assert three.violation(ref) == pytest.approx(PACE_WEIGHT * 5.0)
+    assert replace(FAST, axis_rate_limit=2 * rate, accel_limit=2 * accel).violation(ref) == 0.0
     assert not within_limits(motion_summary(ref, paced))
     assert pace_metadata(paced) == {"pace": {"speed_limit": speed * 2, "axis_rate_limit": rate / 2}}
     assert pace_metadata(FAST) == {}
@@ -628,3 +640,36 @@ def test_the_search_seed_is_found_from_any_directory(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     assert REFERENCE_MOTION.is_absolute() and REFERENCE_MOTION.is_file()
     assert load_reference_motion().duration == pytest.approx(0.70, abs=0.01)
+
+
+def test_confirmation_stops_once_the_target_is_out_of_reach():
+    assert SearchConfig(target_rate=0.95, confirm_abort=True).confirm_failures == 1
+    assert SearchConfig(target_rate=0.8, confirm_abort=True).confirm_failures == 4
+    assert SearchConfig(target_rate=1.0, confirm_abort=True).confirm_failures == 0
+    assert SearchConfig(target_rate=0.95).confirm_failures is None
+    with pytest.raises(ConfigError) as e:
+        SearchConfig(confirm_abort=1)
+    assert str(e.value) == "SearchConfig.confirm_abort: must be true or false, got 1"
+    outcomes = iter([True, False, True, False, True, True])
+    played = []
+
+    def run(motion, variation):
+        played.append(variation)
+        tied = next(outcomes)
+        return SimpleNamespace(
+            diverged=False,
+            vertices=np.zeros((1, 4, 3)),
+            judged=[0],
+            tied=tied,
+            settle_fraction=float(tied),
+            knot_any=tied,
+            first_contact=0.5,
+        )
+
+    lab = SimpleNamespace(run=run)
+    ref = load_reference_motion()
+    ev = evaluate(lab, ref, FAST, [{}] * 6, max_failures=1)
+    assert len(played) == 4 and ev.ties == 2  # the second failure ends it
+    played.clear()
+    outcomes = iter([True] * 6)
+    assert evaluate(lab, ref, FAST, [{}] * 6, max_failures=1).ties == 6

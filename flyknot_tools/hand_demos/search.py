@@ -9,6 +9,7 @@ rates.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -102,14 +103,21 @@ def evaluate(
     variant: Variant,
     variations: Sequence[Mapping[str, Any]],
     weights: ScoreWeights = ScoreWeights(),  # noqa: B008 (a frozen dataclass)
+    *,
+    max_failures: int | None = None,
 ) -> Evaluation:
     """Score ``motion`` once per variation (:meth:`HandLab.draw_variation` dicts); a motion
-    that breaks the limits is scored once without simulation."""
+    that breaks the limits is scored once without simulation. With ``max_failures``, stop
+    after the trial that makes the untied trials exceed it (the rest are not played)."""
     limits = motion_summary(motion, variant)
     if not within_limits(limits):
         return Evaluation(motion, (limits,), (score(limits, weights),))
-    sums = tuple(trial_summary(lab.run(motion, variation=v), limits) for v in variations)
-    return Evaluation(motion, sums, tuple(score(s, weights) for s in sums))
+    sums: list[TrialSummary] = []
+    for v in variations:
+        sums.append(trial_summary(lab.run(motion, variation=v), limits))
+        if max_failures is not None and sum(not s.tied for s in sums) > max_failures:
+            break
+    return Evaluation(motion, tuple(sums), tuple(score(s, weights) for s in sums))
 
 
 # ----------------------------------------------------------------------------------------
@@ -132,6 +140,10 @@ class SearchConfig:
             ``refine_repeats`` varied trials per candidate (mean score).
         refine_sigma: Step of the refinement [normalised units].
         refine_repeats: Trials per candidate in the refinement.
+        confirm_abort: Stop a confirmation as soon as ``target_rate`` is out of reach (a
+            knotted trial lasts until the rope rests, up to 15 s simulated, so a full
+            confirmation of a weak candidate is the search's largest cost); the candidate's
+            rate is then ties / ``confirm_trials``, the unplayed trials counted as untied.
         hand: Hand-lab settings (rope, settling time, variation).
     """
 
@@ -143,6 +155,7 @@ class SearchConfig:
     refine_after: int = 400
     refine_sigma: float = 0.1
     refine_repeats: int = 2
+    confirm_abort: bool = False
     hand: HandParams = field(default_factory=HandParams)
 
     def __post_init__(self) -> None:
@@ -160,6 +173,17 @@ class SearchConfig:
             raise ConfigError(
                 "SearchConfig.target_rate", f"must lie in (0, 1], got {self.target_rate!r}"
             )
+        if not isinstance(self.confirm_abort, bool):
+            raise ConfigError(
+                "SearchConfig.confirm_abort", f"must be true or false, got {self.confirm_abort!r}"
+            )
+
+    @property
+    def confirm_failures(self) -> int | None:
+        """Most untied confirmation trials that still reach ``target_rate`` (None: no abort)."""
+        if not self.confirm_abort:
+            return None
+        return math.floor((1.0 - self.target_rate) * self.confirm_trials + 1e-9)
 
 
 @dataclass(frozen=True)
@@ -342,12 +366,14 @@ def search(
                 state["ties"] += ev.ties
                 if state["first_tie"] is None:
                     state["first_tie"] = state["trials"]
-                conf = evaluate(lab, motion, v, confirm_set, weights)
+                conf = evaluate(
+                    lab, motion, v, confirm_set, weights, max_failures=config.confirm_failures
+                )
                 spend(len(conf.summaries))
                 cand = Candidate(
                     motion=motion,
                     trial=state["trials"],
-                    rate=conf.rate,
+                    rate=conf.ties / config.confirm_trials,
                     nominal_tied=conf.summaries[0].tied,
                     mean_score=conf.mean_score,
                 )

@@ -26,7 +26,7 @@ from flyknot_sim.hand_params import HandParams, HandVariation
 from flyknot_sim.hand_replay import ReplayResult, hand_metadata, replay
 from flyknot_sim.mocap import MocapParams
 from flyknot_tools.hand_demos.search import SearchConfig, SearchResult, evaluate, search, variations
-from flyknot_tools.hand_demos.variants import THROW_WINDOW, Variant, get_variant
+from flyknot_tools.hand_demos.variants import PACE_FIELDS, THROW_WINDOW, Variant, get_variant
 
 GENERATOR = "flyknot_tools.hand_demos"
 """The ``generator`` in a synthesized demonstration's metadata: this tool."""
@@ -324,7 +324,7 @@ class SynthResult:
 def pace_metadata(variant: Variant) -> dict[str, Any]:
     """The variant's finite pace limits as plain data (empty if it has none)."""
     out = {}
-    for f in ("speed_limit", "axis_rate_limit"):
+    for f in PACE_FIELDS:
         v = getattr(variant, f)
         if math.isfinite(v):
             out[f] = float(v)

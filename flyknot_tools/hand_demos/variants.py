@@ -41,6 +41,8 @@ THROW_WINDOW = (0.66, 0.72)
 """Duration window of the throw (the first stage of every variant) [s]: the reference's
 0.70 s; scaling a knotting motion in time keeps the knot only within about +-3 %."""
 STAGE_KINDS = ("throw", "windup")
+PACE_FIELDS = ("speed_limit", "axis_rate_limit", "accel_limit")
+"""A variant's pace limits, in the order of :meth:`Variant.pace`'s peaks."""
 PACE_WEIGHT = 0.1
 """Violation per unit of relative excess over a variant's pace limits (10 % over a limit
 counts like a 1 cm swipe violation)."""
@@ -74,6 +76,9 @@ class Variant:
         axis_rate_limit: Peak angular rate of the rope's exit axis allowed [rad/s] (inf: no
             limit). A robot follows a hand only as fast as its wrist turns: a demonstration
             for a robot is made with a limit near the robot's own (see :meth:`pace`).
+        accel_limit: Peak hand acceleration allowed [m/s^2] (inf: no limit). The three pace
+            limits of a demonstration within the arm's reach come from
+            :func:`flyknot_tools.hand_demos.envelope.shared_envelope`.
     """
 
     name: str
@@ -84,6 +89,7 @@ class Variant:
     throw_sigma: float = 0.3
     speed_limit: float = math.inf
     axis_rate_limit: float = math.inf
+    accel_limit: float = math.inf
 
     def __post_init__(self) -> None:
         lo, hi = (float(v) for v in self.duration)
@@ -96,22 +102,24 @@ class Variant:
         if not (math.isfinite(self.swipe_ratio) and self.swipe_ratio >= 0):
             raise ConfigError("Variant.swipe_ratio", f"must be >= 0, got {self.swipe_ratio!r}")
         check_positive("Variant.throw_sigma", self.throw_sigma)
-        for f in ("speed_limit", "axis_rate_limit"):
+        for f in PACE_FIELDS:
             v = getattr(self, f)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
                 raise ConfigError(f"Variant.{f}", f"must be a number > 0 (inf: none), got {v!r}")
 
-    def pace(self, motion: KnotMotion, dt: float = 0.001) -> tuple[float, float]:
-        """Peak hand speed max |p'| [m/s] and peak exit-axis rate max |d'| [rad/s].
+    def pace(self, motion: KnotMotion, dt: float = 0.001) -> tuple[float, float, float]:
+        """Peak hand speed max |p'| [m/s], peak exit-axis rate max |d'| [rad/s] and peak hand
+        acceleration max |p''| [m/s^2].
 
         The rope leaves the hand along d = Ry(b) Rx(a) (0, 0, -1), so
         |d'| = sqrt(a'^2 + cos(a)^2 b'^2); sampled every ``dt`` over [0, T].
         """
         t = np.linspace(0.0, motion.duration, max(3, math.ceil(motion.duration / dt) + 1))
-        y, yd = motion.curves(t), motion.curves(t, 1)
+        y, yd, ydd = motion.curves(t), motion.curves(t, 1), motion.curves(t, 2)
         speed = np.linalg.norm(yd[:, :3], axis=1)
         rate = np.sqrt(yd[:, 3] ** 2 + (np.cos(y[:, 3]) * yd[:, 4]) ** 2)
-        return float(speed.max()), float(rate.max())
+        accel = np.linalg.norm(ydd[:, :3], axis=1)
+        return float(speed.max()), float(rate.max()), float(accel.max())
 
     def strike(self, motion: KnotMotion) -> tuple[float, float]:
         """The strike's drop dz and horizontal travel dh [m], from the hand's highest point
@@ -125,17 +133,18 @@ class Variant:
         """The variant's constraint violation g(motion) >= 0 (0 when met).
 
         g = max(0, dz - dh / swipe_ratio) [m] (swipe)
-            + PACE_WEIGHT (max(0, v_peak / speed_limit - 1) + max(0, w_peak / axis_rate_limit - 1))
+            + PACE_WEIGHT (max(0, v_peak / speed_limit - 1) + max(0, w_peak / axis_rate_limit - 1)
+                           + max(0, a_peak / accel_limit - 1))
         """
         g = 0.0
         if self.swipe_ratio > 0:
             dz, dh = self.strike(motion)
             g += max(0.0, dz - dh / self.swipe_ratio)
-        if math.isfinite(self.speed_limit) or math.isfinite(self.axis_rate_limit):
-            speed, rate = self.pace(motion)
-            g += PACE_WEIGHT * (
-                max(0.0, speed / self.speed_limit - 1.0)
-                + max(0.0, rate / self.axis_rate_limit - 1.0)
+        limits = tuple(getattr(self, f) for f in PACE_FIELDS)
+        if any(math.isfinite(v) for v in limits):
+            peaks = self.pace(motion)
+            g += PACE_WEIGHT * sum(
+                max(0.0, p / v - 1.0) for p, v in zip(peaks, limits, strict=True)
             )
         return g
 
