@@ -91,7 +91,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from flyknot_app.runner import run_scenario
     from flyknot_app.scenario import load_scenario, parse_overrides
 
-    overrides = parse_overrides(args.set)
+    pairs = list(args.set or [])
+    if args.paper_settings:
+        from flyknot_app.scenario import PAPER_SETTINGS
+
+        pairs = [*PAPER_SETTINGS, *pairs]  # a later --set wins
+    overrides = parse_overrides(pairs)
     cell = None
     if args.cell is not None:
         cell = {"kind": "xarm", "lab": str(Path(args.cell).resolve()), "dry_run": args.dry_run}
@@ -335,6 +340,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         metavar="KEY=VALUE",
         help="override a run field, e.g. max_trials=3 or rope_model.stiffness=1e3",
+    )
+    r.add_argument(
+        "--paper-settings",
+        action="store_true",
+        help="the paper's learner settings (gain 1, w_control 0.5, rope model 1e5/50, the "
+        "paper's demonstration window) instead of the scenario's; --set still overrides",
     )
     r.add_argument("--resume", action="store_true", help="continue an interrupted run")
     r.add_argument(

@@ -268,6 +268,20 @@ def _coerce_override(value: str) -> Any:
     return value
 
 
+PAPER_SETTINGS = (
+    "gain=1",
+    "weights.w_control=0.5",
+    "rope_model.stiffness=1e5",
+    "rope_model.damping=50",
+    "path_frac=0.05",
+    "follow_through_s=0.035",
+)
+"""The paper's learner settings as ``--set`` overrides (``flyknot run --paper-settings``):
+ILC gain 1, control weight 0.5, rope model bending stiffness 1e5 and damping 50, the
+demonstration window from 5 % of the hand path to t_c + 35 ms (Suresh & Atkeson; the
+scenario files' own values and why they differ: README "Learner settings")."""
+
+
 def parse_overrides(pairs: list[str] | None) -> dict[str, Any]:
     """``["max_trials=2", "rope_model.stiffness=1e3"]`` -> a nested dict of run fields."""
     out: dict[str, Any] = {}

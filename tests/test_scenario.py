@@ -224,3 +224,26 @@ def test_confirm_field_from_toml_and_command_line():
     with pytest.raises(ConfigError) as e:
         RunSpec(name="a", confirm=[1, 2], stop_at_success=False)
     assert str(e.value) == "confirm: needs stop_at_success = true"
+
+
+def test_paper_settings_set_the_papers_learner(tmp_path, monkeypatch):
+    from flyknot_app import cli, runner
+    from flyknot_app.scenario import PAPER_SETTINGS
+
+    scen = load_scenario("learn-rope1", parse_overrides(list(PAPER_SETTINGS)))
+    run = scen.runs[0]
+    assert (run.gain, run.path_frac, run.follow_through_s) == (1.0, 0.05, 0.035)
+    assert run.weights["w_control"] == 0.5
+    assert (run.rope_model["stiffness"], run.rope_model["damping"]) == (1e5, 50.0)
+    seen = {}
+
+    def fake_run(scen, out, **kw):
+        seen["scen"], seen["overrides"] = scen, kw["overrides"]
+        return {"runs": []}
+
+    monkeypatch.setattr(runner, "run_scenario", fake_run)
+    argv = ["run", "learn-rope1", "--paper-settings", "--set", "gain=0.7"]
+    assert cli.main([*argv, "--out", str(tmp_path / "r")]) == 0
+    assert seen["overrides"]["gain"] == 0.7  # a later --set wins
+    assert seen["overrides"]["rope_model"] == {"stiffness": 1e5, "damping": 50}
+    assert seen["scen"].runs[0].follow_through_s == 0.035
