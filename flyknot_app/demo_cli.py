@@ -20,6 +20,7 @@ import argparse
 import json
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from flyknot.errors import check_int
 from flyknot_app.scenario import parse_rope_arg
@@ -67,6 +68,115 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _demo_files(paths: Sequence[str]) -> list[Path]:
+    """The demonstration files named: files as given, directories by their ``*.npz``."""
+    from flyknot.errors import ConfigError
+
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            out.extend(sorted(p.glob("*.npz")))
+        elif p.is_file():
+            out.append(p)
+        else:
+            raise ConfigError("path", f"no file or directory {str(p)!r}")
+    if not out:
+        raise ConfigError("path", f"no .npz files in {', '.join(map(str, paths))}")
+    return out
+
+
+def critical_rows(paths: Sequence[str], diameter: float | None = None) -> list[dict[str, Any]]:
+    """t_c detected from each demonstration's markers (:func:`learner.critical_time.
+    detect_critical_time`) beside the t_c the file records (for simulated demonstrations and
+    replays: the simulator's first rope self-contact).
+
+    Args:
+        paths: Demonstration or replay files, or directories of them.
+        diameter: Rope diameter [m] (default: that of the file's rope in ``assets/ropes.toml``).
+
+    Returns:
+        One row per file: ``file``, ``t_c`` (recorded, None if the rope never touched
+        itself), ``detected`` (None if nothing fired), ``cue``, ``error_ms`` (detected -
+        recorded, None unless both exist).
+    """
+    import numpy as np
+
+    from flyknot.demo import Demonstration
+    from flyknot_sim.rope_table import get_rope
+    from learner.critical_time import detect_critical_time
+
+    rows = []
+    for f in _demo_files(paths):
+        with np.load(f, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+            recorded = meta.get("t_c")
+            arrays = {k: np.array(z[k]) for k in ("t", "hand_pos", "hand_quat", "markers")}
+        rope = int(meta.get("rope", 1))
+        demo = Demonstration(
+            **arrays, t_c=float(arrays["t"][0]) if recorded is None else recorded, rope=rope
+        )
+        d = diameter if diameter is not None else get_rope(rope).diameter
+        found = detect_critical_time(demo, d)
+        err = None
+        if found.t_c is not None and recorded is not None:
+            err = round(1000.0 * (found.t_c - recorded), 1)
+        rows.append(
+            {
+                "file": str(f),
+                "t_c": recorded,
+                "detected": found.t_c,
+                "cue": found.cue,
+                "error_ms": err,
+            }
+        )
+    return rows
+
+
+def critical_summary(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Errors over the rows with both times: count, median, median |e|, 90th percentile of
+    |e| and the worst (largest |e|, signed) [ms]; rows with only one of the two counted."""
+    import numpy as np
+
+    e = np.array([r["error_ms"] for r in rows if r["error_ms"] is not None], dtype=float)
+    out: dict[str, Any] = {
+        "n": len(e),
+        "no_detection": sum(r["detected"] is None and r["t_c"] is not None for r in rows),
+        "no_contact": sum(r["t_c"] is None for r in rows),
+    }
+    if len(e):
+        out |= {
+            "median_ms": float(np.median(e)),
+            "median_abs_ms": float(np.median(np.abs(e))),
+            "p90_abs_ms": float(np.percentile(np.abs(e), 90)),
+            "worst_ms": float(e[np.argmax(np.abs(e))]),
+        }
+    return out
+
+
+def _cmd_critical(args: argparse.Namespace) -> int:
+    from flyknot.errors import check_positive
+
+    if args.diameter is not None:
+        check_positive("--diameter", args.diameter)
+    rows = critical_rows(args.paths, args.diameter)
+    summary = critical_summary(rows)
+    if args.json:
+        print(json.dumps({"rows": rows, "summary": summary}))
+        return 0
+    for r in rows:
+        rec = "none" if r["t_c"] is None else f"{r['t_c']:.3f} s"
+        det = "none" if r["detected"] is None else f"{r['detected']:.3f} s ({r['cue']})"
+        err = "" if r["error_ms"] is None else f", error {r['error_ms']:+.0f} ms"
+        print(f"{r['file']}: recorded {rec}, detected {det}{err}")
+    if summary["n"]:
+        print(
+            f"{summary['n']} with both: median error {summary['median_ms']:+.1f} ms, median "
+            f"|error| {summary['median_abs_ms']:.1f} ms, 90th percentile "
+            f"{summary['p90_abs_ms']:.1f} ms, worst {summary['worst_ms']:+.0f} ms"
+        )
+    return 0
+
+
 def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add ``demo replay`` to a ``flyknot`` subparser set.
 
@@ -76,7 +186,9 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
     Returns:
         The ``demo`` parser.
     """
-    d = subparsers.add_parser("demo", help="replay a synthesized flying-knot demonstration")
+    d = subparsers.add_parser(
+        "demo", help="replay a flying-knot demonstration; detect its critical time"
+    )
     dsub = d.add_subparsers(dest="demo_cmd", required=True, metavar="ACTION")
 
     r = dsub.add_parser("replay", help="replay a synthesized demo's hand motion")
@@ -100,6 +212,17 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
     r.add_argument("--json", action="store_true", help="print one JSON object")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=_cmd_replay)
+
+    c = dsub.add_parser(
+        "critical",
+        help="detect t_c from the markers alone and compare it with the recorded t_c",
+    )
+    c.add_argument("paths", nargs="+", help="demonstration/replay files or directories of them")
+    c.add_argument(
+        "--diameter", type=float, default=None, help="rope diameter [m] (default: the file's rope)"
+    )
+    c.add_argument("--json", action="store_true", help="print one JSON object")
+    c.set_defaults(func=_cmd_critical)
     return d
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -67,3 +69,51 @@ def test_bad_points_name_the_problem():
     with pytest.raises(RecordError) as e:
         polyline_self_distance(np.zeros((3, 3)))
     assert str(e.value) == "points must have shape (..., k, 3) with k >= 4, got (3, 3)"
+
+
+def test_demo_critical_reports_every_shipped_demonstration(tmp_path, capsys):
+    import json
+
+    from flyknot_app import demo_cli
+
+    assert demo_cli.main(["demo", "critical", str(DEMOS_DIR), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    rows = {Path(r["file"]).stem: r for r in out["rows"]}
+    assert set(rows) == {"fast", "slow", "swipe", "inverse", "robot"}
+    for name, r in rows.items():
+        demo = Demonstration.load(DEMOS_DIR / f"{name}.npz")
+        assert r["t_c"] == demo.t_c
+        assert r["error_ms"] == pytest.approx(1000 * (r["detected"] - demo.t_c), abs=0.06)
+    assert out["summary"]["n"] == 5
+    assert abs(out["summary"]["worst_ms"]) == max(abs(r["error_ms"]) for r in rows.values())
+    # a replay without self-contact records no t_c: counted, not compared
+    with np.load(DEMOS_DIR / "fast.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(str(arrays["meta"]))
+    meta["t_c"] = None
+    arrays["meta"] = np.array(json.dumps(meta))
+    np.savez(tmp_path / "replay_000.npz", **arrays)
+    assert demo_cli.main(["demo", "critical", str(tmp_path), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["summary"]["no_contact"] == 1 and out["summary"]["n"] == 0
+    assert out["rows"][0]["detected"] is not None and out["rows"][0]["error_ms"] is None
+
+
+def test_critical_summary_statistics_and_errors(tmp_path, capsys):
+    from flyknot_app import demo_cli
+    from flyknot_app.demo_cli import critical_summary
+
+    rows = [{"t_c": 1.0, "detected": 1.0, "error_ms": e} for e in (-30.0, 1.0, 2.0, 5.0)]
+    rows.append({"t_c": 1.0, "detected": None, "error_ms": None})
+    s = critical_summary(rows)
+    assert s["n"] == 4 and s["no_detection"] == 1 and s["no_contact"] == 0
+    assert s["median_ms"] == 1.5 and s["median_abs_ms"] == 3.5 and s["worst_ms"] == -30.0
+    assert s["p90_abs_ms"] == pytest.approx(np.percentile([30, 1, 2, 5], 90))
+    assert demo_cli.main(["demo", "critical", str(tmp_path / "none.npz")]) == 2
+    assert (
+        capsys.readouterr()
+        .err.strip()
+        .endswith(f"path: no file or directory {str(tmp_path / 'none.npz')!r}")
+    )
+    assert demo_cli.main(["demo", "critical", str(tmp_path)]) == 2
+    assert f"path: no .npz files in {tmp_path}" in capsys.readouterr().err
