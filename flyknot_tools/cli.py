@@ -74,6 +74,12 @@ def _cmd_synthesize(args: argparse.Namespace) -> int:
         check_int("--budget", args.budget, 1)
         config = replace(config, total_budget=args.budget)
     search = replace(config.search, hand=HandParams(rope=args.rope))
+    if args.throw_budget is not None:
+        check_int("--throw-budget", args.throw_budget, 1)
+        search = replace(search, budget=args.throw_budget)
+    start = None
+    if args.start is not None:
+        start = _start_motion(args.start)
     if args.target_rate is not None:
         if not 0.0 < args.target_rate <= 1.0:
             raise ConfigError("--target-rate", f"must lie in (0, 1], got {args.target_rate!r}")
@@ -85,11 +91,26 @@ def _cmd_synthesize(args: argparse.Namespace) -> int:
         config,
         check_repeats=args.check_repeats,
         progress=not args.quiet,
+        start=start,
     )
     result.demo.save(out)
     summary = {"file": str(out), **result.summary()}
     _print_summary(summary, args.json)
     return 0
+
+
+def _start_motion(path: str):
+    """The hand motion stored in a synthesized demonstration's metadata (``--start``)."""
+    from flyknot.demo import Demonstration
+    from flyknot_sim.hand_motion import KnotMotion
+
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError("--start", f"no file {str(p)!r}")
+    motion = Demonstration.load(p).metadata.get("motion")
+    if not isinstance(motion, dict):
+        raise ConfigError("--start", f"{str(p)!r} holds no hand motion (made by demo synthesize?)")
+    return KnotMotion.from_dict(motion)
 
 
 def _load_command(path: str) -> tuple[object, float]:
@@ -234,6 +255,12 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
         type=float,
         default=None,
         help="peak turn rate of the rope's exit axis allowed [rad/s] (a robot-paced demo)",
+    )
+    s.add_argument(
+        "--start", default=None, help="start from this demonstration's hand motion (.npz)"
+    )
+    s.add_argument(
+        "--throw-budget", type=int, default=None, help="most trials of the throw stage (900)"
     )
     s.add_argument("--max-accel", type=float, default=None, help="peak hand acceleration [m/s^2]")
     s.add_argument(

@@ -673,3 +673,41 @@ def test_confirmation_stops_once_the_target_is_out_of_reach():
     played.clear()
     outcomes = iter([True] * 6)
     assert evaluate(lab, ref, FAST, [{}] * 6, max_failures=1).ties == 6
+
+
+def test_cli_envelope_start_and_budgets_reach_the_search(tmp_path, capsys, monkeypatch):
+    from flyknot.errors import SolverError
+    from flyknot_tools.hand_demos import synthesis
+    from flyknot_tools.hand_demos.envelope import arm_envelope, shared_envelope
+
+    seen = {}
+
+    def fake(variant, seed, config, *, check_repeats, progress, start):
+        seen.update(variant=variant, config=config, start=start)
+        raise SolverError("demo search", "budget", "stopped by the test")
+
+    monkeypatch.setattr(synthesis, "synthesize", fake)
+    args = ["demo", "synthesize", "--variant", "swipe", "--out", str(tmp_path / "x.npz")]
+    args += ["--envelope", "--max-speed", "2.0", "--start", str(DEMOS_DIR / "fast.npz")]
+    args += ["--throw-budget", "7", "--target-rate", "0.95", "--confirm-abort", "--quiet"]
+    assert tools_cli.main(args) == 2
+    assert "stopped by the test" in capsys.readouterr().err
+    env = shared_envelope(arm_envelope().envelope)
+    v = seen["variant"]
+    assert (v.speed_limit, v.axis_rate_limit, v.accel_limit) == (2.0, env.axis_rate, env.accel)
+    assert v.swipe_ratio == 1.0  # still the swipe
+    cfg = seen["config"].search
+    assert (cfg.budget, cfg.target_rate, cfg.confirm_abort) == (7, 0.95, True)
+    shipped = _shipped("fast").metadata["motion"]
+    np.testing.assert_array_equal(seen["start"].x, KnotMotion.from_dict(shipped).x)
+    robot = str(DEMOS_DIR / "robot.npz")
+    args = ["demo", "synthesize", "--variant", "fast", "--out", str(tmp_path / "x.npz")]
+    assert tools_cli.main([*args, "--start", robot]) == 2
+    assert capsys.readouterr().err == (
+        f"flyknot-tools: error: --start: {robot!r} holds no hand motion (made by demo "
+        "synthesize?)\n"
+    )
+    assert tools_cli.main([*args, "--target-rate", "1.5"]) == 2
+    assert capsys.readouterr().err == (
+        "flyknot-tools: error: --target-rate: must lie in (0, 1], got 1.5\n"
+    )

@@ -222,6 +222,7 @@ def synthesize_motion(
     *,
     progress: bool = False,
     on_stage: Callable[[str, SearchResult], None] | None = None,
+    start: KnotMotion | None = None,
 ) -> StagedResult:
     """Search a robust flying-knot motion of ``variant`` in stages (:meth:`Variant.stages`).
 
@@ -230,7 +231,8 @@ def synthesize_motion(
     ``seed``; a wind-up stage starts from the best of :meth:`KnotMotion.with_windup` over
     ``config.windup_speeds``. Intermediate stages end at
     ``config.stage_target``, the last at ``config.search.target_rate``. ``on_stage`` is
-    called with each finished stage's kind and result.
+    called with each finished stage's kind and result. ``start`` replaces the variant's seed
+    motion as the first stage's start (e.g. a demonstration found under looser pace limits).
 
     Raises:
         SolverError: A stage found no motion whose nominal trial ties, or the total budget
@@ -246,7 +248,7 @@ def synthesize_motion(
     tic = time.perf_counter()
     lab = HandLab(config.search.hand)
     stages = v.stages()
-    motion = replace(v, duration=THROW_WINDOW).seed_motion()
+    motion = replace(v, duration=THROW_WINDOW).seed_motion() if start is None else start
     bar = tqdm(
         total=config.total_budget,
         unit="trial",
@@ -338,12 +340,14 @@ def synthesize(
     *,
     check_repeats: int = 20,
     progress: bool = False,
+    start: KnotMotion | None = None,
 ) -> SynthResult:
     """Search a motion (:func:`synthesize_motion`), record it as a demonstration
     (:func:`make_demonstration`) and check it with ``check_repeats`` varied replays
-    (:func:`replay` with seed ``seed``; the count goes into the metadata as ``check``)."""
+    (:func:`replay` with seed ``seed``; the count goes into the metadata as ``check``).
+    ``start``: as in :func:`synthesize_motion`."""
     v = get_variant(variant) if isinstance(variant, str) else variant
-    staged = synthesize_motion(v, seed, config, progress=progress)
+    staged = synthesize_motion(v, seed, config, progress=progress, start=start)
     hand = config.search.hand
     demo, _ = make_demonstration(
         staged.motion,
