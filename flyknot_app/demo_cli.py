@@ -85,6 +85,31 @@ def _demo_files(paths: Sequence[str]) -> list[Path]:
     return out
 
 
+def _load_for_detection(path: Path):
+    """A demonstration or replay file as a Demonstration, and the t_c it records (None for a
+    replay without self-contact or a capture whose t_c is unknown: then the Demonstration
+    carries its first sample time as a placeholder, which detection never reads)."""
+    import numpy as np
+
+    from flyknot.demo import Demonstration
+    from flyknot.errors import RecordError
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+            arrays = {k: np.array(z[k]) for k in ("t", "hand_pos", "hand_quat", "markers")}
+    except (KeyError, ValueError, OSError) as e:
+        raise RecordError(f"{str(path)!r} is not a demonstration file: {e}") from e
+    recorded = meta.get("t_c")
+    demo = Demonstration(
+        **arrays,
+        t_c=float(arrays["t"][0]) if recorded is None else recorded,
+        rope=int(meta.get("rope", 1)),
+        metadata=meta.get("metadata", {}),
+    )
+    return demo, recorded
+
+
 def critical_rows(paths: Sequence[str], diameter: float | None = None) -> list[dict[str, Any]]:
     """t_c detected from each demonstration's markers (:func:`learner.critical_time.
     detect_critical_time`) beside the t_c the file records (for simulated demonstrations and
@@ -99,23 +124,13 @@ def critical_rows(paths: Sequence[str], diameter: float | None = None) -> list[d
         itself), ``detected`` (None if nothing fired), ``cue``, ``error_ms`` (detected -
         recorded, None unless both exist).
     """
-    import numpy as np
-
-    from flyknot.demo import Demonstration
     from flyknot_sim.rope_table import get_rope
     from learner.critical_time import detect_critical_time
 
     rows = []
     for f in _demo_files(paths):
-        with np.load(f, allow_pickle=False) as z:
-            meta = json.loads(str(z["meta"]))
-            recorded = meta.get("t_c")
-            arrays = {k: np.array(z[k]) for k in ("t", "hand_pos", "hand_quat", "markers")}
-        rope = int(meta.get("rope", 1))
-        demo = Demonstration(
-            **arrays, t_c=float(arrays["t"][0]) if recorded is None else recorded, rope=rope
-        )
-        d = diameter if diameter is not None else get_rope(rope).diameter
+        demo, recorded = _load_for_detection(f)
+        d = diameter if diameter is not None else get_rope(demo.rope).diameter
         found = detect_critical_time(demo, d)
         err = None
         if found.t_c is not None and recorded is not None:
@@ -130,6 +145,23 @@ def critical_rows(paths: Sequence[str], diameter: float | None = None) -> list[d
             }
         )
     return rows
+
+
+def write_detected(source: str, out: str, row: dict[str, Any]) -> None:
+    """Save ``source`` again as ``out`` with t_c = the detected one (a capture without a
+    known t_c becomes a demonstration the learner takes); the metadata keep the recorded t_c
+    (``t_c_recorded``) and say where t_c came from (``t_c_source``: ``markers/<cue>``)."""
+    from dataclasses import replace
+
+    from flyknot.errors import ConfigError
+
+    if row["detected"] is None:
+        raise ConfigError("--write", f"no critical time found in {source!r}: nothing written")
+    if Path(out).suffix != ".npz":
+        raise ConfigError("--write", f"must be a .npz file, got {out!r}")
+    demo, recorded = _load_for_detection(Path(source))
+    meta = {**demo.metadata, "t_c_recorded": recorded, "t_c_source": f"markers/{row['cue']}"}
+    replace(demo, t_c=row["detected"], metadata=meta).save(out)
 
 
 def critical_summary(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
@@ -159,6 +191,12 @@ def _cmd_critical(args: argparse.Namespace) -> int:
     if args.diameter is not None:
         check_positive("--diameter", args.diameter)
     rows = critical_rows(args.paths, args.diameter)
+    if args.write is not None:
+        from flyknot.errors import ConfigError
+
+        if len(rows) != 1:
+            raise ConfigError("--write", f"needs exactly one input file, got {len(rows)}")
+        write_detected(rows[0]["file"], args.write, rows[0])
     summary = critical_summary(rows)
     if args.json:
         print(json.dumps({"rows": rows, "summary": summary}))
@@ -220,6 +258,13 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
     c.add_argument("paths", nargs="+", help="demonstration/replay files or directories of them")
     c.add_argument(
         "--diameter", type=float, default=None, help="rope diameter [m] (default: the file's rope)"
+    )
+    c.add_argument(
+        "--write",
+        default=None,
+        metavar="OUT.npz",
+        help="with one input file: save it with t_c = the detected one (for a capture "
+        "whose t_c is unknown)",
     )
     c.add_argument("--json", action="store_true", help="print one JSON object")
     c.set_defaults(func=_cmd_critical)

@@ -117,3 +117,32 @@ def test_critical_summary_statistics_and_errors(tmp_path, capsys):
     )
     assert demo_cli.main(["demo", "critical", str(tmp_path)]) == 2
     assert f"path: no .npz files in {tmp_path}" in capsys.readouterr().err
+
+
+def test_demo_critical_write_gives_a_capture_its_detected_t_c(tmp_path, capsys):
+    import json
+
+    from flyknot_app import demo_cli
+
+    with np.load(DEMOS_DIR / "slow.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(str(arrays["meta"]))
+    meta["t_c"] = None  # a capture whose critical time nobody marked
+    arrays["meta"] = np.array(json.dumps(meta))
+    src = tmp_path / "capture.npz"
+    np.savez(src, **arrays)
+    out = tmp_path / "marked.npz"
+    assert demo_cli.main(["demo", "critical", str(src), "--write", str(out), "--json"]) == 0
+    row = json.loads(capsys.readouterr().out)["rows"][0]
+    demo = Demonstration.load(out)
+    assert demo.t_c == row["detected"]
+    assert demo.t_c == pytest.approx(Demonstration.load(DEMOS_DIR / "slow.npz").t_c, abs=0.025)
+    assert demo.metadata["t_c_source"] == f"markers/{row['cue']}"
+    assert demo.metadata["t_c_recorded"] is None
+    np.testing.assert_array_equal(demo.markers, arrays["markers"])
+    assert demo_cli.main(["demo", "critical", str(DEMOS_DIR), "--write", str(out)]) == 2
+    assert capsys.readouterr().err.strip().endswith("--write: needs exactly one input file, got 5")
+    bad = tmp_path / "x.npz"
+    np.savez(bad, t=np.zeros(3))
+    assert demo_cli.main(["demo", "critical", str(bad)]) == 2
+    assert "is not a demonstration file" in capsys.readouterr().err
