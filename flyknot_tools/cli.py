@@ -113,16 +113,10 @@ def _start_motion(path: str):
     return KnotMotion.from_dict(motion)
 
 
-def _load_command(path: str) -> tuple[object, float]:
-    import numpy as np
+def _load_command(path: str, field: str = "--command") -> tuple[object, float]:
+    from flyknot_tools.hand_demos.envelope import load_command_file
 
-    p = Path(path)
-    if not p.is_file():
-        raise ConfigError("--command", f"no file {str(p)!r}")
-    with np.load(p) as z:
-        if "knots" not in z.files or "T" not in z.files:
-            raise ConfigError("--command", f"{str(p)!r} needs arrays 'knots' and 'T'")
-        return np.array(z["knots"]), float(z["T"])
+    return load_command_file(path, field)
 
 
 def _print_summary(summary: dict, as_json: bool) -> None:
@@ -157,7 +151,7 @@ def _cmd_robot(args: argparse.Namespace) -> int:
         target_rate=args.target_rate,
     )
     if args.start is not None:
-        knots0, T0 = _load_command(args.start)
+        knots0, T0 = _load_command(args.start, "--start")
     else:
         dt = RopeModelParams().dt
         _, target = prepare_target(args.demo, dt)

@@ -119,7 +119,7 @@ def test_cli_record_round_trip_and_errors(shipped, tmp_path, capsys):
         == 2
     )
     assert capsys.readouterr().err == (
-        f"flyknot-tools: error: --command: no file {str(tmp_path / 'no.npz')!r}\n"
+        f"flyknot-tools: error: --command: no command file {str(tmp_path / 'no.npz')!r}\n"
     )
     bad = tmp_path / "bad.npz"
     np.savez(bad, q=np.zeros(3))

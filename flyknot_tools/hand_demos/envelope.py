@@ -191,6 +191,21 @@ def time_scale_limit(
     return lo, f"torque J{j + 1}"
 
 
+def load_command_file(path: str | Path, field: str = "path") -> tuple[np.ndarray, float]:
+    """A Bezier command file: ``knots`` (10, 8) and duration ``T`` [s].
+
+    Raises:
+        ConfigError: No such file or an array missing (named by ``field``).
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(field, f"no command file {str(p)!r}")
+    with np.load(p) as z:
+        if "knots" not in z.files or "T" not in z.files:
+            raise ConfigError(field, f"{str(p)!r} needs arrays 'knots' and 'T'")
+        return np.array(z["knots"], dtype=float), float(z["T"])
+
+
 def arm_envelope(
     path: str | Path = ROBOT_THROW,
     *,
@@ -216,12 +231,7 @@ def arm_envelope(
     from learner.kinematics import RobotModel
 
     p = Path(path)
-    if not p.is_file():
-        raise ConfigError("path", f"no command file {str(p)!r}")
-    with np.load(p) as z:
-        if "knots" not in z.files or "T" not in z.files:
-            raise ConfigError("path", f"{str(p)!r} needs arrays 'knots' and 'T'")
-        knots, T = np.array(z["knots"], dtype=float), float(z["T"])
+    knots, T = load_command_file(p)
     if isinstance(samples, bool) or not isinstance(samples, int) or samples < 3:
         raise ConfigError("samples", f"must be an integer >= 3, got {samples!r}")
     robot = RobotModel.from_mjcf() if robot is None else robot
