@@ -618,7 +618,7 @@ def test_demo_commands_are_split_between_flyknot_and_flyknot_tools(capsys):
         "record",
     }
     assert _actions(_help(cli.main, ["demo", "--help"], capsys)) == {"replay", "critical"}
-    assert _actions(_help(demo_cli.main, ["demo", "--help"], capsys)) == {"replay"}
+    assert _actions(_help(demo_cli.main, ["demo", "--help"], capsys)) == {"replay", "critical"}
     assert _actions(_help(tools_cli.main, ["--help"], capsys)) == {
         "demo",
         "rope-study",
