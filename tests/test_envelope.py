@@ -146,3 +146,19 @@ def test_arm_envelope_errors(tmp_path):
     with pytest.raises(ConfigError) as e:
         arm_envelope(bad)
     assert str(e.value) == f"path: {str(bad)!r} needs arrays 'knots' and 'T'"
+
+
+def test_hand_pace_is_the_slowest_shipped_hand_demonstration():
+    from flyknot.constants import DEMOS_DIR
+    from flyknot.demo import Demonstration
+    from flyknot_sim.hand_motion import KnotMotion
+    from flyknot_tools.hand_demos.variants import get_variant
+
+    peaks = []
+    for name in ("fast", "slow", "swipe", "inverse"):
+        motion = KnotMotion.from_dict(
+            Demonstration.load(DEMOS_DIR / f"{name}.npz").metadata["motion"]
+        )
+        peaks.append(get_variant(name).pace(motion))
+    slowest = np.min(np.array(peaks), axis=0)
+    np.testing.assert_allclose(slowest, HAND_PACE, atol=0.05)

@@ -66,15 +66,6 @@ class PaceEnvelope:
                 raise ConfigError(f"PaceEnvelope.{f}", f"must be a number > 0, got {v!r}")
             object.__setattr__(self, f, float(v))
 
-    def as_dict(self) -> dict[str, Any]:
-        """Plain data (for metadata and reports)."""
-        return {
-            "speed": self.speed,
-            "axis_rate": self.axis_rate,
-            "accel": self.accel,
-            "source": self.source,
-        }
-
 
 @dataclass(frozen=True)
 class ArmThrowPace:
