@@ -1,0 +1,29 @@
+"""The README's two commands: the main job, and the test command CI runs."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _first_block() -> list[str]:
+    text = (ROOT / "README.md").read_text()
+    match = re.search(r"```bash\n(.*?)```", text, re.DOTALL)
+    assert match, "README has no bash block"
+    return [line for line in match.group(1).splitlines() if line.strip()]
+
+
+def test_the_readme_opens_with_exactly_two_commands():
+    lines = _first_block()
+    assert len(lines) == 2
+    assert lines[0].endswith("flyknot run learn-rope1")
+
+
+def test_the_test_command_is_what_ci_runs_and_installs_the_browser():
+    assert _first_block()[1] == "bash .ci/run"
+    ci = (ROOT / ".ci" / "run").read_text()
+    assert "chromium-driver" in ci and "apt-get install" in ci
+    assert "pytest -q -n 2" in ci
+    assert '"$status" -eq 5' in ci  # pytest's "no tests" exit fails CI
