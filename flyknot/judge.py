@@ -1,54 +1,58 @@
 """Who says whether a trial tied the knot: one small interface, three answers.
 
-A :class:`KnotJudge` maps a :class:`~flyknot.record.TrialRecord` to a knot name (``"trefoil"``,
-``"unknot"``, another knot's name) or None (not judged). The learner's stop rule asks a judge,
-never a cell's internals:
+A :class:`KnotJudge` maps a :class:`~flyknot.record.TrialRecord` to a
+:class:`~flyknot.verdict.Verdict` (the class, the knot, the closure vote and where the knot
+sits) or None (not judged). The learner's stop rule, the repeats, the anatomy, the baselines
+and the gym envs ask a judge, never a cell's internals, and count ``verdict.success`` only:
 
 - :class:`CellVerdict` (``"cell"``, the default): the verdict the cell wrote into the record
-  when it judged the rope at rest: the simulated lab's ground truth classified with
-  :mod:`flyknot.knot`, or the real lab's operator answer.
+  when it judged the rope at rest: the simulated lab's ground truth judged with
+  :func:`flyknot.verdict.judge_centreline`, or the real lab's operator answer.
 - :class:`MarkerJudge` (``"markers"``): the rope polyline the motion capture saw at the end
-  (fingertip, then the 11 markers of the last frame where all are tracked) classified with
-  :func:`flyknot.knot.classify_centreline`. Eleven markers ~0.1 m apart resolve a loose knot
-  only: the real lab offers it to the operator as a suggestion.
-- :class:`OperatorJudge`: a person's answer (``ask(record, suggestion)`` -> True/False/None),
-  shown the markers' suggestion first.
+  (fingertip, then the 11 markers of the last frame where all are tracked) judged with
+  :func:`flyknot.verdict.judge_centreline`, the tube's axis from the fingertip's orientation.
+  Eleven markers ~0.1 m apart resolve a loose knot only: the real lab offers it to the
+  operator as a suggestion.
+- :class:`OperatorJudge`: a person's answer, one of :data:`flyknot.verdict.OPERATOR_ANSWERS`
+  (``"knot"`` in the hanging rope, ``"wrapped"`` round the held end or tube, ``"none"``) or
+  None (cannot tell), shown the markers' suggestion first.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
 from flyknot.errors import ConfigError
-from flyknot.knot import DEFAULT_DIRECTIONS, TREFOIL, UNKNOT, classify_centreline
 from flyknot.record import TrialRecord
+from flyknot.verdict import JudgeParams, Verdict, judge_centreline, operator_verdict, tube_axis_of
 
 
 @runtime_checkable
 class KnotJudge(Protocol):
     """Anything that judges a trial's knot."""
 
-    def __call__(self, record: TrialRecord) -> str | None:
-        """The knot the trial left: a knot name, or None when it cannot be judged."""
+    def __call__(self, record: TrialRecord) -> Verdict | None:
+        """The trial's verdict, or None when it cannot be judged."""
         ...
 
 
 @dataclass(frozen=True)
 class CellVerdict:
-    """The cell's own verdict, ``record.knot`` (a faulted trial never counts as a success,
-    whatever its knot: see :attr:`flyknot.record.TrialRecord.succeeded`)."""
+    """The cell's own verdict, ``record.verdict`` (a faulted trial never counts as a success,
+    whatever its verdict: see :attr:`flyknot.record.TrialRecord.succeeded`)."""
 
-    def __call__(self, record: TrialRecord) -> str | None:
-        """``record.knot``."""
-        return record.knot
+    def __call__(self, record: TrialRecord) -> Verdict | None:
+        """``record.verdict``."""
+        return record.verdict
 
 
-def final_polyline(record: TrialRecord) -> np.ndarray | None:
-    """The rope as the markers saw it last: fingertip then markers 0-10, (12, 3) [m].
+def final_polyline(record: TrialRecord) -> tuple[np.ndarray, np.ndarray] | None:
+    """The rope as the markers saw it last: fingertip then markers 0-10, (12, 3) [m], and the
+    tube's axis (the fingertip's z axis) at that time, (3,).
 
     The last marker frame with every marker tracked, and the fingertip sample nearest its
     time; None when no frame has all 11 markers.
@@ -58,27 +62,29 @@ def final_polyline(record: TrialRecord) -> np.ndarray | None:
         return None
     k = int(np.flatnonzero(ok)[-1])
     j = int(np.argmin(np.abs(record.t_joint - record.t_marker[k])))
-    return np.vstack([record.fingertip_pos[j][None, :], record.markers[k]])
+    line = np.vstack([record.fingertip_pos[j][None, :], record.markers[k]])
+    return line, tube_axis_of(record.fingertip_quat[j])
 
 
 @dataclass(frozen=True)
 class MarkerJudge:
-    """The knot of the final marker polyline (:func:`final_polyline`).
+    """The verdict on the final marker polyline (:func:`final_polyline`).
 
     Attributes:
-        n_directions: Closure directions voted over (:func:`flyknot.knot.classify_centreline`).
+        params: How the polyline is judged (:class:`flyknot.verdict.JudgeParams`).
     """
 
-    n_directions: int = DEFAULT_DIRECTIONS
+    params: JudgeParams = field(default_factory=JudgeParams)
 
-    def __call__(self, record: TrialRecord) -> str | None:
-        """The polyline's knot, or None when faulted or no frame is fully tracked."""
+    def __call__(self, record: TrialRecord) -> Verdict | None:
+        """The polyline's verdict, or None when faulted or no frame is fully tracked."""
         if record.fault is not None:
             return None
-        line = final_polyline(record)
-        if line is None:
+        seen = final_polyline(record)
+        if seen is None:
             return None
-        return classify_centreline(line, n_directions=self.n_directions)
+        line, axis = seen
+        return judge_centreline(line, axis, self.params, source="markers")
 
 
 @dataclass(frozen=True)
@@ -86,23 +92,22 @@ class OperatorJudge:
     """A person's answer.
 
     Attributes:
-        ask: Called with the record and the suggestion (a knot name or None); returns True
-            (knot tied), False (no knot) or None (cannot tell).
+        ask: Called with the record and the suggestion (a verdict or None); returns
+            ``"knot"`` (an overhand knot in the hanging rope), ``"wrapped"`` (looped round the
+            held end or the tube), ``"none"`` or None (cannot tell).
         suggest: The judge whose verdict is shown as a suggestion, or None.
     """
 
-    ask: Callable[[TrialRecord, str | None], bool | None]
+    ask: Callable[[TrialRecord, Verdict | None], str | None]
     suggest: KnotJudge | None = MarkerJudge()
 
-    def __call__(self, record: TrialRecord) -> str | None:
-        """``"trefoil"``, ``"unknot"`` or None, as the person answers."""
+    def __call__(self, record: TrialRecord) -> Verdict | None:
+        """The operator's verdict (:func:`flyknot.verdict.operator_verdict`), or None."""
         if record.fault is not None:
             return None
         hint = self.suggest(record) if self.suggest is not None else None
         answer = self.ask(record, hint)
-        if answer is None:
-            return None
-        return TREFOIL if answer else UNKNOT
+        return None if answer is None else operator_verdict(answer)
 
 
 JUDGES: dict[str, Callable[[], KnotJudge]] = {"cell": CellVerdict, "markers": MarkerJudge}

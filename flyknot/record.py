@@ -21,6 +21,7 @@ import numpy as np
 from flyknot.constants import COMMAND_RATE_HZ, N_JOINTS, N_MARKERS
 from flyknot.errors import CommandError, RecordError
 from flyknot.geometry import readonly
+from flyknot.verdict import Verdict
 
 RECORD_FORMAT_VERSION = 1
 
@@ -164,7 +165,9 @@ class TrialRecord:
         fault_time: Time of the fault [s] or None.
         first_contact_time: Time of the rope's first self-contact [s] or None (sim truth;
             the real lab leaves it None unless an operator annotates it).
-        knot: "unknot", "trefoil", "other" or None if not judged.
+        knot: "unknot", "trefoil", "other" or None if not judged (the verdict's knot type).
+        verdict: The judged rope with its evidence (:class:`flyknot.verdict.Verdict`), or
+            None if not judged; only its class ``knot`` is a success.
         metadata: Free-form plain data (cell, rope, seed, versions, ...).
         truth: Simulator-only ground truth (e.g. ``centreline`` (k, n_pts, 3) [m] and
             ``t_truth`` (k,) [s]); the learner must never read it.
@@ -182,6 +185,7 @@ class TrialRecord:
     fault_time: float | None = None
     first_contact_time: float | None = None
     knot: str | None = None
+    verdict: Verdict | None = None
     metadata: Mapping[str, Any] = field(default_factory=dict)
     truth: Mapping[str, np.ndarray] = field(default_factory=dict)
 
@@ -218,14 +222,23 @@ class TrialRecord:
         # Named knots beyond the trefoil are allowed (e.g. "4_1"), but not empty text.
         if self.knot is not None and (not isinstance(self.knot, str) or not self.knot):
             raise RecordError(f"TrialRecord.knot must be a knot name or None, got {self.knot!r}")
+        if self.verdict is not None:
+            if not isinstance(self.verdict, Verdict):
+                raise RecordError(f"TrialRecord.verdict must be a Verdict, got {self.verdict!r}")
+            if self.knot != self.verdict.knot:
+                raise RecordError(
+                    f"TrialRecord.knot {self.knot!r} differs from its verdict's "
+                    f"{self.verdict.knot!r}"
+                )
         truth = {k: readonly(v) for k, v in dict(self.truth).items()}
         object.__setattr__(self, "truth", truth)
         object.__setattr__(self, "metadata", json.loads(json.dumps(dict(self.metadata))))
 
     @property
     def succeeded(self) -> bool:
-        """True when the trial ran without fault and left a trefoil."""
-        return self.fault is None and self.knot == "trefoil"
+        """True when the trial ran without fault and its verdict is a knot in the hanging
+        rope (class ``knot``); a record without a verdict never counts."""
+        return self.fault is None and self.verdict is not None and self.verdict.success
 
     # --- files ---------------------------------------------------------------------
     def save(self, stem: str | Path) -> Path:
@@ -245,6 +258,7 @@ class TrialRecord:
             "fault_time": self.fault_time,
             "first_contact_time": self.first_contact_time,
             "knot": self.knot,
+            "verdict": self.verdict.to_json() if self.verdict is not None else None,
             "metadata": self.metadata,
         }
         json_path = stem.with_name(stem.name + ".json")
@@ -265,31 +279,55 @@ class TrialRecord:
         for p in (npz_path, json_path):
             if not p.is_file():
                 raise RecordError(f"trial record file {str(p)!r} does not exist")
-        meta = json.loads(json_path.read_text())
+        try:
+            meta = json.loads(json_path.read_text())
+        except (OSError, UnicodeDecodeError, ValueError) as e:
+            raise RecordError(f"{str(json_path)!r} is not a readable record ({e})") from e
+        if not isinstance(meta, dict) or not set(meta) >= _RECORD_KEYS:
+            raise RecordError(
+                f"{str(json_path)!r} is not a trial record: it needs the keys "
+                f"{', '.join(sorted(_RECORD_KEYS))}"
+            )
         if meta.get("format_version") != RECORD_FORMAT_VERSION:
             raise RecordError(
                 f"{str(json_path)!r}: format_version {meta.get('format_version')!r} is not "
                 f"supported (valid choices: {RECORD_FORMAT_VERSION})"
             )
-        with np.load(npz_path, allow_pickle=False) as z:
-            missing = [k for k in cls._ARRAYS if k not in z.files]
-            if missing:
-                raise RecordError(f"{str(npz_path)!r} lacks arrays: {', '.join(missing)}")
-            arrays = {k: z[k] for k in cls._ARRAYS}
+        arrays = _read_npz(npz_path, cls._ARRAYS)
         truth: dict[str, np.ndarray] = {}
         truth_path = stem.with_name(stem.name + ".truth.npz")
         if with_truth and truth_path.is_file():
-            with np.load(truth_path, allow_pickle=False) as z:
-                truth = {k: z[k] for k in z.files}
+            truth = _read_npz(truth_path, ())
         return cls(
-            **arrays,
+            **{k: arrays[k] for k in cls._ARRAYS},
             fault=meta["fault"],
             fault_time=meta["fault_time"],
             first_contact_time=meta["first_contact_time"],
             knot=meta["knot"],
+            verdict=Verdict.from_json(meta["verdict"]) if meta.get("verdict") else None,
             metadata=meta["metadata"],
             truth=truth,
         )
+
+
+_RECORD_KEYS = frozenset(
+    {"format_version", "fault", "fault_time", "first_contact_time", "knot", "metadata"}
+)
+
+
+def _read_npz(path: Path, required: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """Every array of an ``.npz`` file; a truncated or unreadable file or a missing array
+    raises :class:`RecordError` naming the file."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            missing = [k for k in required if k not in z.files]
+            if missing:
+                raise RecordError(f"{str(path)!r} lacks arrays: {', '.join(missing)}")
+            return {k: z[k] for k in z.files}
+    except RecordError:
+        raise
+    except Exception as e:  # zipfile.BadZipFile, EOFError, OSError, ValueError, ...
+        raise RecordError(f"{str(path)!r} is not a readable array file ({e})") from e
 
 
 @runtime_checkable

@@ -3,11 +3,15 @@
 Every trial gets one label (:data:`LABELS`, in order of precedence; the first that applies):
 
 =================  ==========================================================================
-``success``        a trefoil at the end and no fault
+``success``        the verdict at the end is a knot in the hanging rope (class ``knot`` of
+                   :mod:`flyknot.verdict`) and no fault
 ``faulted``        the controller aborted the trial (``record.fault`` set)
 ``markers_lost``   motion capture lost the rope at or before the critical time t_c (given by
                    the caller, from the demonstration), so the learner cannot measure it
 ``no_contact``     the rope never touched itself (``first_contact_time`` None)
+``wrapped_at_grip`` the rope is looped round its held end or the tube: a knot type that
+                   needs the tube or sits within the judge's clearance of the held end
+``ambiguous``      no knot type has a supermajority of the closure vote
 ``not_through``    it touched itself, but no trefoil appears after the contact: the free end
                    never went through the loop
 ``slipped_out``    a trefoil appears after the contact but never lasts ``PERSIST_S``: the end
@@ -23,10 +27,10 @@ A trial labelled ``markers_lost`` also keeps the label its outcome alone gives
 **Knot history.** ``not_through``, ``slipped_out`` and ``shaken_loose`` need the knot type of
 the rope over time. It comes from the simulator's truth centreline when the record has one:
 frames from the first contact on, every ``HISTORY_STEP_S`` (and the last frame), each judged
-by :func:`flyknot.knot.classify_centreline`. That classifier votes over ray closures in
-31 directions rather than closing the rope "held end up, free end down", which is the closure
-that invents knots while the free end is above the held end (``flyknot/knot.py``); so
-frames are judged whatever the height of the free end and none is dropped. Without truth, the
+by :func:`flyknot.verdict.tube_knot`: the held end continued along the tube, the free end
+closed by rays in 31 directions (never "free end down", the closure that invents knots while
+the free end is above the held end); so frames are judged whatever the height of the free
+end and none is dropped. Without truth, the
 lab's own verdict history is used if the record has one (``metadata["knot_history"]`` or
 ``metadata["settle"]["knot_history"]``: ``{"t": [...], "verdict": [...]}``). It shows a knot
 and how long it held, but only rules out a slip when its verdicts, from the first contact on,
@@ -49,10 +53,11 @@ first frame and the frame before it to halfway between its last frame and the fr
 at the first frame of the first run of lost frames that lasts ``MIN_LOSS_S`` or reaches the
 end of the record (shorter dropouts are bridged).
 
-The end verdict is ``record.knot``; when it is None (not judged) the last finite truth frame
-is judged instead. ``metadata["settle"]`` (``settled``, ``contact_free``, ``settle_s`` or
-``settle_time_s``, ``free_end_speed_m_s``), when present, adds a note to the reason of a rope
-judged before it was at rest.
+The end verdict is ``record.verdict``; when it is None (not judged, or a record written
+before verdicts carried their evidence) the last finite truth frame is judged with
+:func:`flyknot.verdict.judge_centreline`. ``metadata["settle"]`` (``settled``,
+``contact_free``, ``settle_s`` or ``settle_time_s``, ``free_end_speed_m_s``), when present,
+adds a note to the reason of a rope judged before it was at rest.
 
 Reading trials (records, replay files, directories): :mod:`flyknot_app.anatomy_trials`; the
 anatomy of a set of trials, its tables and figures: :mod:`flyknot_app.anatomy_report`.
@@ -78,6 +83,9 @@ from flyknot.errors import (
 )
 from flyknot.knot import TREFOIL, UNKNOT
 from flyknot.record import TrialRecord
+from flyknot.verdict import AMBIGUOUS as AMBIGUOUS_CLASS
+from flyknot.verdict import OTHER_KNOT as OTHER_CLASS
+from flyknot.verdict import WRAPPED_AT_GRIP, JudgeParams, Verdict, judge_centreline
 from flyknot_app.anatomy_trials import TrialEvidence
 
 # --- labels ----------------------------------------------------------------------------------
@@ -85,6 +93,8 @@ SUCCESS = "success"
 FAULTED = "faulted"
 MARKERS_LOST = "markers_lost"
 NO_CONTACT = "no_contact"
+WRAPPED = "wrapped_at_grip"
+AMBIGUOUS = "ambiguous"
 NOT_THROUGH = "not_through"
 SLIPPED_OUT = "slipped_out"
 SHAKEN_LOOSE = "shaken_loose"
@@ -96,6 +106,8 @@ LABELS = (
     FAULTED,
     MARKERS_LOST,
     NO_CONTACT,
+    WRAPPED,
+    AMBIGUOUS,
     NOT_THROUGH,
     SLIPPED_OUT,
     SHAKEN_LOOSE,
@@ -105,10 +117,12 @@ LABELS = (
 """Every label, in order of precedence."""
 
 DESCRIPTIONS = {
-    SUCCESS: "trefoil at the end, no fault",
+    SUCCESS: "knot in the hanging rope, no fault",
     FAULTED: "the controller aborted the trial",
     MARKERS_LOST: "mocap lost the rope at or before t_c",
     NO_CONTACT: "the rope never touched itself",
+    WRAPPED: "looped round the held end or tube",
+    AMBIGUOUS: "no knot type has a supermajority",
     NOT_THROUGH: "touched, but the end never went through",
     SLIPPED_OUT: "end went through the loop, slipped out",
     SHAKEN_LOOSE: "knot tied, then shaken loose",
@@ -122,6 +136,8 @@ COLOURS = {
     FAULTED: "#404040",
     MARKERS_LOST: "#9467bd",
     NO_CONTACT: "#c7c7c7",
+    WRAPPED: "#8c564b",
+    AMBIGUOUS: "#e377c2",
     NOT_THROUGH: "#ff7f0e",
     SLIPPED_OUT: "#e6c229",
     SHAKEN_LOOSE: "#d62728",
@@ -144,6 +160,9 @@ MIN_LOSS_S = 0.015
 learner's critical-point fit (``MarkerFitParams.max_extrapolation``)."""
 
 _TIME_TOL = 1e-9  # [s] float rounding of sample times
+
+_VERDICT_LABELS = {WRAPPED_AT_GRIP: WRAPPED, AMBIGUOUS_CLASS: AMBIGUOUS, OTHER_CLASS: OTHER_KNOT}
+"""Verdict classes that are their own failure label."""
 
 
 @dataclass(frozen=True)
@@ -315,8 +334,9 @@ def knot_history_from_truth(
     Returns:
         The history (``source="truth"``); empty if no finite frame is in range.
     """
-    from flyknot.knot import classify_centreline
+    from flyknot.verdict import JudgeParams, tube_knot
 
+    judge = JudgeParams(n_directions=n_directions)
     check_positive("step", step)
     t = np.asarray(t_truth, dtype=float)
     frames = np.asarray(centreline, dtype=float)
@@ -333,7 +353,7 @@ def knot_history_from_truth(
         if not np.all(np.isfinite(frames[k])):
             continue
         times.append(float(t[k]))
-        verdicts.append(classify_centreline(frames[k], n_directions=n_directions))
+        verdicts.append(tube_knot(frames[k], params=judge))
     return KnotHistory(tuple(times), tuple(verdicts), "truth")
 
 
@@ -370,15 +390,14 @@ def _settle_note(metadata: Mapping[str, Any]) -> str:
     return f"; judged {why}" + (f" ({', '.join(parts)})" if parts else "")
 
 
-def _end_verdict(ev: TrialEvidence, n_directions: int) -> str | None:
-    if ev.knot is not None:
-        return ev.knot
+def _end_verdict(ev: TrialEvidence, n_directions: int) -> Verdict | None:
+    """The trial's verdict, or the truth's last finite frame judged, or None."""
+    if ev.verdict is not None:
+        return ev.verdict
     if ev.fault is None and ev.has_truth:
-        from flyknot.knot import classify_centreline
-
         for frame in ev.centreline[::-1]:
             if np.all(np.isfinite(frame)):
-                return classify_centreline(frame, n_directions=n_directions)
+                return judge_centreline(frame, params=JudgeParams(n_directions=n_directions))
     return None
 
 
@@ -414,15 +433,15 @@ def _runs_text(runs: Sequence[tuple[float, float]]) -> str:
 
 
 def _outcome(
-    ev: TrialEvidence, end: str | None, params: AnatomyParams
+    ev: TrialEvidence, verdict: Verdict | None, params: AnatomyParams
 ) -> tuple[str, str, KnotHistory | None]:
     """(label, reason, history) from the outcome alone (no fault, not a success)."""
-    if end is not None and end not in (UNKNOT, TREFOIL):
-        return OTHER_KNOT, f"knot {end!r} at the end", None
     contact = ev.first_contact_time
-    if contact is None and ev.contact_known:
+    if contact is None and ev.contact_known and (verdict is None or verdict.klass == UNKNOT):
         return NO_CONTACT, "no self-contact", None
-    if end is None:
+    if verdict is not None and verdict.klass in _VERDICT_LABELS:
+        return _VERDICT_LABELS[verdict.klass], verdict.describe(), None
+    if verdict is None:
         return UNKNOWN, "no knot verdict at the end and no truth to judge", None
     hist = _history(ev, params)
     touched = "no contact time" if contact is None else f"contact at {contact:.3f} s"
@@ -489,7 +508,8 @@ def diagnose(
         raise ConfigError(
             "trial", f"must be a TrialRecord or TrialEvidence, got {type(trial).__name__}"
         )
-    end = _end_verdict(ev, params.n_directions)
+    verdict = _end_verdict(ev, params.n_directions)
+    end = None if verdict is None else verdict.knot
     lost_at = tracking_lost_time(ev.t_marker, ev.markers, params.min_loss_s)
     common = dict(
         name=name or ev.name,
@@ -499,11 +519,11 @@ def diagnose(
         t_c=t_c,
         group=group,
     )
-    if ev.fault is None and end == TREFOIL:
-        return Diagnosis(label=SUCCESS, outcome=SUCCESS, reason="trefoil at the end", **common)
+    if ev.fault is None and verdict is not None and verdict.success:
+        return Diagnosis(label=SUCCESS, outcome=SUCCESS, reason=verdict.describe(), **common)
     if ev.fault is not None:
         return Diagnosis(label=FAULTED, outcome=FAULTED, reason=f"fault: {ev.fault}", **common)
-    label, reason, hist = _outcome(ev, end, params)
+    label, reason, hist = _outcome(ev, verdict, params)
     reason += _settle_note(ev.metadata)
     extra = dict(
         trefoil_runs=() if hist is None else hist.trefoil_runs(),

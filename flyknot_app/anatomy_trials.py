@@ -25,6 +25,7 @@ import numpy as np
 from flyknot.constants import N_MARKERS, REPO_ROOT
 from flyknot.errors import ConfigError, FlyknotError, RecordError
 from flyknot.record import TrialRecord
+from flyknot.verdict import Verdict
 
 
 @dataclass(frozen=True)
@@ -34,7 +35,10 @@ class TrialEvidence:
     Attributes:
         name: Name of the trial in tables (a relative path).
         fault: The controller's fault, or None.
-        knot: Knot verdict at the end, or None if not judged.
+        knot: Knot type at the end, or None if not judged.
+        verdict: The judged end (:class:`flyknot.verdict.Verdict`), or None (not judged, or
+            judged before verdicts carried their evidence: :func:`flyknot_app.anatomy.diagnose`
+            then judges the truth's last frame).
         first_contact_time: First self-contact [s], or None.
         contact_known: Whether None in ``first_contact_time`` means "no contact" (simulated
             lab) rather than "not annotated" (real lab).
@@ -55,6 +59,7 @@ class TrialEvidence:
     t_truth: np.ndarray | None = None
     centreline: np.ndarray | None = None
     metadata: Mapping[str, Any] = field(default_factory=dict)
+    verdict: Verdict | None = None
 
     def __post_init__(self) -> None:
         t_marker = np.asarray(self.t_marker, dtype=float)
@@ -105,6 +110,7 @@ class TrialEvidence:
             t_truth=truth["t_truth"] if has_truth else None,
             centreline=truth["centreline"] if has_truth else None,
             metadata=record.metadata,
+            verdict=record.verdict,
         )
 
 
@@ -161,6 +167,7 @@ def load_replay(path: str | Path) -> TrialEvidence:
         raise RecordError(f"replay file {str(path)!r}: meta must be a JSON object")
     inner = dict(meta.get("metadata") or {})
     inner.setdefault("rope", meta.get("rope"))
+    verdict = Verdict.from_json(inner["verdict"]) if inner.get("verdict") else None
     return TrialEvidence(
         name=path.stem,
         fault=None,
@@ -172,6 +179,7 @@ def load_replay(path: str | Path) -> TrialEvidence:
         t_truth=t_truth,
         centreline=centreline,
         metadata=inner,
+        verdict=verdict,
     )
 
 

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from flyknot.errors import ConfigError, check_positive
+from flyknot.verdict import KNOT
 
 BASELINES = ("random", "cma", "ppo")
 RL_HINT = (
@@ -89,10 +90,10 @@ class BaselineResult:
 
     @property
     def success_rate(self) -> float | None:
-        """Share of trefoils in the repeats, or None without repeats."""
+        """Share of knots in the hanging rope (verdict ``knot``) in the repeats, or None."""
         if not self.repeats:
             return None
-        return sum(r == "trefoil" for r in self.repeats) / len(self.repeats)
+        return sum(r == KNOT for r in self.repeats) / len(self.repeats)
 
 
 class _Search:
@@ -268,7 +269,7 @@ def run_ppo(
                 *_, terminated, _, info = env.step(a)
                 if terminated:
                     break
-            result.repeats.append("fault" if info["fault"] else info["knot"])
+            result.repeats.append("fault" if info["fault"] else info["verdict"])
     return result
 
 
@@ -296,7 +297,7 @@ def run_baseline(
     knots = search.knots(search.best_x)
     for _ in range(params.repeats):
         _, _, _, _, info = env.play(knots)
-        result.repeats.append("fault" if info["fault"] else info["knot"])
+        result.repeats.append("fault" if info["fault"] else info["verdict"])
     return result
 
 
@@ -331,7 +332,7 @@ def write_results(
     def tied(reps: Sequence[str | None]) -> str:
         if not reps:
             return "-"
-        k = sum(x == "trefoil" for x in reps)
+        k = sum(x == KNOT for x in reps)
         lo, hi = wilson_interval(k, len(reps))
         return f"{k}/{len(reps)} ({lo:.0%}-{hi:.0%})"
 

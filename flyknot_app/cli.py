@@ -37,6 +37,7 @@ def _cmd_trial(args: argparse.Namespace) -> int:
         "rope": lab.rope_params.id,
         "fault": record.fault,
         "knot": record.knot,
+        "verdict": None if record.verdict is None else record.verdict.to_json(),
         "first_contact_time": record.first_contact_time,
         "record": str(path),
     }
@@ -59,6 +60,8 @@ def _cmd_showcase(args: argparse.Namespace) -> int:
     fig_path = plot_trial(record, out / "trial.png")
     print(f"fault: {record.fault}")
     print(f"knot: {record.knot}")
+    if record.verdict is not None:
+        print(f"verdict: {record.verdict.describe()}")
     print(f"first self-contact: {record.first_contact_time}")
     print(f"record: {path}")
     print(f"figure: {fig_path}")

@@ -34,6 +34,7 @@ import numpy as np
 from matplotlib.ticker import MaxNLocator
 
 from flyknot.errors import ConfigError
+from flyknot.verdict import KNOT
 from flyknot_app.report import wilson_interval
 
 
@@ -100,7 +101,7 @@ def load_runset(directory: str | Path) -> RunSet:
         label=d.name,
         costs=costs,
         trials_to_success=tuple(_tts(r) for r in runs),
-        repeats_tied=sum(x == "trefoil" for x in reps),
+        repeats_tied=sum(x == KNOT for x in reps),
         repeats=len(reps),
         kind=kind,
         keys=tuple((r.get("rope", doc.get("rope")), _seed(r)) for r in runs),

@@ -93,7 +93,8 @@ def score_trial(
         demonstration frame (``base_offset`` (3,) [m]: the base's position there; zeros when
         the trial faulted or lost tracking before t_c), its cost ||err||^2_Q
         (:func:`learner.ilc.critical_cost`; ``fault_penalty`` instead when the trial faulted or
-        lost tracking) and ``info``: ``fault``, ``knot``, ``failure`` (the class of
+        lost tracking) and ``info``: ``fault``, ``knot``, ``verdict`` (the verdict's class,
+        :mod:`flyknot.verdict`; ``"knot"`` is the success), ``failure`` (the class of
         :mod:`flyknot_app.anatomy`), ``cost`` and, when tracking was lost, ``tracking_lost``.
     """
     from flyknot.errors import RecordError
@@ -104,6 +105,7 @@ def score_trial(
     info: dict[str, Any] = {
         "fault": record.fault,
         "knot": record.knot,
+        "verdict": None if record.verdict is None else record.verdict.klass,
         "failure": diagnose(record, t_c=target.t_c).label,
     }
     err = np.zeros(N_ERR)

@@ -13,6 +13,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.ticker import MaxNLocator
 
+from flyknot.verdict import KNOT
 from flyknot_app.anatomy_report import report_section
 
 # The paper's results (Suresh & Atkeson), quoted per scenario kind.
@@ -60,7 +61,7 @@ def outcome_line(kind: str, runs: list[dict[str, Any]]) -> str:
     reps = [x for r in runs for x in (r.get("repeats") or [])]
     text = f"Tracking alone (no learning): the first trial tied in {n_ok} of {len(runs)} runs"
     if reps:
-        text += f"; the repeats tied in {sum(x == 'trefoil' for x in reps)} of {len(reps)}"
+        text += f"; the repeats tied in {sum(x == KNOT for x in reps)} of {len(reps)}"
     return text + "."
 
 
@@ -105,7 +106,7 @@ def plot_success_rates(runs: list[dict[str, Any]], path: Path, title: str) -> Pa
     rows = [r for r in runs if r.get("repeats")]
     if not rows:
         return None
-    k = np.array([sum(x == "trefoil" for x in r["repeats"]) for r in rows])
+    k = np.array([sum(x == KNOT for x in r["repeats"]) for r in rows])
     n = np.array([len(r["repeats"]) for r in rows])
     lo_hi = np.array([wilson_interval(int(a), int(b)) for a, b in zip(k, n, strict=True)])
     rate = k / n
@@ -271,7 +272,7 @@ def write_report(out_dir: str | Path, summary: dict[str, Any], *, workers: int =
             costs = ", ".join("-" if c is None else f"{c:.3g}" for c in r["costs"])
             rep = "-"
             if r.get("repeat_success_rate") is not None:
-                rep = f"{sum(x == 'trefoil' for x in r['repeats'])}/{len(r['repeats'])}"
+                rep = f"{sum(x == KNOT for x in r['repeats'])}/{len(r['repeats'])}"
             lines.append(
                 f"| {r['name']} | {r['rope']} | {r['demo']} | {r['objective']} | "
                 f"{r.get('start_from') or '-'} | {_trials_text(r)} | {costs} | {rep} |"

@@ -33,6 +33,7 @@ from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, FlyknotError
 from flyknot.judge import CellVerdict
 from flyknot.progress import bar_disable
+from flyknot.verdict import KNOT
 from flyknot_app.cells import open_cell
 from flyknot_app.scenario import RunSpec, Scenario, find_named_file
 
@@ -236,7 +237,8 @@ def _execute_on(
     # trial's update is never played).
     final = np.asarray(knots0) if spec.max_trials == 0 else res.final_knots
     np.save(run_dir / "final_knots.npy", final)
-    repeats: list[str | None] = []
+    repeats: list[str | None] = []  # the verdict class of each repeat, or "fault"
+    repeat_verdicts: list[dict[str, Any] | None] = []
     if spec.repeats:
         command = BezierCommand(final, target.T).joint_command()
         for i in tqdm(
@@ -253,7 +255,9 @@ def _execute_on(
             else:
                 rec = lab.run(command)
                 rec.save(stem)
-            repeats.append("fault" if rec.fault else judge(rec))
+            verdict = None if rec.fault else judge(rec)
+            repeats.append("fault" if rec.fault else None if verdict is None else verdict.klass)
+            repeat_verdicts.append(None if verdict is None else verdict.to_json())
     counted = {s.trial: s for s in res.trials}
     summary = {
         "name": spec.name,
@@ -272,6 +276,7 @@ def _execute_on(
         "costs": res.costs,
         "knots": res.knots,
         "faults": [counted[k].fault for k in sorted(counted)],
+        "verdicts": [counted[k].verdict for k in sorted(counted)],
         "trials_to_success": None
         if res.first_success_trial is None
         else res.first_success_trial + 1,
@@ -282,7 +287,8 @@ def _execute_on(
         "average": spec.average,
         "attempts": len(res.trials),
         "repeats": repeats,
-        "repeat_success_rate": (sum(r == "trefoil" for r in repeats) / len(repeats))
+        "repeat_verdicts": repeat_verdicts,
+        "repeat_success_rate": (sum(r == KNOT for r in repeats) / len(repeats))
         if repeats
         else None,
         "initial_guess": ig_info,

@@ -61,6 +61,7 @@ from flyknot.geometry import matrix_to_quat, quat_to_matrix
 from flyknot.judge import KnotJudge, OperatorJudge
 from flyknot.limits import JointLimits
 from flyknot.record import JointCommand, TrialRecord
+from flyknot.verdict import Verdict
 from flyknot_hw import xarm_motion, xarm_sdk
 from flyknot_hw.config import LabConfig
 from flyknot_hw.mocap.stream import MocapSource, RawStream
@@ -95,11 +96,23 @@ VELOCITY_WATCHDOG_TICKS = 5
 stops the joints itself: a stalled host cannot leave the arm moving)."""
 
 
-def console_ask(record: TrialRecord, suggestion: str | None) -> bool | None:
-    """Ask the operator at the terminal whether the rope tied the knot."""
-    hint = f" (the markers suggest: {suggestion})" if suggestion else ""
-    answer = input(f"Trial done{hint}. Knot tied? [y]es / [n]o / [?] can't tell: ").strip()
-    return {"y": True, "yes": True, "n": False, "no": False}.get(answer.lower())
+def console_ask(record: TrialRecord, suggestion: Verdict | None) -> str | None:
+    """Ask the operator at the terminal what the rope holds: ``"knot"`` (an overhand knot in
+    the hanging rope), ``"wrapped"`` (looped round the held end or the tube), ``"none"``, or
+    None (cannot tell)."""
+    hint = f" (the markers suggest: {suggestion.describe()})" if suggestion else ""
+    answer = input(
+        f"Trial done{hint}. [k]not in the hanging rope / [w]rapped at the grip / [n]one / "
+        "[?] can't tell: "
+    ).strip()
+    return {
+        "k": "knot",
+        "knot": "knot",
+        "w": "wrapped",
+        "wrapped": "wrapped",
+        "n": "none",
+        "none": "none",
+    }.get(answer.lower())
 
 
 def console_confirm(phase: str) -> None:
@@ -322,7 +335,9 @@ class XArmCell:
         captured = self._capture(stream, s, q_meas, command)
         record = self._record(command, s, q_meas, captured, report, settle_meta)
         if record.fault is None:
-            record = replace(record, knot=self.judge(record))
+            verdict = self.judge(record)
+            knot = None if verdict is None else verdict.knot
+            record = replace(record, knot=knot, verdict=verdict)
         self.trial_index += 1
         return record
 

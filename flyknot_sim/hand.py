@@ -47,8 +47,9 @@ import numpy as np
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError
 from flyknot.geometry import quat_sign_continuous
-from flyknot.knot import TREFOIL, classify_centreline
+from flyknot.knot import TREFOIL
 from flyknot.rest import SettleMonitor, start_with_sway
+from flyknot.verdict import Verdict, judge_centreline, tube_knot
 from flyknot_sim import mocap
 from flyknot_sim.aero import DRAG_HOLD_S, RopeDrag
 from flyknot_sim.bend_friction import RopeBendFriction
@@ -191,6 +192,8 @@ class HandTrial:
         motion_end: Time the motion ends [s].
         knot: Knot type of the settled rope (``unknot``, ``trefoil``, ...), None if the
             simulation diverged.
+        verdict: The settled rope's verdict with its evidence (:mod:`flyknot.verdict`), None
+            if not judged.
         knot_any: A trefoil in any judged frame from the motion's start on.
         settle_fraction: Fraction of the judged frames in the settling phase that are
             trefoils (the last frame included).
@@ -212,6 +215,7 @@ class HandTrial:
     motion_start: float
     motion_end: float
     knot: str | None
+    verdict: Verdict | None
     knot_any: bool
     settle_fraction: float
     judged: np.ndarray
@@ -222,8 +226,8 @@ class HandTrial:
 
     @property
     def tied(self) -> bool:
-        """The settled rope holds a trefoil."""
-        return self.knot == TREFOIL
+        """The settled rope holds an overhand knot in the hanging rope (verdict ``knot``)."""
+        return self.verdict is not None and self.verdict.success
 
     def tracking_error(self) -> tuple[float, float]:
         """Largest servo tracking errors max_t |p - p_target| [m] and
@@ -356,7 +360,7 @@ class HandLab:
         end_dof = rope.vert_dof[-1]
 
         def verdict() -> str:
-            return classify_centreline(d.qpos[rope.vert_qpos] + rope.body_pos0)
+            return tube_knot(d.qpos[rope.vert_qpos] + rope.body_pos0)
 
         nv = s.rope.n_vert
         verts = np.empty((n_steps + 1, nv, 3))
@@ -405,6 +409,7 @@ class HandLab:
         q_t = q_t[: n_steps + 1]
         quat = quat_sign_continuous(quat)
         knot: str | None = None
+        final: Verdict | None = None
         knot_any = False
         settle_fraction = 0.0
         judged = np.zeros(0, dtype=int)
@@ -413,8 +418,9 @@ class HandLab:
             judged = judged_frames(t, motion_start, p.judge_rate_hz)
             knot, knot_any, settle_fraction = _judge(t, verts, judged, motion_start + motion_len)
             if monitor.observe(float(t[-1]), float("nan"), verdict):  # cap reached in the loop
-                knot = monitor.outcome.verdict
                 settle_meta = monitor.outcome.as_metadata(rule)
+            final = judge_centreline(verts[-1])
+            knot = final.knot
         return HandTrial(
             t=t,
             hand_pos=pos,
@@ -426,6 +432,7 @@ class HandLab:
             motion_start=motion_start,
             motion_end=motion_start + motion_len,
             knot=knot,
+            verdict=final,
             knot_any=knot_any,
             settle_fraction=settle_fraction,
             judged=judged,
@@ -463,7 +470,7 @@ def _judge(
 ) -> tuple[str, bool, float]:
     """Knot at the last frame, a trefoil in any judged frame, and the trefoil fraction of
     the judged frames at or after ``end`` [s] (the settling phase)."""
-    names = {int(k): classify_centreline(verts[k]) for k in judged}
+    names = {int(k): tube_knot(verts[k]) for k in judged}
     end_knot = names[len(t) - 1]
     knot_any = any(n == TREFOIL for n in names.values())
     settle = [k for k in names if t[k] >= end - 1e-9]

@@ -21,8 +21,8 @@ import numpy as np
 
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, RecordError
-from flyknot.knot import TREFOIL
 from flyknot.progress import bar_disable
+from flyknot.verdict import Verdict
 from flyknot_sim.hand import HandLab, HandTrial
 from flyknot_sim.hand_motion import KnotMotion
 from flyknot_sim.hand_params import HandParams, HandVariation
@@ -93,25 +93,28 @@ class ReplayResult:
         rope: Rope id replayed with (a custom rope's name for a custom rope).
         outcomes: Settled knot type per replay (None if the simulation diverged).
         t_c: First rope self-contact per replay [s, demonstration clock], None if none.
+        verdicts: The settled rope's verdict per replay (None if the simulation diverged).
         trials: The trials (kept only when asked for).
     """
 
     rope: int | str
     outcomes: tuple[str | None, ...]
     t_c: tuple[float | None, ...]
+    verdicts: tuple[Verdict | None, ...] = ()
     trials: tuple[HandTrial, ...] = ()
 
     @property
     def knots(self) -> int:
-        """Replays that ended with a trefoil."""
-        return sum(o == TREFOIL for o in self.outcomes)
+        """Replays that ended with a knot in the hanging rope (verdict class ``knot``)."""
+        return sum(v is not None and v.success for v in self.verdicts)
 
     def to_json(self) -> dict[str, Any]:
-        """``{"repeats", "knots", "outcomes", "t_c"}``."""
+        """``{"repeats", "knots", "outcomes", "classes", "t_c"}``."""
         return {
             "repeats": len(self.outcomes),
             "knots": self.knots,
             "outcomes": list(self.outcomes),
+            "classes": [None if v is None else v.klass for v in self.verdicts],
             "t_c": list(self.t_c),
         }
 
@@ -161,15 +164,16 @@ def replay(
     if settle_s is not None:
         hand = replace(hand, settle_s=settle_s)
     lab = HandLab(hand)
-    outcomes, t_c, trials = [], [], []
+    outcomes, t_c, verdicts, trials = [], [], [], []
     for i in tqdm(range(repeats), desc=f"replay (rope {rope})", disable=bar_disable(progress)):
         rng = np.random.default_rng([seed, i]) if vary else None
         trial = lab.run(motion, rng)
         outcomes.append(trial.knot)
+        verdicts.append(trial.verdict)
         t_c.append(trial.first_contact)
         if keep_trials:
             trials.append(trial)
-    return ReplayResult(rope, tuple(outcomes), tuple(t_c), tuple(trials))
+    return ReplayResult(rope, tuple(outcomes), tuple(t_c), tuple(verdicts), tuple(trials))
 
 
 REPLAY_TRUTH_RATE_HZ = 100.0
@@ -228,6 +232,7 @@ def save_replay(
             "index": index,
             "seed": seed,
             "outcome": trial.knot,
+            "verdict": None if trial.verdict is None else trial.verdict.to_json(),
             "settle": None if trial.settle is None else dict(trial.settle),
             "variation": dict(trial.variation),
             "motion_start": trial.motion_start,

@@ -41,10 +41,10 @@ from tqdm import tqdm
 from flyknot import __version__
 from flyknot.constants import COMMAND_RATE_HZ
 from flyknot.errors import CommandError, check_positive
-from flyknot.knot import classify_centreline
 from flyknot.progress import bar_disable
 from flyknot.record import JointCommand, TrialRecord
 from flyknot.rest import SettleMonitor
+from flyknot.verdict import judge_centreline, tube_axis_of, tube_knot
 from flyknot_sim import faults as faults_mod
 from flyknot_sim import mocap
 from flyknot_sim.aero import DRAG_HOLD_S
@@ -336,7 +336,8 @@ class TrialSession:
             n_max = n_cmd + math.ceil(rule.max_s / tick - 1e-9)
 
             def verdict() -> str:
-                return classify_centreline(d.qpos[bound.vert_qpos] + bound.body_pos0)
+                axis = d.site_xmat[lab._tip_site].reshape(3, 3)[:, 2]
+                return tube_knot(d.qpos[bound.vert_qpos] + bound.body_pos0, axis)
 
             def settled() -> bool:
                 speed = float(np.linalg.norm(d.qvel[end_dof]))
@@ -381,12 +382,11 @@ class TrialSession:
             else true.copy()
         )
         markers = mocap.apply_tracking_loss(t_mocap, noisy, self.first_contact, mp, self.rng)
-        knot = None
+        verdict = None
         settle_meta = None
         if fault is None:
-            outcome = monitor.outcome
-            knot = outcome.verdict
-            settle_meta = outcome.as_metadata(rule)
+            verdict = judge_centreline(vert_hist[n_steps], tube_axis_of(tip_quat[-1]))
+            settle_meta = monitor.outcome.as_metadata(rule)
         truth = _truth(
             t_hist,
             vert_hist,
@@ -409,7 +409,8 @@ class TrialSession:
             fault=None if fault is None else fault.reason,
             fault_time=None if fault is None else float(t_joint[fault.tick]),
             first_contact_time=self.first_contact,
-            knot=knot,
+            knot=None if verdict is None else verdict.knot,
+            verdict=verdict,
             metadata={
                 "cell": "sim",
                 **rope_record(lab.rope_params, params.ropes),

@@ -519,11 +519,13 @@ def _assess(
     extra_records: tuple[TrialRecord, ...] = (),
     judge: KnotJudge = CellVerdict(),  # noqa: B008 - frozen value
 ) -> tuple[TrialSummary, dict[str, Any] | None]:
+    verdict = judge(record)
     base = dict(
         trial=k,
         attempt=attempt,
         fault=record.fault,
-        knot=judge(record),
+        knot=None if verdict is None else verdict.knot,
+        verdict=None if verdict is None else verdict.to_json(),
         wall_s=0.0,
     )
     if record.fault is not None:

@@ -32,11 +32,13 @@ class TrialSummary:
     t_eff: float | None = None
     confirm: int | None = None
     average: int | None = None
+    verdict: dict[str, Any] | None = None
 
     @property
     def success(self) -> bool:
-        """The trial ran without fault and left a trefoil."""
-        return self.fault is None and self.knot == "trefoil"
+        """The trial ran without fault and its verdict (``Verdict.to_json``) is a knot in the
+        hanging rope (class ``"knot"``); a trial without a verdict never counts."""
+        return self.fault is None and self.verdict is not None and self.verdict["klass"] == "knot"
 
 
 class RunDirectory:

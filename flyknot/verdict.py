@@ -1,0 +1,314 @@
+"""The knot verdict a person would agree with: the knot, its vote, where it sits, and a class.
+
+The paper's success is "a topological overhand knot in a rope hanging down at the end of
+motion". A rope centreline is open, so its knot type depends on how its ends are closed
+(:mod:`flyknot.knot`). Two facts of a held rope fix the closure and the verdict here:
+
+**The held end continues into the tube.** The rope is clamped in the fingertip tube, so its
+physical continuation at the held end is the tube and the arm, not free space. The held end
+is extended by a straight segment of ``tube_length_m`` along the tube's axis (into the arm);
+the end of that segment and the free end are then closed by parallel rays, voted over
+``n_directions`` directions (:func:`flyknot.knot.closure_votes`). With the held end free
+instead (both ends on rays), a rope looped round its own held end is threaded by the held
+end's ray in about half the directions: the vote is a coin flip (measured on the lab's
+wrapped trials: 15-16 of 31 either way, against 31 of 31 with the tube closure;
+``docs/judge.md``).
+
+**A knot must sit in the hanging rope.** The shortest knotted sub-arc (the knot's "core",
+after the knotted-core idea of Millett, Dobay & Stasiak, Macromolecules 38 (2005) 601-606)
+is found by trimming the rope from the free end, then from the held end, while the trimmed
+arc still has the knot (:func:`knot_core`). If the knot needs the tube, or its core starts
+within ``clearance_m`` of the held end, the rope is looped round its held end or the tube:
+``wrapped_at_grip``, not a flying knot.
+
+Classes (:data:`CLASSES`):
+
+===================  =====================================================================
+``knot``             an overhand knot (trefoil), a supermajority of closures, core clear
+                     of the held end: the only success
+``wrapped_at_grip``  a knot whose core reaches the held end or needs the tube
+``ambiguous``        no knot type has a supermajority of closures
+``other_knot``       another knot (figure-eight, ...) with a supermajority, clear of the grip
+``unknot``           a supermajority of closures say unknot
+===================  =====================================================================
+
+Nothing ambiguous counts: :attr:`Verdict.success` is True for ``knot`` only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from flyknot.errors import ConfigError, RecordError, check_choice, check_int, check_positive
+from flyknot.geometry import quat_to_matrix
+from flyknot.knot import (
+    DEFAULT_DIRECTIONS,
+    TREFOIL,
+    UNKNOT,
+    check_points,
+    closure_votes,
+    plurality,
+)
+
+KNOT = "knot"
+WRAPPED_AT_GRIP = "wrapped_at_grip"
+AMBIGUOUS = "ambiguous"
+OTHER_KNOT = "other_knot"
+UNKNOTTED = "unknot"
+
+CLASSES = (KNOT, WRAPPED_AT_GRIP, AMBIGUOUS, OTHER_KNOT, UNKNOTTED)
+"""Every verdict class; ``knot`` is the only success."""
+
+SOURCES = ("truth", "markers", "operator")
+"""Where a verdict's centreline came from: the simulator's rope, the motion capture, a person."""
+
+OPERATOR_ANSWERS = {"knot": KNOT, "wrapped": WRAPPED_AT_GRIP, "none": UNKNOTTED}
+"""What an operator of the real lab answers, and the class each answer gives."""
+
+
+@dataclass(frozen=True)
+class JudgeParams:
+    """How a rope is judged (``docs/judge.md`` for the measured distributions behind them).
+
+    Attributes:
+        n_directions: Closure directions of the whole-rope vote (odd: no ties).
+        supermajority: Smallest fraction of the whole-rope vote a knot type needs to count,
+            in (0.5, 1]. Over the recorded trials of ``docs/judge.md`` the tube-closure vote
+            is 31 of 31 in all but a few; 0.8 (25 of 31) leaves room for a few threading
+            directions of a knot low in the rope while a near-tie never passes.
+        clearance_m: Smallest arc length from the held end to the knot's core [m]: 0.10 m,
+            the first marker's distance from the fingertip, so that a counted knot lies in the
+            rope the motion capture sees and a loop round the tube (which sits above the first
+            marker) never counts.
+        tube_length_m: Length of the straight continuation of the held end along the tube's
+            axis [m]; the arm's scale (about 1 m), several times the rope's knots.
+        core_directions: Closure directions of each trimmed-arc test of :func:`knot_core`.
+    """
+
+    n_directions: int = DEFAULT_DIRECTIONS
+    supermajority: float = 0.8
+    clearance_m: float = 0.10
+    tube_length_m: float = 1.0
+    core_directions: int = 15
+
+    def __post_init__(self) -> None:
+        check_int("n_directions", self.n_directions, minimum=1)
+        check_int("core_directions", self.core_directions, minimum=1)
+        if not (0.5 < self.supermajority <= 1.0):
+            raise ConfigError("supermajority", f"must be in (0.5, 1], got {self.supermajority!r}")
+        check_positive("clearance_m", self.clearance_m)
+        check_positive("tube_length_m", self.tube_length_m)
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """A judged rope with its evidence.
+
+    Attributes:
+        klass: One of :data:`CLASSES`.
+        knot: The knot type with the most closure votes (``"trefoil"``, ``"unknot"``, ...).
+        votes: Closure votes per knot type (empty for an operator's verdict).
+        core: First and last vertex of the knot's shortest knotted sub-arc (0 = held end),
+            or None (no knot, or an operator's verdict).
+        core_from_held_m: Arc length from the held end to the core's first vertex [m]; 0 when
+            the knot needs the tube; None without a core.
+        source: One of :data:`SOURCES`.
+    """
+
+    klass: str
+    knot: str
+    votes: Mapping[str, int] = field(default_factory=dict)
+    core: tuple[int, int] | None = None
+    core_from_held_m: float | None = None
+    source: str = "truth"
+
+    def __post_init__(self) -> None:
+        check_choice("klass", self.klass, CLASSES)
+        check_choice("source", self.source, SOURCES)
+        if not isinstance(self.knot, str) or not self.knot:
+            raise RecordError(f"Verdict.knot must be a knot name, got {self.knot!r}")
+        object.__setattr__(self, "votes", {str(k): int(v) for k, v in dict(self.votes).items()})
+        if self.core is not None:
+            object.__setattr__(self, "core", (int(self.core[0]), int(self.core[1])))
+
+    @property
+    def success(self) -> bool:
+        """An overhand knot in the hanging rope: class ``knot``, nothing else."""
+        return self.klass == KNOT
+
+    @property
+    def share(self) -> float | None:
+        """Fraction of the closure votes for :attr:`knot`, or None without votes."""
+        total = sum(self.votes.values())
+        return self.votes.get(self.knot, 0) / total if total else None
+
+    def to_json(self) -> dict[str, Any]:
+        """Plain data for a record's or a ledger's JSON."""
+        return {
+            "klass": self.klass,
+            "knot": self.knot,
+            "votes": dict(self.votes),
+            "core": list(self.core) if self.core is not None else None,
+            "core_from_held_m": self.core_from_held_m,
+            "source": self.source,
+        }
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> Verdict:
+        """Inverse of :meth:`to_json`; unknown or missing keys raise :class:`RecordError`."""
+        keys = {"klass", "knot", "votes", "core", "core_from_held_m", "source"}
+        if not isinstance(data, Mapping) or set(data) != keys:
+            got = sorted(data) if isinstance(data, Mapping) else type(data).__name__
+            raise RecordError(f"verdict: expected keys {sorted(keys)}, got {got}")
+        core = data["core"]
+        return cls(
+            klass=data["klass"],
+            knot=data["knot"],
+            votes=data["votes"],
+            core=tuple(core) if core is not None else None,
+            core_from_held_m=data["core_from_held_m"],
+            source=data["source"],
+        )
+
+    def describe(self) -> str:
+        """One line: class, knot, vote and where the knot sits."""
+        vote = f"{self.votes.get(self.knot, 0)}/{sum(self.votes.values())}" if self.votes else "-"
+        where = "" if self.core_from_held_m is None else f", {self.core_from_held_m:.2f} m down"
+        return f"{self.klass} ({self.knot} {vote}{where})"
+
+
+def operator_verdict(answer: str) -> Verdict:
+    """The verdict of a person's answer: ``"knot"`` (in the hanging rope), ``"wrapped"`` or
+    ``"none"``; the error lists the valid answers."""
+    check_choice("answer", answer, tuple(OPERATOR_ANSWERS))
+    klass = OPERATOR_ANSWERS[answer]
+    return Verdict(klass=klass, knot=UNKNOT if klass == UNKNOTTED else TREFOIL, source="operator")
+
+
+# --------------------------------------------------------------------------------------------
+# Closure and core
+
+
+def with_tube(points: np.ndarray, tube_axis: np.ndarray | None, length: float) -> np.ndarray:
+    """The centreline with its held end continued into the tube, shape (n + 1, 3) [m].
+
+    ``p_tube = p_0 - length * a``, with ``a`` the unit tube axis pointing out of the tube (the
+    direction the rope leaves it); without ``a`` the first segment's direction
+    ``(p_1 - p_0) / |p_1 - p_0|`` is used (the lab clamps the first segment in the tube).
+
+    Args:
+        points: Centreline, held end first, shape (n, 3) [m].
+        tube_axis: Out of the tube, shape (3,) [-], or None.
+        length: Length of the continuation [m].
+    """
+    p = np.asarray(points, dtype=float)
+    a = p[1] - p[0] if tube_axis is None else np.asarray(tube_axis, dtype=float)
+    norm = float(np.linalg.norm(a))
+    if not np.isfinite(norm) or norm == 0.0:
+        raise RecordError("tube_axis: must be a finite, non-zero vector")
+    return np.vstack([p[0] - length * a / norm, p])
+
+
+def _has_knot(arc: np.ndarray, knot: str, n_directions: int) -> bool:
+    """Whether ``knot`` has the most closure votes of ``arc`` (ties: not)."""
+    if arc.shape[0] < 4:
+        return False
+    votes = closure_votes(arc, n_directions=n_directions, stop_early=True)
+    best = max(votes.values())
+    return votes.get(knot, 0) == best and sum(v == best for v in votes.values()) == 1
+
+
+def knot_core(tubed: np.ndarray, knot: str, n_directions: int) -> tuple[int, int]:
+    """Shortest knotted sub-arc of a tube-continued centreline, by trimming.
+
+    ``j* = min { j : P[0..j] has knot }`` (trim from the free end), then
+    ``i* = max { i <= j* : P[i..j*] has knot }`` (trim from the held end), where ``P`` is
+    :func:`with_tube`'s output (index 0 the tube's end) and "has knot" is the most votes over
+    ``n_directions`` ray closures.
+
+    Args:
+        tubed: Tube-continued centreline, shape (n + 1, 3) [m].
+        knot: The knot type looked for.
+        n_directions: Closure directions per test.
+
+    Returns:
+        ``(i*, j*)`` in the indices of ``tubed``; ``i* = 0`` means the knot needs the tube.
+    """
+    last = tubed.shape[0] - 1
+    j = last
+    while j > 3 and _has_knot(tubed[:j], knot, n_directions):
+        j -= 1
+    i = 0
+    while j - i > 3 and _has_knot(tubed[i + 1 : j + 1], knot, n_directions):
+        i += 1
+    return i, j
+
+
+def judge_centreline(
+    points: object,
+    tube_axis: np.ndarray | None = None,
+    params: JudgeParams = JudgeParams(),
+    source: str = "truth",
+) -> Verdict:
+    """The verdict on a rope hanging from the tube (module docstring).
+
+    Args:
+        points: Centreline, held end first, shape (n, 3) [m], n >= 4, finite.
+        tube_axis: Unit vector out of the tube (fingertip z axis), shape (3,); None: the
+            first segment's direction.
+        params: Thresholds and closure settings.
+        source: One of :data:`SOURCES`.
+
+    Returns:
+        The :class:`Verdict`.
+
+    Raises:
+        RecordError: Bad centreline or tube axis.
+    """
+    p = check_points(points)
+    tubed = with_tube(p, tube_axis, params.tube_length_m)
+    votes = closure_votes(tubed, n_directions=params.n_directions)
+    total = sum(votes.values())
+    ranked = sorted(votes, key=lambda k: (-votes[k], k != UNKNOT))
+    top = ranked[0]
+    decisive = votes[top] >= params.supermajority * total
+    if top == UNKNOT and decisive:
+        return Verdict(UNKNOTTED, UNKNOT, votes, source=source)
+    knot = top if top != UNKNOT else ranked[1]
+    i, j = knot_core(tubed, knot, params.core_directions)
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    core = (max(i - 1, 0), j - 1)
+    from_held = 0.0 if i == 0 else float(arc[i - 1])
+    if from_held < params.clearance_m:
+        klass = WRAPPED_AT_GRIP
+    elif not decisive:
+        klass = AMBIGUOUS
+    else:
+        klass = KNOT if knot == TREFOIL else OTHER_KNOT
+    return Verdict(klass, top, votes, core, from_held, source)
+
+
+def tube_knot(
+    points: object,
+    tube_axis: np.ndarray | None = None,
+    params: JudgeParams = JudgeParams(),
+) -> str:
+    """The knot type with the most tube-closure votes (no core, no class): the cheap check of
+    a rope's shape over time (settling, knot histories, search scores).
+
+    Args:
+        points: Centreline, held end first, shape (n, 3) [m].
+        tube_axis: Unit vector out of the tube, or None (the first segment's direction).
+        params: Closure settings (``n_directions``, ``tube_length_m``).
+    """
+    tubed = with_tube(check_points(points), tube_axis, params.tube_length_m)
+    return plurality(closure_votes(tubed, n_directions=params.n_directions, stop_early=True))
+
+
+def tube_axis_of(quat: np.ndarray) -> np.ndarray:
+    """The fingertip's z axis (out of the tube) from its quaternion (w, x, y, z), shape (3,)."""
+    return quat_to_matrix(np.asarray(quat, dtype=float))[:, 2]
