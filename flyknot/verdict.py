@@ -26,7 +26,10 @@ Classes (:data:`CLASSES`):
 ===================  =====================================================================
 ``knot``             an overhand knot (trefoil), a supermajority of closures, core clear
                      of the held end: the only success
-``wrapped_at_grip``  a knot whose core reaches the held end or needs the tube
+``wrapped_at_grip``  a knot whose core reaches the held end or needs the tube, or a rope
+                     that is unknotted with the tube but whose free-ray closures of the
+                     held end thread a loop (a loop round the held end), or a rope that
+                     lies round the tube (:func:`round_the_tube`)
 ``ambiguous``        no knot type has a supermajority of closures
 ``other_knot``       another knot (figure-eight, ...) with a supermajority, clear of the grip
 ``unknot``           a supermajority of closures say unknot
@@ -87,13 +90,17 @@ class JudgeParams:
         tube_length_m: Length of the straight continuation of the held end along the tube's
             axis [m]; the arm's scale (about 1 m), several times the rope's knots.
         core_directions: Closure directions of each trimmed-arc test of :func:`knot_core`.
+        wrap_radius_m: A rope point behind the tube's tip (on the arm's side) and within this
+            distance of the tube's axis lies round the tube [m]: the fingertip tube's radius
+            plus a rope's diameter or two (a 0.05 m bound covers the paper's ropes, 7-25 mm).
     """
 
     n_directions: int = DEFAULT_DIRECTIONS
-    supermajority: float = 0.8
+    supermajority: float = 2 / 3
     clearance_m: float = 0.10
     tube_length_m: float = 1.0
     core_directions: int = 15
+    wrap_radius_m: float = 0.05
 
     def __post_init__(self) -> None:
         check_int("n_directions", self.n_directions, minimum=1)
@@ -102,6 +109,7 @@ class JudgeParams:
             raise ConfigError("supermajority", f"must be in (0.5, 1], got {self.supermajority!r}")
         check_positive("clearance_m", self.clearance_m)
         check_positive("tube_length_m", self.tube_length_m)
+        check_positive("wrap_radius_m", self.wrap_radius_m)
 
 
 @dataclass(frozen=True)
@@ -222,30 +230,72 @@ def _has_knot(arc: np.ndarray, knot: str, n_directions: int) -> bool:
     return votes.get(knot, 0) == best and sum(v == best for v in votes.values()) == 1
 
 
-def knot_core(tubed: np.ndarray, knot: str, n_directions: int) -> tuple[int, int]:
+def _continued(arc: np.ndarray, length: float) -> np.ndarray:
+    """``arc`` with its first point continued straight back along its first segment by
+    ``length`` [m]: the trimmed rope replaced by a straight one, as the tube does for the
+    held end."""
+    return with_tube(arc, arc[1] - arc[0], length)
+
+
+def knot_core(
+    tubed: np.ndarray, knot: str, n_directions: int, length: float = 1.0
+) -> tuple[int, int]:
     """Shortest knotted sub-arc of a tube-continued centreline, by trimming.
 
     ``j* = min { j : P[0..j] has knot }`` (trim from the free end), then
     ``i* = max { i <= j* : P[i..j*] has knot }`` (trim from the held end), where ``P`` is
     :func:`with_tube`'s output (index 0 the tube's end) and "has knot" is the most votes over
-    ``n_directions`` ray closures.
+    ``n_directions`` ray closures; an arc trimmed at the held end is continued straight back
+    along its first segment by ``length`` first, as the tube continues the whole rope (free
+    rays from a point just above a loose knot would thread it). Each bound is found by
+    bisection, which assumes that trimming past the knot's end unties it and trimming less
+    does not (true of a single knot; for anything else the result is one knotted sub-arc,
+    not necessarily the shortest).
 
     Args:
         tubed: Tube-continued centreline, shape (n + 1, 3) [m].
         knot: The knot type looked for.
         n_directions: Closure directions per test.
+        length: Straight continuation of a trimmed held end [m].
 
     Returns:
         ``(i*, j*)`` in the indices of ``tubed``; ``i* = 0`` means the knot needs the tube.
     """
-    last = tubed.shape[0] - 1
-    j = last
-    while j > 3 and _has_knot(tubed[:j], knot, n_directions):
-        j -= 1
-    i = 0
-    while j - i > 3 and _has_knot(tubed[i + 1 : j + 1], knot, n_directions):
-        i += 1
-    return i, j
+    lo, hi = 3, tubed.shape[0] - 1  # P[0..hi] has the knot
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if _has_knot(tubed[: mid + 1], knot, n_directions):
+            hi = mid
+        else:
+            lo = mid + 1
+    j = hi
+    lo, hi = 0, max(j - 3, 0)  # P[lo..j] has the knot
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if _has_knot(_continued(tubed[mid : j + 1], length), knot, n_directions):
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo, j
+
+
+def round_the_tube(points: np.ndarray, tubed: np.ndarray, radius: float) -> bool:
+    """Whether the rope lies round the tube: a point p_k, k >= 2, behind the tip,
+    ``(p_k - p_0) . a < 0``, within ``radius`` [m] of the axis line, ``a`` the unit axis out
+    of the tube (from ``tubed``, :func:`with_tube`'s output)."""
+    a = points[0] - tubed[0]
+    a = a / np.linalg.norm(a)
+    rel = points[2:] - points[0]
+    along = rel @ a
+    off = np.linalg.norm(rel - along[:, None] * a, axis=1)
+    return bool(np.any((along < 0.0) & (off < radius)))
+
+
+def _held_end_threaded(points: np.ndarray, params: JudgeParams) -> bool:
+    """Whether a loop surrounds the held end: with the held end closed by free rays instead of
+    the tube, the unknot loses its supermajority (only the held end's closure differs)."""
+    votes = closure_votes(points, n_directions=params.n_directions)
+    return votes.get(UNKNOT, 0) < params.supermajority * sum(votes.values())
 
 
 def judge_centreline(
@@ -277,13 +327,15 @@ def judge_centreline(
     top = ranked[0]
     decisive = votes[top] >= params.supermajority * total
     if top == UNKNOT and decisive:
+        if round_the_tube(p, tubed, params.wrap_radius_m) or _held_end_threaded(p, params):
+            return Verdict(WRAPPED_AT_GRIP, UNKNOT, votes, None, 0.0, source)
         return Verdict(UNKNOTTED, UNKNOT, votes, source=source)
     knot = top if top != UNKNOT else ranked[1]
-    i, j = knot_core(tubed, knot, params.core_directions)
+    i, j = knot_core(tubed, knot, params.core_directions, params.tube_length_m)
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
     core = (max(i - 1, 0), j - 1)
     from_held = 0.0 if i == 0 else float(arc[i - 1])
-    if from_held < params.clearance_m:
+    if from_held < params.clearance_m or round_the_tube(p, tubed, params.wrap_radius_m):
         klass = WRAPPED_AT_GRIP
     elif not decisive:
         klass = AMBIGUOUS

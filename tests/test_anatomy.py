@@ -18,7 +18,9 @@ import flyknot_app.anatomy_report as ar
 from flyknot.errors import ConfigError, RecordError
 from flyknot.knot import load_centreline
 from flyknot.record import TrialRecord
+from flyknot.verdict import Verdict
 from flyknot_app.cli import main
+from tests.knot_curves import verdict
 
 DATA = Path(__file__).parent / "data" / "knots"
 DT = 0.01  # [s] truth frame interval of the constructed records
@@ -31,6 +33,13 @@ SHAPES = {"l": LINE, "T": OVERHAND}
 def frames(spec: str) -> tuple[np.ndarray, np.ndarray]:
     """(t_truth (k,), centreline (k, 41, 3)) of a history string (module docstring)."""
     return np.arange(len(spec)) * DT, np.stack([SHAPES[c] for c in spec])
+
+
+def judged_as(knot: str) -> Verdict:
+    """The verdict a lab records for a rope whose knot is ``knot``, in the hanging rope."""
+    if knot in ("trefoil", "unknot"):
+        return verdict("knot" if knot == "trefoil" else "unknot")
+    return Verdict("other_knot", knot, {knot: 31}, (12, 30), 0.4)
 
 
 def record(
@@ -66,6 +75,7 @@ def record(
         fault_time=None if fault is None else 0.1,
         first_contact_time=contact,
         knot=knot,
+        verdict=None if knot is None else judged_as(knot),
         metadata={"cell": "sim", "rope": 1} if metadata is None else metadata,
         truth=truth,
     )
@@ -77,7 +87,7 @@ def record(
 
 def test_every_label_is_documented_and_coloured():
     assert set(an.DESCRIPTIONS) == set(an.COLOURS) == set(an.LABELS)
-    assert len(set(an.LABELS)) == len(an.LABELS) == 9
+    assert len(set(an.LABELS)) == len(an.LABELS) == 11
     for label in an.LABELS:
         assert f"``{label}``" in an.__doc__
 
@@ -456,7 +466,7 @@ def test_malformed_files_name_the_file(tmp_path):
     bad.unlink()
     (tmp_path / "trial.npz").write_bytes(b"")
     (tmp_path / "trial.json").write_text("{not json")
-    with pytest.raises(RecordError, match=r"^trial record '.*trial.json' is not readable: "):
+    with pytest.raises(RecordError, match=r"^'.*trial.json' is not a readable record \("):
         ar.explain_directory(tmp_path)
 
 
@@ -499,7 +509,7 @@ def test_cli_explain_prints_the_table_and_writes_the_figure(tmp_path, capsys):
 def test_format_table_lists_trials_on_request(tmp_path):
     anatomy = ar.explain_directory(run_directory(tmp_path))
     text = ar.format_table(anatomy, trials=True)
-    assert "runs/rope2/learning/trial_0001_a0  faulted       fault: joint 4 torque limit" in text
+    assert "runs/rope2/learning/trial_0001_a0  faulted          fault: joint 4 torque limit" in text
     assert "trials:" not in ar.format_table(anatomy)
 
 
@@ -535,7 +545,7 @@ def test_report_has_an_anatomy_section(tmp_path):
     ]
     text = write_report(root, {"scenario": "s", "kind": "learn", "runs": runs}).read_text()
     section = text.split("## Failure anatomy")[1].split("## Figures")[0]
-    assert "| success | trefoil at the end, no fault | 1 | 25 % |" in section
+    assert "| success | knot in the hanging rope, no fault | 1 | 25 % |" in section
     assert "| run | n | success | faulted | not_through | slipped_out |" in section
     assert "| rope2 | 2 | 0 | 1 | 0 | 1 |" in section
     assert "![anatomy](anatomy.png)" in section

@@ -21,8 +21,8 @@ def test_table_and_figures(tmp_path, capsys):
     a = _write(
         tmp_path / "ilc",
         [
-            {"costs": [0.6, 0.3], "trials_to_success": 2, "repeats": ["trefoil", "unknot"]},
-            {"costs": [0.5, None, 0.2], "trials_to_success": None, "repeats": ["trefoil"]},
+            {"costs": [0.6, 0.3], "trials_to_success": 2, "repeats": ["knot", "unknot"]},
+            {"costs": [0.5, None, 0.2], "trials_to_success": None, "repeats": ["knot"]},
         ],
     )
     b = _write(
@@ -62,7 +62,7 @@ def test_ilc_beside_each_baseline_seed_by_seed(tmp_path, capsys):
     runs = _runs(
         [12, None, 27],
         [30] * 3,
-        lambda i: {"name": "cma", "seed": i, "repeats": ["trefoil", "unknot"]},
+        lambda i: {"name": "cma", "seed": i, "repeats": ["knot", "unknot"]},
     )
     (cma / "baseline.json").write_text(json.dumps({"rope": 1, "runs": runs}))
     rnd = tmp_path / "random"

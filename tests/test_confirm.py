@@ -15,6 +15,7 @@ from learner.kinematics import RobotModel
 from learner.run_directory import RunDirectory
 from learner.system_model import model_demonstration
 from learner.target import DemoTarget
+from tests.knot_curves import judged, verdict
 from tests.test_ilc import ROPE, T_C, ModelCell, T, _knots
 
 
@@ -42,7 +43,7 @@ class ScriptedCell(ModelCell):
     def run(self, command):
         i = self.n
         rec = super().run(command)
-        return dataclasses.replace(rec, knot="trefoil" if self.script[i] else "unknot")
+        return judged(rec, self.script[i])
 
 
 def _cell(arm, target, script, monkeypatch):
@@ -250,14 +251,14 @@ def test_average_must_be_a_positive_integer():
 
 def test_the_stop_rule_asks_the_judge_not_the_cell(arm, setup, monkeypatch):
     target, start = setup
-    cell = _cell(arm, target, [True] * 4, monkeypatch)  # the cell says "trefoil" every time
+    cell = _cell(arm, target, [True] * 4, monkeypatch)  # the cell says "knot" every time
     asked = []
 
     def judge(record):  # a person who sees a knot only in the third trial
-        asked.append(record.knot)
-        return "trefoil" if len(asked) == 3 else "unknot"
+        asked.append(record.verdict.klass)
+        return verdict("knot" if len(asked) == 3 else "wrapped_at_grip")
 
     res = learn(cell, target, start, arm, ILCParams(max_trials=5, rope_model=ROPE), judge=judge)
     assert res.first_success_trial == 2 and res.stopped_because == "success"
-    assert [s.knot for s in res.trials] == ["unknot", "unknot", "trefoil"]
-    assert asked == ["trefoil"] * 3
+    assert [s.verdict["klass"] for s in res.trials] == ["wrapped_at_grip"] * 2 + ["knot"]
+    assert asked == ["knot"] * 3

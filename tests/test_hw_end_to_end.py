@@ -112,7 +112,7 @@ def test_quick_scenario_runs_on_the_fake_lab(fake_lab, tmp_path, monkeypatch):
     def ask(record, suggestion):  # ... and says what the rope shows
         verdict = fake_lab.call("last_verdict")
         answers.append(verdict)
-        return verdict == "trefoil"
+        return {"knot": "knot", "wrapped_at_grip": "wrapped", "unknot": "none"}.get(verdict)
 
     monkeypatch.setattr("flyknot_hw.xarm_cell.console_confirm", confirm)
     monkeypatch.setattr("flyknot_hw.xarm_cell.console_ask", ask)
@@ -150,8 +150,10 @@ def test_quick_scenario_runs_on_the_fake_lab(fake_lab, tmp_path, monkeypatch):
         before_tc = (rec.t_marker >= run["t_c"] - 0.1) & (rec.t_marker <= run["t_c"])
         assert np.all(np.isfinite(rec.markers[before_tc]), axis=2).mean() > 0.9  # dropouts
         # the operator's verdict
-        assert rec.knot == ("trefoil" if answers[len(offsets) - 1] == "trefoil" else "unknot")
-        assert s["knot"] == rec.knot
+        answer = answers[len(offsets) - 1]
+        assert rec.verdict.source == "operator"
+        assert rec.verdict.klass == (answer if answer in ("knot", "wrapped_at_grip") else "unknot")
+        assert s["knot"] == rec.knot and s["verdict"] == rec.verdict.to_json()
     assert len({Path(r.metadata["mocap"]["source"]).name for r in records}) == len(records)
 
     costs = run["costs"]

@@ -22,6 +22,7 @@ from flyknot_hw.config import parse_lab_config
 from flyknot_hw.preflight import PreflightError
 from flyknot_hw.velocity_stream import VelocityStream
 from flyknot_hw.xarm_cell import XArmCell
+from tests.knot_curves import verdict
 
 DT = 0.004
 FAST = dict(n=250, amp=0.6)  # fingertip 1.97 m/s, flange ~1.65 m/s: above C60's 1.2 m/s
@@ -88,7 +89,7 @@ def test_lab_file_stream_and_gain_are_validated():
 def _cell(fake, stream: str, **kw) -> XArmCell:
     doc = lab_doc(fake, robot={"stream": stream}, safety={"tip_speed_max": 1.2})
     return XArmCell(
-        parse_lab_config(doc), fingertip=SimFingertip(), judge=lambda r: "trefoil",
+        parse_lab_config(doc), fingertip=SimFingertip(), judge=lambda r: verdict("knot"),
         mocap=StandInMocap(fake), **kw,
     )  # fmt: skip
 
@@ -107,7 +108,7 @@ def test_the_fake_firmware_faults_c60_on_a_fast_servo_stream(make_fake):  # noqa
     fk = make_fake(servo_tcp_speed_max=1.2)
     doc = lab_doc(fk)  # tip_speed_max 4.0: the preflight lets it through, the firmware not
     with XArmCell(
-        parse_lab_config(doc), fingertip=SimFingertip(), judge=lambda r: "trefoil",
+        parse_lab_config(doc), fingertip=SimFingertip(), judge=lambda r: verdict("knot"),
         mocap=StandInMocap(fk),
     ) as cell:  # fmt: skip
         rec = cell.run(JointCommand(throw(**FAST)))

@@ -26,6 +26,7 @@ from flyknot_hw.config import parse_lab_config
 from flyknot_hw.mocap import RawStream
 from flyknot_hw.preflight import PreflightError
 from flyknot_hw.xarm_cell import XArmCell
+from tests.knot_curves import verdict
 
 ROOT = Path(__file__).resolve().parents[1]
 MOTION = {11, 12, 19, 23, 29}  # motion enable, set state, set mode, joint move, servo_j
@@ -44,7 +45,7 @@ def make_fake(monkeypatch):
 def cells():
     made = []
 
-    def make(fake: FakeXArm, judge=lambda r: "trefoil", **kw) -> XArmCell:
+    def make(fake: FakeXArm, judge=lambda r: verdict("knot"), **kw) -> XArmCell:
         sections = kw.pop("sections", {})
         kw.setdefault("mocap", StandInMocap())
         cell = XArmCell(
@@ -292,7 +293,7 @@ def test_fault_mid_motion_stops_the_arm(make_fake, cells, code, warn, label):
     fk = make_fake(arm="exact")
     judged = []
     mocap = StandInMocap()
-    cell = cells(fk, judge=lambda r: judged.append(r) or "trefoil", mocap=mocap)
+    cell = cells(fk, judge=lambda r: judged.append(r) or verdict("knot"), mocap=mocap)
     fk.inject(code, after_servo=60, warn=warn)
     rec = cell.run(JointCommand(throw(200)))
     assert rec.fault == f"{label} at t={59 / RATE:.3f} s (tick 59)"
@@ -351,8 +352,9 @@ CHILD = textwrap.dedent(
     from flyknot.record import JointCommand
     from flyknot_hw.config import parse_lab_config
     from flyknot_hw.xarm_cell import XArmCell
+    from flyknot.verdict import operator_verdict
     cell = XArmCell(parse_lab_config(json.loads({doc!r})), fingertip=SimFingertip(),
-                    judge=lambda r: "unknot", mocap=StandInMocap())
+                    judge=lambda r: operator_verdict("none"), mocap=StandInMocap())
     q = np.load({command!r})
     rec = cell.run(JointCommand(q))
     print("RESULT " + json.dumps({{"fault": rec.fault, "timing": rec.metadata["timing"]}}))

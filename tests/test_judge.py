@@ -15,14 +15,15 @@ from flyknot.judge import (
     get_judge,
 )
 from flyknot.record import TrialRecord
+from tests.knot_curves import trefoil_arc, verdict
+
+DOWN = [0.0, 1.0, 0.0, 0.0]  # fingertip z axis (out of the tube) pointing down: x by 180 deg
 
 
-def _trefoil(n: int = 12) -> np.ndarray:
-    """An open trefoil (a torus knot of type (2, 3), cut open), (n, 3) [m]."""
-    t = np.linspace(0.15, 2 * np.pi - 0.15, n)
-    return 0.1 * np.stack(
-        [np.sin(t) + 2 * np.sin(2 * t), np.cos(t) - 2 * np.cos(2 * t), -np.sin(3 * t)], 1
-    )
+def _hanging_knot() -> np.ndarray:
+    """Fingertip then 11 markers of a loose overhand knot 0.35 m below the fingertip."""
+    arc = trefoil_arc(0.04, 9) + np.array([0.0, 0.0, -0.35])
+    return np.vstack([[0.0, 0.0, 0.0], [0.0, -0.12, -0.15], arc, arc[-1] + [0.0, 0.0, -0.15]])
 
 
 def _record(line: np.ndarray, m: int = 5, **kw) -> TrialRecord:
@@ -35,7 +36,7 @@ def _record(line: np.ndarray, m: int = 5, **kw) -> TrialRecord:
         t_marker=np.arange(m) / 200.0,
         markers=markers,
         fingertip_pos=np.tile(line[0], (n, 1)),
-        fingertip_quat=np.tile([1.0, 0, 0, 0], (n, 1)),
+        fingertip_quat=np.tile(DOWN, (n, 1)),
         base_pose=np.array([0, 0, 1.0, 1, 0, 0, 0]),
         knot="unknot",
     )
@@ -44,31 +45,42 @@ def _record(line: np.ndarray, m: int = 5, **kw) -> TrialRecord:
 
 
 def test_every_judge_is_a_knot_judge():
-    for j in (CellVerdict(), MarkerJudge(), OperatorJudge(lambda r, s: True)):
+    for j in (CellVerdict(), MarkerJudge(), OperatorJudge(lambda r, s: "knot")):
         assert isinstance(j, KnotJudge)
 
 
 def test_cell_verdict_is_the_records():
-    assert CellVerdict()(_record(_trefoil(), knot="trefoil")) == "trefoil"
-    assert CellVerdict()(_record(_trefoil(), knot=None)) is None
-    assert MarkerJudge()(_record(_trefoil(), fault="C31 collision")) is None
+    v = verdict("knot")
+    assert CellVerdict()(_record(_hanging_knot(), knot="trefoil", verdict=v)) == v
+    assert CellVerdict()(_record(_hanging_knot(), knot=None)) is None
+    assert MarkerJudge()(_record(_hanging_knot(), fault="C31 collision")) is None
 
 
-def test_marker_judge_sees_a_trefoil_and_a_straight_rope():
-    assert MarkerJudge()(_record(_trefoil())) == "trefoil"
+def test_marker_judge_sees_a_knot_in_the_hanging_rope_and_a_straight_rope():
+    v = MarkerJudge()(_record(_hanging_knot()))
+    assert v.klass == "knot" and v.success and v.source == "markers"
+    assert v.votes == {"trefoil": 31} and v.core_from_held_m > 0.3
     straight = np.stack([np.zeros(12), np.zeros(12), -0.1 * np.arange(12)], 1)
-    assert MarkerJudge()(_record(straight)) == "unknot"
+    s = MarkerJudge()(_record(straight))
+    assert s.klass == "unknot" and not s.success
+
+
+def test_marker_judge_reads_the_tube_axis_from_the_fingertip():
+    # The tube pointing up (into the rope) puts the rope round the tube: never a success.
+    up = MarkerJudge()(_record(_hanging_knot(), fingertip_quat=np.tile([1.0, 0, 0, 0], (10, 1))))
+    assert not up.success
 
 
 def test_marker_judge_uses_the_last_fully_tracked_frame():
-    rec_line = _trefoil()
+    rec_line = _hanging_knot()
     rec = _record(rec_line)
     markers = np.array(rec.markers)
     markers[-2:, 4] = np.nan  # the last two frames lost marker 4
     markers[:2] = 0.0  # early frames: a degenerate rope
     rec = _record(rec_line, markers=markers)
-    line = final_polyline(rec)
+    line, axis = final_polyline(rec)
     np.testing.assert_allclose(line, rec_line)
+    np.testing.assert_allclose(axis, [0.0, 0.0, -1.0], atol=1e-12)
     gone = _record(rec_line, markers=np.full_like(markers, np.nan))
     assert final_polyline(gone) is None
     assert MarkerJudge()(gone) is None
@@ -76,16 +88,30 @@ def test_marker_judge_uses_the_last_fully_tracked_frame():
 
 def test_operator_is_shown_the_suggestion_and_answers():
     seen = []
+    answers = iter(["knot", "wrapped", "none", None])
 
     def ask(record, suggestion):
-        seen.append(suggestion)
-        return len(seen) == 1
+        seen.append(suggestion.klass)
+        return next(answers)
 
     judge = OperatorJudge(ask)
-    assert judge(_record(_trefoil())) == "trefoil"
-    assert judge(_record(_trefoil())) == "unknot"
-    assert seen == ["trefoil", "trefoil"]
-    assert OperatorJudge(lambda r, s: None, suggest=None)(_record(_trefoil())) is None
+    got = [judge(_record(_hanging_knot())) for _ in range(4)]
+    assert [None if v is None else v.klass for v in got] == [
+        "knot",
+        "wrapped_at_grip",
+        "unknot",
+        None,
+    ]
+    assert got[0].success and not got[1].success and got[0].source == "operator"
+    assert seen == ["knot"] * 4
+    assert OperatorJudge(lambda r, s: None, suggest=None)(_record(_hanging_knot())) is None
+
+
+def test_an_operator_answer_outside_the_choices_names_them():
+    with pytest.raises(
+        ConfigError, match=r"^answer: unknown value 'yes' \(valid choices: knot, wrapped, none\)$"
+    ):
+        OperatorJudge(lambda r, s: "yes", suggest=None)(_record(_hanging_knot()))
 
 
 def test_unknown_judge_lists_the_valid_names():

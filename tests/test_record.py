@@ -7,6 +7,7 @@ import pytest
 
 from flyknot.errors import CommandError, RecordError
 from flyknot.record import JointCommand, TrialRecord
+from tests.knot_curves import verdict
 
 
 def _record(n=25, m=20, truth=True, **kw):
@@ -25,6 +26,7 @@ def _record(n=25, m=20, truth=True, **kw):
         fault=None,
         first_contact_time=0.05,
         knot="trefoil",
+        verdict=verdict("knot"),
         metadata={"cell": "sim", "rope": 1, "seed": 3},
         truth={"centreline": rng.normal(size=(4, 30, 3))} if truth else {},
     )
@@ -43,7 +45,10 @@ def test_record_round_trip(tmp_path):
     np.testing.assert_array_equal(back.truth["centreline"], rec.truth["centreline"])
     # Without asking for truth, none is loaded.
     assert TrialRecord.load(tmp_path / "trial_0000").truth == {}
-    assert back.succeeded
+    assert back.succeeded and back.verdict == rec.verdict
+    # A trefoil wrapped round the held end is not a success, nor is a record without verdict.
+    assert not _record(verdict=verdict("wrapped_at_grip")).succeeded
+    assert not _record(verdict=None).succeeded
 
 
 def test_record_arrays_are_read_only():

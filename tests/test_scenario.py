@@ -183,8 +183,8 @@ def test_outcome_line_for_learning_and_tracking():
     from flyknot_app.report import outcome_line
 
     runs = [
-        {"trials_to_success": 3, "repeats": ["trefoil", "unknot"]},
-        {"trials_to_success": None, "repeats": ["unknot", "trefoil"]},
+        {"trials_to_success": 3, "repeats": ["knot", "unknot"]},
+        {"trials_to_success": None, "repeats": ["wrapped_at_grip", "knot"]},
         {"trials_to_success": None},
     ]
     assert outcome_line("learn", runs) == "Knot learned in 1 of 3 runs."

@@ -37,7 +37,8 @@ What the real lab's software talks to, on loopback, and nothing else:
   end swings by ~5 cm within a second). After the throw the operator waits until the rope
   rests by the simulated lab's rule (:class:`flyknot.rest.SettleMonitor`: free end at rest
   and the knot verdict stable, capped) and reads the knot from the simulated centreline
-  (:func:`flyknot.knot.classify_centreline`).
+  (:func:`flyknot.verdict.tube_knot` while settling, :func:`flyknot.verdict.judge_centreline`
+  at the end: the class an operator would answer).
 
 :class:`FakeLabProcess` runs a :class:`FakeLab` in a child process (the controller is another
 computer; the learner's solver in the test's process must not hold up the physics) and
@@ -63,8 +64,8 @@ import numpy as np
 
 from fakes.fake_capture import RATE_HZ, FakeCapture
 from fakes.fake_xarm import HOME, FakeXArm
-from flyknot.knot import classify_centreline
 from flyknot.rest import SettleMonitor, SettleParams, start_with_sway
+from flyknot.verdict import judge_centreline, tube_knot
 from flyknot_sim.aero import DRAG_HOLD_S
 from flyknot_sim.lab import LabParams, SimLab
 from flyknot_sim.robot import FINGERTIP_BODY, FINGERTIP_SITE, load_robot_model
@@ -443,9 +444,10 @@ class FakeLab:
                 new = [h for h in self.scene.history if h[0] > last]
             for t, speed, contact, line in new:
                 last = t
-                if mon.observe(t, speed, lambda line=line: classify_centreline(line), contact):
+                if mon.observe(t, speed, lambda line=line: tube_knot(line), contact):
                     out = mon.outcome
-                    res = {"verdict": out.verdict, **out.as_metadata(params), "t_end": t_end}
+                    klass = judge_centreline(line).klass
+                    res = {"verdict": klass, **out.as_metadata(params), "t_end": t_end}
                     self.outcomes.append(res)
                     return res
             time.sleep(0.05)
@@ -464,7 +466,7 @@ class FakeLab:
         return [(a, b + after_s) for a, b in out]
 
     def last_verdict(self) -> str | None:
-        """The knot the last settle ended with."""
+        """The verdict class the last settle ended with (``knot``, ``wrapped_at_grip``, ...)."""
         return self.outcomes[-1]["verdict"] if self.outcomes else None
 
     def report(self) -> dict[str, Any]:
