@@ -175,6 +175,13 @@ def _cmd_explain(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_judge(args: argparse.Namespace) -> int:
+    from flyknot_app.judging import judge_command
+
+    print(judge_command(args.dir, pictures=args.pictures, out=args.out, as_json=args.json))
+    return 0
+
+
 def _parse_seeds(text: str) -> list[int]:
     """``"0-4"`` or ``"0,2,5"`` as a list of seeds."""
     try:
@@ -500,6 +507,21 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--workers", type=int, default=1, help="worker processes for the diagnoses")
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.set_defaults(func=_cmd_explain)
+
+    jg = sub.add_parser(
+        "judge",
+        help="judge every trial under a run or replay directory again: old and new verdict, "
+        "closure vote, where the knot sits, totals",
+    )
+    jg.add_argument("dir", help="run directory (flyknot run) or replay directory (demo replay)")
+    jg.add_argument(
+        "--pictures",
+        action="store_true",
+        help="close-up renders of every knot and one trial per other class",
+    )
+    jg.add_argument("--out", default=None, help="folder of the pictures (default DIR/judge)")
+    jg.add_argument("--json", action="store_true", help="print one JSON object")
+    jg.set_defaults(func=_cmd_judge)
 
     bl = sub.add_parser(
         "baseline",

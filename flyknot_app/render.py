@@ -48,6 +48,11 @@ class RenderParams:
         marker_radius: Radius of the marker spheres [m].
         azimuth: Camera azimuth [deg] (MuJoCo's free camera).
         elevation: Camera elevation [deg] (negative: looking down).
+        close_up: Frame the rope at the end of the trial and the fingertip only (for a
+            person checking a verdict), not the arm and the rope over the whole trial.
+        show_arm: Draw the arm (a hand-lab replay has none).
+        focus: Vertices of the final rope the camera frames, (first, last), e.g. a verdict's
+            knot core; None: as ``close_up`` says.
     """
 
     width: int = 640
@@ -57,6 +62,9 @@ class RenderParams:
     marker_radius: float = 0.012
     azimuth: float = 125.0
     elevation: float = -12.0
+    close_up: bool = False
+    show_arm: bool = True
+    focus: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         check_int("--width", self.width, 16)
@@ -127,6 +135,10 @@ class TrialRenderer:
         self.model.vis.global_.offheight = max(params.height, self.model.vis.global_.offheight)
         self.data = mujoco.MjData(self.model)
         self._qadr = [self.model.joint(f"xarm7/joint{i}").qposadr[0] for i in range(1, 8)]
+        if not params.show_arm:
+            names = (self.model.body(b).name for b in range(self.model.nbody))
+            arm = [b for b, name in enumerate(names) if name.startswith("xarm7/")]
+            self.model.geom_rgba[np.isin(self.model.geom_bodyid, arm), 3] = 0.0
         self.has_truth = "centreline" in record.truth and "t_truth" in record.truth
         self.camera = self._frame_camera()
         self._gl = _gl_context(params.width, params.height)
@@ -163,9 +175,17 @@ class TrialRenderer:
         """A free camera framing the arm and the rope over the whole trial."""
         from flyknot_app.viewer import trial_frames
 
-        f = trial_frames(self.record, rate_hz=20.0)
-        pts = [f["robot"].reshape(-1, 3), f["rope"].reshape(-1, 3), f["markers"].reshape(-1, 3)]
-        pts = self.to_scene(np.vstack(pts))
+        if self.params.focus is not None:
+            first, last = self.params.focus
+            pts = self.rope_at(trial_end(self.record))[first : last + 1]
+        elif self.params.close_up:
+            end = trial_end(self.record)
+            tip = self.record.fingertip_pos[_nearest(self.record.t_joint, end)]
+            pts = np.vstack([self.rope_at(end), self.to_scene(tip)[None]])
+        else:
+            f = trial_frames(self.record, rate_hz=20.0)
+            pts = [f["robot"], f["rope"], f["markers"]]
+            pts = self.to_scene(np.vstack([p.reshape(-1, 3) for p in pts]))
         pts = pts[np.all(np.isfinite(pts), axis=1)]
         lo, hi = pts.min(axis=0), pts.max(axis=0)
         radius = 0.5 * float(np.linalg.norm(hi - lo))
@@ -202,8 +222,9 @@ class TrialRenderer:
                 mujoco.mjtGeom.mjGEOM_SPHERE, (self.params.marker_radius,) * 3, p, MARKER_RGBA
             )
 
-    def render(self, t: float) -> np.ndarray:
-        """The image at time ``t`` [s], (height, width, 3) uint8."""
+    def render(self, t: float, caption: str | None = None) -> np.ndarray:
+        """The image at time ``t`` [s], (height, width, 3) uint8, with ``caption`` written
+        at its top left."""
         self._gl.make_current()
         self.pose(t)
         mujoco.mjv_updateScene(
@@ -217,6 +238,15 @@ class TrialRenderer:
         )
         self._draw_rope(t)
         mujoco.mjr_render(self._rect, self.scene, self._context)
+        if caption:
+            mujoco.mjr_overlay(
+                mujoco.mjtFont.mjFONT_NORMAL,
+                mujoco.mjtGridPos.mjGRID_TOPLEFT,
+                self._rect,
+                caption,
+                "",
+                self._context,
+            )
         rgb = np.empty((self.params.height, self.params.width, 3), dtype=np.uint8)
         mujoco.mjr_readPixels(rgb, None, self._rect, self._context)
         return np.flipud(rgb)
@@ -247,6 +277,7 @@ def render_trial(
     *,
     time: float | None = None,
     params: RenderParams = RenderParams(),
+    caption: str | None = None,
 ) -> Path:
     """Render a trial to ``out``: a .png at ``time`` or an .mp4 through the trial.
 
@@ -255,6 +286,7 @@ def render_trial(
         out: Output file, ``.png`` (one frame) or ``.mp4`` (H.264 at ``params.fps``).
         time: Time of the .png [s]; default the end of the motion (the trial's last sample).
         params: Size, rate, drawing.
+        caption: Text at the top left of a .png (e.g. the verdict).
 
     Returns:
         ``out``.
@@ -284,7 +316,7 @@ def render_trial(
     out.parent.mkdir(parents=True, exist_ok=True)
     with TrialRenderer(record, params) as renderer:
         if kind == ".png":
-            imageio.imwrite(out, renderer.render(float(time)))
+            imageio.imwrite(out, renderer.render(float(time), caption))
         else:
             with imageio.get_writer(
                 out,

@@ -1,0 +1,296 @@
+"""Re-judging trials with :mod:`flyknot.verdict`, and the pictures a person audits them by.
+
+``flyknot judge DIR [--pictures] [--out OUT] [--json]`` reads every trial under a run or
+replay directory (:func:`flyknot_app.anatomy_trials.find_trials`), judges the rope as it was
+at the end (the simulator's last centreline frame; without truth, the last fully tracked
+marker frame with the fingertip's tube axis) and prints, per trial, the verdict it was given
+when it ran (``old``: its stored knot type and class, if any), the new verdict, its closure
+vote and where the knot sits, then the totals. With ``--pictures`` it writes a close-up
+render of every trial the new judge counts as a knot and of one trial per other class
+(:func:`write_pictures`); each picture is captioned with its verdict.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from flyknot.errors import ConfigError, FlyknotError, RecordError
+from flyknot.judge import MarkerJudge
+from flyknot.record import TrialRecord
+from flyknot.verdict import KNOT, Verdict, judge_centreline, tube_axis_of
+from flyknot_app.anatomy_trials import TrialFile, find_trials, load_replay
+
+FAULT = "fault"
+"""The class column of a faulted trial (no verdict)."""
+
+
+@dataclass(frozen=True)
+class Rejudged:
+    """One trial judged again.
+
+    Attributes:
+        name: The trial's path under the directory, without suffix.
+        path: Its record ``.json`` or replay ``.npz``.
+        kind: ``"record"`` or ``"replay"``.
+        fault: The controller's fault, or None.
+        old_knot: The knot type stored when it ran (None: not judged).
+        old_class: The verdict class stored when it ran (None: stored without a verdict).
+        new: The verdict now (None: faulted, or nothing to judge).
+    """
+
+    name: str
+    path: Path
+    kind: str
+    fault: str | None
+    old_knot: str | None
+    old_class: str | None
+    new: Verdict | None
+
+    @property
+    def old_success(self) -> bool:
+        """Counted as a knot when it ran: its stored class, else its stored knot type."""
+        if self.fault is not None:
+            return False
+        return self.old_class == KNOT if self.old_class else self.old_knot == "trefoil"
+
+    @property
+    def new_class(self) -> str:
+        """The new verdict's class, ``"fault"``, or ``"-"`` (nothing to judge)."""
+        if self.fault is not None:
+            return FAULT
+        return "-" if self.new is None else self.new.klass
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain data (JSON-ready)."""
+        return {
+            "name": self.name,
+            "kind": self.kind,
+            "fault": self.fault,
+            "old_knot": self.old_knot,
+            "old_class": self.old_class,
+            "old_success": self.old_success,
+            "new": None if self.new is None else self.new.to_json(),
+            "new_class": self.new_class,
+        }
+
+
+def _final_frame(centreline: np.ndarray) -> np.ndarray | None:
+    """The last frame of a centreline history with every point finite."""
+    for frame in np.asarray(centreline, dtype=float)[::-1]:
+        if np.all(np.isfinite(frame)):
+            return frame
+    return None
+
+
+def _load_record(path: Path) -> TrialRecord:
+    try:
+        return TrialRecord.load(path, with_truth=True)
+    except (OSError, ValueError, KeyError, TypeError) as exc:  # partial or foreign JSON
+        raise RecordError(f"trial record {str(path)!r} is not readable: {exc}") from exc
+
+
+def rejudge(f: TrialFile) -> Rejudged:
+    """Judge one trial found by :func:`find_trials` again (module docstring).
+
+    Raises:
+        RecordError: The file is malformed (the message names it).
+    """
+    if f.kind == "replay":
+        ev = load_replay(f.path)
+        frame = None if ev.centreline is None else _final_frame(ev.centreline)
+        new = None if frame is None else judge_centreline(frame)
+        old = ev.verdict
+        return Rejudged(
+            f.name, f.path, f.kind, None, ev.knot, None if old is None else old.klass, new
+        )
+    rec = _load_record(f.path)
+    new = None
+    if rec.fault is None:
+        frame = _final_frame(rec.truth["centreline"]) if "centreline" in rec.truth else None
+        if frame is not None:
+            new = judge_centreline(frame, tube_axis_of(rec.fingertip_quat[-1]))
+        else:
+            new = MarkerJudge()(rec)
+    old = rec.verdict
+    return Rejudged(
+        f.name, f.path, f.kind, rec.fault, rec.knot, None if old is None else old.klass, new
+    )
+
+
+def rejudge_directory(
+    directory: str | Path,
+    progress: Callable[[Iterable[TrialFile]], Iterable[TrialFile]] | None = None,
+) -> list[Rejudged]:
+    """Every trial under ``directory`` judged again, in path order.
+
+    Raises:
+        ConfigError: ``directory`` is missing, not a directory, or holds no trials.
+        RecordError: A trial file is malformed (the message names it).
+    """
+    files = find_trials(directory)
+    if not files:
+        raise ConfigError(
+            "directory",
+            f"{str(directory)!r} holds no trial records (<stem>.json with <stem>.npz) "
+            "and no replay files (replay_*.npz)",
+        )
+    it = files if progress is None else progress(files)
+    return [rejudge(f) for f in it]
+
+
+def totals(rows: Sequence[Rejudged]) -> dict[str, Any]:
+    """Counts: trials, knots before and now, and old knot type -> new class pairs."""
+    pairs = Counter(
+        f"{FAULT if r.fault else (r.old_class or r.old_knot)} -> {r.new_class}" for r in rows
+    )
+    return {
+        "trials": len(rows),
+        "knots_old": sum(r.old_success for r in rows),
+        "knots_new": sum(r.new_class == KNOT for r in rows),
+        "classes_new": dict(Counter(r.new_class for r in rows)),
+        "old_to_new": dict(sorted(pairs.items())),
+    }
+
+
+def _vote_text(v: Verdict | None) -> str:
+    if v is None or not v.votes:
+        return "-"
+    return f"{v.votes.get(v.knot, 0)}/{sum(v.votes.values())} {v.knot}"
+
+
+def format_rejudged(rows: Sequence[Rejudged], directory: str | Path) -> str:
+    """The per-trial table and the totals, as printed by ``flyknot judge``."""
+    width = max([len(r.name) for r in rows] + [5])
+    head = f"{'trial':<{width}}  {'old':<15}  {'new':<15}  {'vote':<13}  knot from held end"
+    lines = [f"re-judged {len(rows)} trials under {directory}", head]
+    for r in rows:
+        old = FAULT if r.fault else (r.old_class or r.old_knot or "-")
+        where = "-"
+        if r.new is not None and r.new.core is not None:
+            where = f"{r.new.core_from_held_m:.2f} m (vertices {r.new.core[0]}-{r.new.core[1]})"
+        elif r.new is not None and r.new.klass == "wrapped_at_grip":
+            where = "round the held end"
+        lines.append(
+            f"{r.name:<{width}}  {old:<15}  {r.new_class:<15}  {_vote_text(r.new):<13}  {where}"
+        )
+    t = totals(rows)
+    lines.append(f"knots: {t['knots_old']} counted when run, {t['knots_new']} now")
+    lines.append("now: " + ", ".join(f"{k} {v}" for k, v in sorted(t["classes_new"].items())))
+    lines.append("old -> new: " + ", ".join(f"{k}: {v}" for k, v in t["old_to_new"].items()))
+    return "\n".join(lines)
+
+
+def picture_rows(rows: Sequence[Rejudged]) -> list[Rejudged]:
+    """Every trial judged a knot, then the first of each other class (faults excepted)."""
+    chosen = [r for r in rows if r.new_class == KNOT]
+    seen: set[str] = set()
+    for r in rows:
+        if r.new is not None and r.new_class != KNOT and r.new_class not in seen:
+            seen.add(r.new_class)
+            chosen.append(r)
+    return chosen
+
+
+def _replay_record(path: Path) -> TrialRecord:
+    """A hand-lab replay as a record the renderer draws (no arm: joints zero, hidden)."""
+    with np.load(path, allow_pickle=False) as z:
+        t, pos, quat, markers = z["t"], z["hand_pos"], z["hand_quat"], z["markers"]
+        truth = {"t_truth": z["t_truth"], "centreline": z["centreline"]}
+    n = len(t)
+    return TrialRecord(
+        t_joint=t,
+        q_cmd=np.zeros((n, 7)),
+        q_meas=np.zeros((n, 7)),
+        t_marker=t,
+        markers=markers,
+        fingertip_pos=pos,
+        fingertip_quat=quat,
+        base_pose=np.array([0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]),
+        truth=truth,
+    )
+
+
+def picture_name(row: Rejudged) -> str:
+    """File name of a trial's picture: its path with ``/`` as ``__``, class appended."""
+    return f"{row.name.replace('/', '__')}.{row.new_class}.png"
+
+
+def verdict_picture(record: TrialRecord, verdict: Verdict, out: Path, *, arm: bool = True) -> Path:
+    """The rope at the end of a trial for a person to check ``verdict``: the rope and the
+    fingertip, and beside it a zoom on the knot's core when the verdict has one; captioned
+    with the verdict. Written as ``out`` (.png)."""
+    import imageio.v2 as imageio
+
+    from flyknot_app.render import RenderParams, TrialRenderer, trial_end
+
+    views = [RenderParams(close_up=True, show_arm=arm)]
+    if verdict.core is not None:
+        first, last = verdict.core
+        views.append(RenderParams(show_arm=arm, focus=(max(first - 2, 0), last + 2)))
+    images = []
+    for k, params in enumerate(views):
+        caption = verdict.describe() if k == 0 else "the knot's core"
+        with TrialRenderer(record, params) as renderer:
+            images.append(renderer.render(trial_end(record), caption))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    imageio.imwrite(out, np.hstack(images))
+    return out
+
+
+def write_pictures(rows: Sequence[Rejudged], out: str | Path) -> list[Path]:
+    """:func:`verdict_picture` of every row of :func:`picture_rows`, into ``out``.
+
+    Returns:
+        The files written, in the order of :func:`picture_rows`.
+    """
+    out = Path(out)
+    written = []
+    for r in picture_rows(rows):
+        replay = r.kind == "replay"
+        record = _replay_record(r.path) if replay else _load_record(r.path)
+        written.append(verdict_picture(record, r.new, out / picture_name(r), arm=not replay))
+    return written
+
+
+def judge_command(
+    directory: str | Path, *, pictures: bool, out: str | Path | None, as_json: bool
+) -> str:
+    """What ``flyknot judge`` prints (pictures written first when asked for)."""
+    rows = rejudge_directory(directory)
+    files: list[Path] = []
+    if pictures:
+        files = write_pictures(rows, Path(directory) / "judge" if out is None else out)
+    if as_json:
+        data = {
+            "directory": str(directory),
+            "trials": [r.as_dict() for r in rows],
+            "totals": totals(rows),
+            "pictures": [str(p) for p in files],
+        }
+        return json.dumps(data, indent=2)
+    text = format_rejudged(rows, directory)
+    if files:
+        text += "\npictures: " + ", ".join(str(p) for p in files)
+    return text
+
+
+__all__ = [
+    "FAULT",
+    "FlyknotError",
+    "Rejudged",
+    "format_rejudged",
+    "judge_command",
+    "picture_rows",
+    "rejudge",
+    "rejudge_directory",
+    "totals",
+    "verdict_picture",
+    "write_pictures",
+]
