@@ -21,27 +21,67 @@ def _cmd_knot(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_trial(args: argparse.Namespace) -> int:
+def load_command(path: str | Path):
+    """A command file: ``.csv``/``.npy`` (:meth:`JointCommand.load`) or ``.npz`` Bezier knots
+    (``knots`` (10, 8) and ``T`` [s], as ``final_knots``-style files and the robot
+    demonstration's seed ``assets/demos/seeds/robot_command.npz`` hold)."""
+    from flyknot.errors import CommandError
     from flyknot.record import JointCommand
+
+    path = Path(path)
+    if path.suffix != ".npz":
+        return JointCommand.load(path)
+    from learner.bezier import BezierCommand
+
+    if not path.is_file():
+        raise CommandError(f"command file {str(path)!r} does not exist")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            knots, T = np.asarray(z["knots"], dtype=float), float(z["T"])
+    except Exception as e:  # not a zip, or no knots/T
+        raise CommandError(f"command file {str(path)!r}: needs arrays knots and T ({e})") from e
+    return BezierCommand(knots, T).joint_command()
+
+
+def _cmd_trial(args: argparse.Namespace) -> int:
     from flyknot_sim.lab import LabParams, SimLab
 
     out = Path(args.out)
-    if (out / "trial.json").exists() and not args.force:
+    if args.repeats < 1:
+        raise ConfigError("--repeats", f"must be an integer >= 1, got {args.repeats}")
+    stems = ["trial"] if args.repeats == 1 else [f"trial_{i:03d}" for i in range(args.repeats)]
+    if (out / f"{stems[0]}.json").exists() and not args.force:
         raise ConfigError("--out", f"{str(out)!r} already holds a trial; use --force to replace it")
-    command = JointCommand.load(args.command)
+    command = load_command(args.command)
     lab = SimLab(LabParams(rope=args.rope, seed=args.seed, settle_s=args.settle, ropes=args.ropes))
-    record = lab.run(command)
     out.mkdir(parents=True, exist_ok=True)
-    path = record.save(out / "trial")
-    summary = {
-        "rope": lab.rope_params.id,
-        "fault": record.fault,
-        "knot": record.knot,
-        "verdict": None if record.verdict is None else record.verdict.to_json(),
-        "first_contact_time": record.first_contact_time,
-        "record": str(path),
-    }
-    print(json.dumps(summary) if args.json else "\n".join(f"{k}: {v}" for k, v in summary.items()))
+    summaries = []
+    for stem in stems:  # the lab's trials 0, 1, ... of its seed: each with its own variation
+        record = lab.run(command)
+        path = record.save(out / stem)
+        summaries.append(
+            {
+                "rope": lab.rope_params.id,
+                "fault": record.fault,
+                "knot": record.knot,
+                "verdict": None if record.verdict is None else record.verdict.to_json(),
+                "first_contact_time": record.first_contact_time,
+                "record": str(path),
+            }
+        )
+        if args.repeats > 1 and not args.json:
+            v = record.verdict
+            print(f"{stem}: {'fault: ' + record.fault if record.fault else v.describe()}")
+    if args.repeats == 1:
+        summary = summaries[0]
+        text = "\n".join(f"{k}: {v}" for k, v in summary.items())
+        print(json.dumps(summary) if args.json else text)
+        return 0
+    knots = sum(x["verdict"] is not None and x["verdict"]["klass"] == "knot" for x in summaries)
+    if args.json:
+        print(json.dumps({"trials": summaries, "knots": knots, "repeats": args.repeats}))
+    else:
+        print(f"knots in the hanging rope: {knots} of {args.repeats} (rope {lab.rope_params.id})")
     return 0
 
 
@@ -413,7 +453,17 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument(
         "--ropes", default=None, help="your own ropes file (.toml; see assets/ropes_example.toml)"
     )
-    t.add_argument("--command", required=True, help="command file (.csv or .npy, see README)")
+    t.add_argument(
+        "--command",
+        required=True,
+        help="command file (.csv or .npy, see README; or .npz Bezier knots with knots and T)",
+    )
+    t.add_argument(
+        "--repeats",
+        type=int,
+        default=1,
+        help="play the command this many times (the lab's trials 0.. of --seed, each varied)",
+    )
     t.add_argument("--out", required=True, help="directory for the trial record")
     t.add_argument("--seed", type=int, default=0, help="trial-to-trial variation seed")
     t.add_argument(

@@ -24,7 +24,7 @@ import numpy as np
 from flyknot.errors import ConfigError, FlyknotError, RecordError
 from flyknot.judge import MarkerJudge
 from flyknot.record import TrialRecord
-from flyknot.verdict import KNOT, Verdict, judge_centreline, tube_axis_of
+from flyknot.verdict import KNOT, JudgeParams, Verdict, judge_centreline, tube_axis_of
 from flyknot_app.anatomy_trials import TrialFile, find_trials, load_replay
 
 FAULT = "fault"
@@ -96,23 +96,28 @@ def _load_record(path: Path) -> TrialRecord:
         raise RecordError(f"trial record {str(path)!r} is not readable: {exc}") from exc
 
 
-def rejudge(f: TrialFile) -> Rejudged:
-    """Judge one trial found by :func:`find_trials` again (module docstring).
+def rejudge(f: TrialFile, *, keep_stored: bool = False) -> Rejudged:
+    """Judge one trial found by :func:`find_trials` again (module docstring); with
+    ``keep_stored`` a verdict stored with the trial is kept as the new one (a report shows
+    the verdicts a run counted, an operator's included).
 
     Raises:
         RecordError: The file is malformed (the message names it).
     """
     if f.kind == "replay":
         ev = load_replay(f.path)
+        old = ev.verdict
         frame = None if ev.centreline is None else _final_frame(ev.centreline)
         new = None if frame is None else judge_centreline(frame)
-        old = ev.verdict
+        new = old if keep_stored and old is not None else new
         return Rejudged(
             f.name, f.path, f.kind, None, ev.knot, None if old is None else old.klass, new
         )
     rec = _load_record(f.path)
     new = None
-    if rec.fault is None:
+    if rec.fault is None and keep_stored and rec.verdict is not None:
+        new = rec.verdict
+    elif rec.fault is None:
         frame = _final_frame(rec.truth["centreline"]) if "centreline" in rec.truth else None
         if frame is not None:
             new = judge_centreline(frame, tube_axis_of(rec.fingertip_quat[-1]))
@@ -127,8 +132,10 @@ def rejudge(f: TrialFile) -> Rejudged:
 def rejudge_directory(
     directory: str | Path,
     progress: Callable[[Iterable[TrialFile]], Iterable[TrialFile]] | None = None,
+    *,
+    keep_stored: bool = False,
 ) -> list[Rejudged]:
-    """Every trial under ``directory`` judged again, in path order.
+    """Every trial under ``directory`` judged again, in path order (:func:`rejudge`).
 
     Raises:
         ConfigError: ``directory`` is missing, not a directory, or holds no trials.
@@ -142,7 +149,7 @@ def rejudge_directory(
             "and no replay files (replay_*.npz)",
         )
     it = files if progress is None else progress(files)
-    return [rejudge(f) for f in it]
+    return [rejudge(f, keep_stored=keep_stored) for f in it]
 
 
 def totals(rows: Sequence[Rejudged]) -> dict[str, Any]:
@@ -259,6 +266,34 @@ def write_pictures(rows: Sequence[Rejudged], out: str | Path) -> list[Path]:
     return written
 
 
+def report_section(out_dir: str | Path) -> list[str]:
+    """``report.md`` lines: the run's verdicts (stored ones kept), a picture of every knot
+    and of one trial per other class (written to ``out_dir/verdicts``)."""
+    out_dir = Path(out_dir)
+    rows = [r for r in rejudge_directory(out_dir, keep_stored=True) if r.fault is None]
+    t, p = totals(rows), JudgeParams()
+    lines = [
+        "## Verdicts",
+        "",
+        f"{t['knots_new']} of {len(rows)} trials without a fault left an overhand knot in the "
+        "hanging rope (`flyknot.verdict`: the held end continued along the tube, a "
+        f"{p.supermajority:.2f} supermajority of {p.n_directions} closures, the knot's core at "
+        f"least {p.clearance_m:.2f} m from the held end). Classes: "
+        + ", ".join(f"{k} {v}" for k, v in sorted(t["classes_new"].items()))
+        + ". Every knot, and one trial of each other class, as the rope hung at the end:",
+        "",
+        "| trial | verdict | picture |",
+        "|---|---|---|",
+    ]
+    chosen = picture_rows(rows)
+    files = write_pictures(chosen, out_dir / "verdicts")
+    for r, f in zip(chosen, files, strict=True):
+        rel = f.relative_to(out_dir)
+        lines.append(f"| {r.name} | {r.new.describe()} | [{rel.name}]({rel}) |")
+    lines += [""] + [f"![{f.stem}]({f.relative_to(out_dir)})" for f in files] + [""]
+    return lines
+
+
 def judge_command(
     directory: str | Path, *, pictures: bool, out: str | Path | None, as_json: bool
 ) -> str:
@@ -290,6 +325,7 @@ __all__ = [
     "picture_rows",
     "rejudge",
     "rejudge_directory",
+    "report_section",
     "totals",
     "verdict_picture",
     "write_pictures",

@@ -15,6 +15,7 @@ from matplotlib.ticker import MaxNLocator
 
 from flyknot.verdict import KNOT
 from flyknot_app.anatomy_report import report_section
+from flyknot_app.judging import report_section as verdict_section
 
 # The paper's results (Suresh & Atkeson), quoted per scenario kind.
 PAPER = {
@@ -282,6 +283,7 @@ def write_report(out_dir: str | Path, summary: dict[str, Any], *, workers: int =
     lines += report_section(
         out_dir, workers=workers
     )  # failure anatomy of every trial; writes anatomy.png
+    lines += verdict_section(out_dir)  # every knot and one trial per class, as pictures
     lines += ["## Figures", ""]
     lines += [f"![{p.stem}]({p.name})" for p in figs]
     path = out_dir / "report.md"

@@ -208,7 +208,7 @@ def command_score(record: TrialRecord, T: float, frame_s: float = 0.05) -> float
         knotted.append(plurality(votes) == TREFOIL)
     shares_a, knotted_a = np.array(shares), np.array(knotted)
     settle = tt[idx] >= T
-    s = HIT_SCORE * (record.knot == TREFOIL)
+    s = HIT_SCORE * record.succeeded
     if settle.any():
         s += 30.0 * knotted_a[settle].mean() + 2.0 * shares_a[settle].mean()
     if idx.size:
@@ -282,7 +282,7 @@ def search_command(
             rec = SimLab(LabParams(rope=config.rope, seed=s)).run(
                 BezierCommand(knots, T).joint_command()
             )
-            ties += rec.fault is None and rec.knot == "trefoil"
+            ties += rec.succeeded
         return ties
 
     total = config.evaluations + config.local_evaluations

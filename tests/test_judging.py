@@ -1,0 +1,140 @@
+"""``flyknot judge``: a run directory judged again, its pictures, and bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+
+from flyknot.geometry import matrix_to_quat, min_rotation
+from flyknot.record import TrialRecord
+from flyknot_app.cli import main
+from flyknot_app.judging import picture_rows, rejudge_directory, totals
+from tests.knot_curves import verdict
+
+DATA = Path(__file__).parent / "data" / "verdicts"
+
+# Recorded trials of the lab with the knot their runs were given by the plurality of free
+# ray closures (the coin flip of a wrap at the grip said "trefoil" here).
+TRIALS = {
+    "trial_0000_a0": ("unknot_rope1_trial1", "unknot"),
+    "trial_0001_a0": ("wrapped_rope1_main_job_trial4", "trefoil"),
+    "trial_0002_a0": ("knot_rope1_repeat", "trefoil"),
+}
+
+
+def _record(stem: str, knot: str | None, fault: str | None = None) -> TrialRecord:
+    c = np.load(DATA / f"{stem}.npy")
+    n, m = 5, 3
+    quat = matrix_to_quat(min_rotation([0.0, 0.0, 1.0], c[1] - c[0]))  # z out of the tube
+    markers = c[np.linspace(1, len(c) - 1, 11).round().astype(int)]
+    return TrialRecord(
+        t_joint=np.arange(n) / 250.0,
+        q_cmd=np.zeros((n, 7)),
+        q_meas=np.zeros((n, 7)),
+        t_marker=np.arange(m) / 200.0,
+        markers=np.tile(markers, (m, 1, 1)),
+        fingertip_pos=np.tile(c[0], (n, 1)),
+        fingertip_quat=np.tile(quat, (n, 1)),
+        base_pose=np.array([0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]),
+        fault=fault,
+        knot=knot,
+        metadata={"cell": "sim", "rope": 1},
+        truth={"t_truth": np.array([0.0, 1.0]), "centreline": np.stack([c, c])},
+    )
+
+
+@pytest.fixture
+def run_dir(tmp_path):
+    learning = tmp_path / "run" / "runs" / "rope1" / "learning"
+    for name, (stem, knot) in TRIALS.items():
+        _record(stem, knot).save(learning / name)
+    _record("knot_rope1_repeat", None, fault="joint 4 torque limit").save(
+        learning / "trial_0003_a0"
+    )
+    return tmp_path / "run"
+
+
+def test_old_and_new_verdicts_per_trial_and_the_totals(run_dir, capsys):
+    assert main(["judge", str(run_dir)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    rows = {line.split()[0]: line.split()[1:3] for line in out[2:6]}
+    assert rows["runs/rope1/learning/trial_0000_a0"] == ["unknot", "unknot"]
+    assert rows["runs/rope1/learning/trial_0001_a0"] == ["trefoil", "wrapped_at_grip"]
+    assert rows["runs/rope1/learning/trial_0002_a0"] == ["trefoil", "knot"]
+    assert rows["runs/rope1/learning/trial_0003_a0"] == ["fault", "fault"]
+    assert "31/31 trefoil  0.00 m (vertices 0-10)" in out[3]
+    assert out[6] == "knots: 2 counted when run, 1 now"
+    assert out[7] == "now: fault 1, knot 1, unknot 1, wrapped_at_grip 1"
+    assert not (run_dir / "judge").exists()  # nothing written without --pictures
+
+
+def test_json_and_pictures(run_dir, capsys, tmp_path):
+    assert main(["judge", str(run_dir), "--json", "--pictures", "--out", str(tmp_path / "p")]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["totals"]["knots_new"] == 1 and data["totals"]["knots_old"] == 2
+    assert data["totals"]["old_to_new"]["trefoil -> wrapped_at_grip"] == 1
+    new = {t["name"].split("/")[-1]: t["new"] for t in data["trials"]}
+    assert new["trial_0002_a0"]["klass"] == "knot" and new["trial_0002_a0"]["core"] is not None
+    assert new["trial_0003_a0"] is None
+    # Every knot and one trial of each other class, captioned renders side by side.
+    names = sorted(Path(p).name for p in data["pictures"])
+    assert names == [
+        "runs__rope1__learning__trial_0000_a0.unknot.png",
+        "runs__rope1__learning__trial_0001_a0.wrapped_at_grip.png",
+        "runs__rope1__learning__trial_0002_a0.knot.png",
+    ]
+    knot = imageio.imread(tmp_path / "p" / names[2])
+    assert knot.shape == (480, 1280, 3) and knot.std() > 10  # the rope, and a zoom on its core
+    wrap = imageio.imread(tmp_path / "p" / names[1])
+    assert wrap.shape == (480, 1280, 3)
+
+
+def test_picture_rows_are_every_knot_then_one_per_class(run_dir):
+    rows = rejudge_directory(run_dir)
+    assert [r.new_class for r in picture_rows(rows)] == ["knot", "unknot", "wrapped_at_grip"]
+    assert totals(rows)["classes_new"] == {
+        "unknot": 1,
+        "wrapped_at_grip": 1,
+        "knot": 1,
+        "fault": 1,
+    }
+
+
+def _listing(path: Path) -> list[str]:
+    return sorted(str(p.relative_to(path)) for p in path.rglob("*"))
+
+
+@pytest.mark.parametrize("case", ["missing", "empty", "corrupt"])
+def test_bad_input_is_one_line_exit_2_nothing_written(case, run_dir, tmp_path, capsys):
+    target = {"missing": tmp_path / "nowhere", "empty": tmp_path / "empty", "corrupt": run_dir}[
+        case
+    ]
+    bad = run_dir / "runs" / "rope1" / "learning" / "trial_0002_a0.json"
+    if case == "empty":
+        target.mkdir()
+    if case == "corrupt":
+        bad.write_text('{"format_version": 1, "fault": nu')
+    before = _listing(tmp_path)
+    assert main(["judge", str(target), "--pictures"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    expected = {
+        "missing": f"flyknot: error: directory: {str(target)!r} does not exist",
+        "empty": f"flyknot: error: directory: {str(target)!r} holds no trial records",
+        "corrupt": f"flyknot: error: '{bad}' is not a readable record (",
+    }[case]
+    assert err[0].startswith(expected), err[0]
+    assert _listing(tmp_path) == before
+
+
+def test_a_stored_verdict_is_the_old_class(run_dir, capsys):
+    learning = run_dir / "runs" / "rope1" / "learning"
+    rec = TrialRecord.load(learning / "trial_0001_a0", with_truth=True)
+    dataclasses.replace(rec, verdict=verdict("wrapped_at_grip")).save(learning / "trial_0001_a0")
+    (row,) = [r for r in rejudge_directory(run_dir) if r.name.endswith("trial_0001_a0")]
+    assert row.old_class == "wrapped_at_grip" and not row.old_success
