@@ -15,9 +15,11 @@ from flyknot_app.scenario import parse_rope_arg
 
 
 def _cmd_knot(args: argparse.Namespace) -> int:
-    from flyknot.knot import classify_centreline, load_centreline
+    from flyknot.knot import load_centreline
+    from flyknot.verdict import judge_centreline
 
-    print(classify_centreline(load_centreline(args.file)))
+    verdict = judge_centreline(load_centreline(args.file))
+    print(verdict.describe() if args.verdict else verdict.knot)
     return 0
 
 
@@ -439,7 +441,16 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--port", type=int, default=8080, help="with --view: the viewer's port")
     r.set_defaults(func=_cmd_run)
 
-    k = sub.add_parser("knot", help="classify a rope centreline (.npy or .csv, (n, 3))")
+    k = sub.add_parser(
+        "knot",
+        help="the knot of a rope centreline (.npy or .csv, (n, 3), held end first; the tube "
+        "continues the first segment)",
+    )
+    k.add_argument(
+        "--verdict",
+        action="store_true",
+        help="print the verdict: class, closure vote and where the knot sits",
+    )
     k.add_argument("file", help="centreline file; first point at the held end")
     k.set_defaults(func=_cmd_knot)
 

@@ -97,7 +97,8 @@ def _segments(points: np.ndarray) -> np.ndarray:
 
 def _title(trial: ViewTrial, record: TrialRecord) -> str:
     """The GUI's description of a trial (markdown)."""
-    parts = [f"**{trial.name}**", f"knot: {record.knot}"]
+    v = record.verdict
+    parts = [f"**{trial.name}**", f"verdict: {'not judged' if v is None else v.describe()}"]
     if record.fault:
         parts.append(f"fault: {record.fault}")
     parts.append("t_c: none (not in a run)" if trial.t_c is None else f"t_c = {trial.t_c:.3f} s")

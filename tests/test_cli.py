@@ -85,3 +85,10 @@ def test_default_run_dir_never_overwrites(tmp_path, monkeypatch):
         (tmp_path / d / "manifest.json").write_text("{}")
     assert _default_run_dir("quick", False).as_posix() == "runs/quick-3"
     assert _default_run_dir("quick", True).as_posix() == "runs/quick-2"
+
+
+def test_knot_verdict_line(capsys):
+    assert main(["knot", str(KNOTS / "overhand_41.csv"), "--verdict"]) == 0
+    assert capsys.readouterr().out.startswith("knot (trefoil 30/31, 0.")
+    assert main(["knot", str(KNOTS / "free_end_above_hand_60.npy"), "--verdict"]) == 0
+    assert capsys.readouterr().out == "wrapped_at_grip (unknot 31/31, 0.00 m down)\n"

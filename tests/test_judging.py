@@ -138,3 +138,34 @@ def test_a_stored_verdict_is_the_old_class(run_dir, capsys):
     dataclasses.replace(rec, verdict=verdict("wrapped_at_grip")).save(learning / "trial_0001_a0")
     (row,) = [r for r in rejudge_directory(run_dir) if r.name.endswith("trial_0001_a0")]
     assert row.old_class == "wrapped_at_grip" and not row.old_success
+
+
+def test_the_viewer_shows_the_verdict(run_dir):
+    from flyknot_app.viewer import _title
+    from flyknot_app.viewer_trials import ViewTrial
+
+    rec = _record("knot_rope1_repeat", "trefoil")
+    rec = dataclasses.replace(rec, verdict=verdict("knot"))
+    text = _title(ViewTrial("t", run_dir, 0.6), rec)
+    assert "verdict: knot (trefoil 31/31, 0.40 m down)" in text
+    assert "verdict: not judged" in _title(
+        ViewTrial("t", run_dir, None), _record("unknot_rope1_trial1", None)
+    )
+
+
+def test_the_report_shows_every_knot_and_one_trial_per_class(run_dir):
+    from flyknot_app.judging import report_section
+
+    learning = run_dir / "runs" / "rope1" / "learning"
+    rec = TrialRecord.load(learning / "trial_0001_a0", with_truth=True)
+    # A stored verdict (e.g. an operator's) is the one the report shows.
+    dataclasses.replace(rec, verdict=verdict("knot")).save(learning / "trial_0001_a0")
+    lines = report_section(run_dir)
+    assert lines[0] == "## Verdicts"
+    assert lines[2].startswith("2 of 3 trials without a fault left an overhand knot")
+    rows = [x for x in lines if x.startswith("| runs/")]
+    assert [r.split(" | ")[1].split(" (")[0] for r in rows] == ["knot", "knot", "unknot"]
+    pictures = sorted((run_dir / "verdicts").glob("*.png"))
+    assert len(pictures) == 3 and all(
+        f"]({p.relative_to(run_dir)})" in "".join(rows) for p in pictures
+    )
