@@ -321,6 +321,13 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
     return d
 
 
+def _cmd_closure_study(args: argparse.Namespace) -> int:
+    from flyknot_tools.closure_study import run
+
+    print(run(args.dirs, args.json))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``flyknot-tools`` (exposed for tests and docs).
 
@@ -363,6 +370,13 @@ def build_parser() -> argparse.ArgumentParser:
     ls.add_argument("--workers", type=int, default=1, help="worker processes")
     ls.add_argument("--out", default=None, help="directory for lab_study.json / .md")
     ls.set_defaults(func=_cmd_lab_study)
+    cs = sub.add_parser(
+        "closure-study",
+        help="the held end closed by free rays vs the tube, over recorded trials (docs/judge.md)",
+    )
+    cs.add_argument("dirs", nargs="+", help="run or replay directories")
+    cs.add_argument("--json", action="store_true", help="print one JSON object, trial by trial")
+    cs.set_defaults(func=_cmd_closure_study)
     return p
 
 
