@@ -69,6 +69,9 @@ CLASSES = (KNOT, WRAPPED_AT_GRIP, AMBIGUOUS, OTHER_KNOT, UNKNOTTED)
 SOURCES = ("truth", "markers", "operator")
 """Where a verdict's centreline came from: the simulator's rope, the motion capture, a person."""
 
+JUDGE_NAME = "verdict"
+"""How run summaries name this judge (``"judge"``): their counts are verdicts' classes."""
+
 OPERATOR_ANSWERS = {"knot": KNOT, "wrapped": WRAPPED_AT_GRIP, "none": UNKNOTTED}
 """What an operator of the real lab answers, and the class each answer gives."""
 

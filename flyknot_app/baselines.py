@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from flyknot.errors import ConfigError, check_positive
-from flyknot.verdict import KNOT
+from flyknot.verdict import JUDGE_NAME, KNOT
 
 BASELINES = ("random", "cma", "ppo")
 RL_HINT = (
@@ -321,7 +321,9 @@ def write_results(
         "rope": rope,
         "params": asdict(params),
         **({"settings": settings} if settings else {}),
-        "runs": [{**asdict(r), "success_rate": r.success_rate} for r in results],
+        "runs": [
+            {**asdict(r), "success_rate": r.success_rate, "judge": JUDGE_NAME} for r in results
+        ],
     }
     (out / "baseline.json").write_text(json.dumps(doc, indent=2))
     lines = [

@@ -224,6 +224,19 @@ def _cmd_judge(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_results(args: argparse.Namespace) -> int:
+    from flyknot_app.results import results_table
+
+    command = "flyknot results " + " ".join(args.dirs) + (f" --out {args.out}" if args.out else "")
+    text = results_table(args.dirs, command)
+    if args.out:
+        Path(args.out).write_text(text)
+        print(f"written: {args.out}")
+    else:
+        print(text, end="")
+    return 0
+
+
 def _parse_seeds(text: str) -> list[int]:
     """``"0-4"`` or ``"0,2,5"`` as a list of seeds."""
     try:
@@ -583,6 +596,14 @@ def build_parser() -> argparse.ArgumentParser:
     jg.add_argument("--out", default=None, help="folder of the pictures (default DIR/judge)")
     jg.add_argument("--json", action="store_true", help="print one JSON object")
     jg.set_defaults(func=_cmd_judge)
+
+    rs = sub.add_parser(
+        "results",
+        help="one dated results table (markdown) from run, baseline, replay or trial dirs",
+    )
+    rs.add_argument("dirs", nargs="+", help="measured directories, in the table's order")
+    rs.add_argument("--out", default=None, help="markdown file (default: print)")
+    rs.set_defaults(func=_cmd_results)
 
     bl = sub.add_parser(
         "baseline",

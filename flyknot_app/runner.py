@@ -33,7 +33,7 @@ from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, FlyknotError
 from flyknot.judge import CellVerdict
 from flyknot.progress import bar_disable
-from flyknot.verdict import KNOT
+from flyknot.verdict import JUDGE_NAME, KNOT
 from flyknot_app.cells import open_cell
 from flyknot_app.scenario import RunSpec, Scenario, find_named_file
 
@@ -288,6 +288,7 @@ def _execute_on(
         "attempts": len(res.trials),
         "repeats": repeats,
         "repeat_verdicts": repeat_verdicts,
+        "judge": JUDGE_NAME,
         "repeat_success_rate": (sum(r == KNOT for r in repeats) / len(repeats))
         if repeats
         else None,

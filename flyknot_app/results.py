@@ -1,0 +1,119 @@
+"""One dated results table from measured directories: ``flyknot results DIR ... [--out F]``.
+
+Each directory is read for what it holds:
+
+* a scenario run (``summary.json`` of ``flyknot run``): per run, the trials until the first
+  knot in the hanging rope and, with repeats, the knots among them with a 95 % Wilson
+  interval and the verdict classes of the rest;
+* a baseline (``baseline.json`` of ``flyknot baseline``): the same per seed;
+* anything else with trials (``flyknot demo replay --out``, ``flyknot trial --repeats``):
+  the knots among its trials, with the interval and the classes.
+
+Every count is a verdict of :mod:`flyknot.verdict` (stored with the trial, else judged from
+its rope). The table carries the date, the commit and the command that wrote it, so it is
+regenerated, never edited.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import subprocess
+from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from flyknot.constants import REPO_ROOT
+from flyknot.errors import ConfigError
+from flyknot.verdict import JUDGE_NAME, KNOT
+from flyknot_app.judging import FAULT, rejudge_directory
+from flyknot_app.report import wilson_interval
+
+
+def _rate(classes: Sequence[str | None]) -> str:
+    """``k/n (lo-hi %)`` knots among ``classes`` and the other classes counted."""
+    n = len(classes)
+    if n == 0:
+        return "-"
+    k = sum(c == KNOT for c in classes)
+    lo, hi = wilson_interval(k, n)
+    rest = Counter("not judged" if c is None else c for c in classes if c != KNOT)
+    others = ", ".join(f"{name} {v}" for name, v in sorted(rest.items()))
+    return f"{k}/{n} ({100 * lo:.0f}-{100 * hi:.0f} %)" + (f"; {others}" if others else "")
+
+
+def _trials(run: dict[str, Any]) -> str:
+    t = run.get("trials_to_success")
+    if t is not None:
+        return str(t)
+    return f"none in {len(run.get('costs') or [])}"
+
+
+def _run_rows(directory: Path, doc: dict[str, Any], what: str) -> list[str]:
+    rows = []
+    for r in doc["runs"]:
+        if r.get("judge") != JUDGE_NAME:
+            raise ConfigError(
+                "DIR",
+                f"{str(directory)!r} was run before trials carried verdicts; its counts are "
+                "not verdicts (flyknot judge re-judges its trials)",
+            )
+        label = r.get("label") or r.get("name") or f"seed {r.get('seed')}"
+        rope = r.get("rope", doc.get("rope"))
+        reps = r.get("repeats") or []
+        rows.append(f"| {what} | {label} | {rope} | {_trials(r)} | {_rate(reps)} |")
+    return rows
+
+
+def rows_of(directory: str | Path) -> list[str]:
+    """The table rows of one measured directory (module docstring).
+
+    Raises:
+        ConfigError: The directory is missing or holds nothing measured.
+    """
+    d = Path(directory)
+    if (d / "summary.json").is_file():
+        doc = json.loads((d / "summary.json").read_text())
+        return _run_rows(d, doc, f"`{doc.get('scenario', d.name)}`")
+    if (d / "baseline.json").is_file():
+        doc = json.loads((d / "baseline.json").read_text())
+        name = doc["runs"][0].get("name", "baseline") if doc["runs"] else "baseline"
+        return _run_rows(d, doc, f"baseline `{name}`")
+    trials = rejudge_directory(d, keep_stored=True)
+    classes = [FAULT if t.fault else (t.new.klass if t.new else None) for t in trials]
+    kind = "replays" if trials[0].kind == "replay" else "trials"
+    return [f"| {kind} | `{d.name}` | - | - | {_rate(classes)} |"]
+
+
+def _commit() -> str:
+    try:
+        out = subprocess.run(
+            ["git", "-C", str(REPO_ROOT), "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return out.stdout.strip()
+
+
+def results_table(directories: Sequence[str | Path], command: str) -> str:
+    """The markdown document: header (date, commit, command) and one table of every row."""
+    if not directories:
+        raise ConfigError("DIR", "give at least one measured directory")
+    lines = [
+        "# Results",
+        "",
+        f"Measured in the simulated lab; written {dt.date.today().isoformat()} at commit "
+        f"{_commit()} by `{command}`. A knot is a verdict `knot` of `flyknot.verdict` (an "
+        "overhand knot in the hanging rope); intervals are 95 % Wilson.",
+        "",
+        "| what | run | rope | trials until the first knot | knots in the repeats or "
+        "trials; other verdicts |",
+        "|---|---|---|---|---|",
+    ]
+    for d in directories:
+        lines += rows_of(d)
+    return "\n".join(lines) + "\n"
