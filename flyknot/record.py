@@ -11,6 +11,7 @@ ground truth, if any, is ``<stem>.truth.npz``.
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -242,16 +243,20 @@ class TrialRecord:
 
     # --- files ---------------------------------------------------------------------
     def save(self, stem: str | Path) -> Path:
-        """Write ``<stem>.npz``, ``<stem>.json`` and, with truth, ``<stem>.truth.npz``.
+        """Write ``<stem>.npz``, ``<stem>.truth.npz`` (with truth) and, last, ``<stem>.json``.
+
+        Every file is written to a temporary name and renamed into place, and the JSON comes
+        last: a record whose ``.json`` exists is complete, whenever the writer was killed.
 
         Returns:
             The path of the JSON file.
         """
         stem = Path(stem)
         stem.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(
-            stem.with_name(stem.name + ".npz"), **{k: getattr(self, k) for k in self._ARRAYS}
-        )
+        arrays = {k: getattr(self, k) for k in self._ARRAYS}
+        _atomic_npz(stem.with_name(stem.name + ".npz"), arrays)
+        if self.truth:
+            _atomic_npz(stem.with_name(stem.name + ".truth.npz"), dict(self.truth))
         meta = {
             "format_version": RECORD_FORMAT_VERSION,
             "fault": self.fault,
@@ -262,9 +267,7 @@ class TrialRecord:
             "metadata": self.metadata,
         }
         json_path = stem.with_name(stem.name + ".json")
-        json_path.write_text(json.dumps(meta, indent=2, sort_keys=True))
-        if self.truth:
-            np.savez_compressed(stem.with_name(stem.name + ".truth.npz"), **self.truth)
+        atomic_write_text(json_path, json.dumps(meta, indent=2, sort_keys=True))
         return json_path
 
     @classmethod
@@ -308,6 +311,27 @@ class TrialRecord:
             metadata=meta["metadata"],
             truth=truth,
         )
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file renamed into place (flushed and
+    synced first), so ``path`` is either absent, the old file, or complete."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def _atomic_npz(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
+    """``np.savez_compressed`` to ``path`` through a temporary file renamed into place."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as f:
+        np.savez_compressed(f, **arrays)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
 
 
 _RECORD_KEYS = frozenset(
