@@ -23,7 +23,8 @@ state error at the critical time, from the motion-capture markers) plus the knot
   :mod:`flyknot_app.anatomy`: ``success``, ``shaken_loose``, ...) and ``record`` (the saved
   trial record's path under ``record_dir``, a temporary directory by default).
 * Reward: -(critical-point cost ||x(t_c) - x_demo(t_c)||^2_Q) + ``knot_bonus`` when the
-  trial ties the knot; ``fault_penalty`` replaces the cost when the robot faults or tracking
+  trial's verdict is a knot in the hanging rope (:mod:`flyknot.verdict`; a rope wrapped at
+  the grip earns no bonus); ``fault_penalty`` replaces the cost when the robot faults or tracking
   is lost before t_c.
 * The episode terminates at the first knot and is truncated after ``max_trials`` trials.
 

@@ -37,7 +37,7 @@ control tick at a time and sees what the lab measures between ticks.
   controller checks the targets online, :class:`flyknot_sim.faults.StreamCheck`) ends the
   episode at once, after the arm has braked.
 * Reward: 0 on every step but the last, then ``knot_bonus`` (1) when the knot tied (no fault,
-  a trefoil at the end of the settle) minus the critical-point cost of the learner
+  the settled rope's verdict is a knot in the hanging rope) minus the critical-point cost
   (:func:`flyknot_app.gym_env.score_trial`, as :class:`~flyknot_app.gym_env.FlyknotEnv`
   computes it; ``fault_penalty`` instead when the arm faulted or tracking was lost before
   t_c).

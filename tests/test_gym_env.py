@@ -92,3 +92,25 @@ def test_the_env_is_made_with_gymnasium_alone(tmp_path):
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["FlyknotEnv", "True"]
+
+
+@pytest.mark.parametrize(("klass", "bonus"), [("knot", True), ("wrapped_at_grip", False)])
+def test_only_a_knot_in_the_hanging_rope_earns_the_bonus(klass, bonus, monkeypatch):
+    import dataclasses
+
+    from tests.knot_curves import verdict
+
+    e = gym.make("flyknot/FlyingKnot-v0", rope=1, demo="robot", max_trials=2, settle_s=0.2)
+    inner = e.unwrapped
+    play = inner._lab.run
+
+    def judged(command):  # the lab's trial, with the verdict of the case
+        v = verdict(klass)
+        return dataclasses.replace(play(command), knot=v.knot, verdict=v)
+
+    monkeypatch.setattr(inner._lab, "run", judged)
+    e.reset(seed=0)
+    _, reward, terminated, _, info = e.step(np.zeros(80))
+    assert terminated is bonus and info["verdict"] == klass
+    assert (reward > inner.knot_bonus / 2) is bonus
+    e.close()
