@@ -11,7 +11,7 @@ from flyknot.progress import bar_disable
 
 
 def _lab_variants():
-    """The lab before issue 10 (fixed 1.5 s settle, no air drag, 1 deg sway) and now."""
+    """A lab with a fixed 1.5 s settle, no air drag and 1 deg sway, and the lab as it is."""
     from flyknot_sim.aero import AeroParams
     from flyknot_sim.lab import LabParams, VariationParams
 

@@ -79,7 +79,7 @@ def _seed(run: dict[str, Any]) -> int | None:
 def _tts(run: dict[str, Any]) -> int | None:
     if "trials_to_success" in run:
         return run["trials_to_success"]
-    first = run.get("first_success_trial")  # run directories written before session 4
+    first = run.get("first_success_trial")  # older run directories name it so
     return None if first is None else first + 1
 
 

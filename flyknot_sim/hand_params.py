@@ -34,7 +34,7 @@ class HandVariation:
 
     Attributes:
         sway_deg: Std of an extra initial tilt of the rope from vertical [deg] (robustness
-            studies; 1 deg before issue 10).
+            studies; 0: the settled start alone).
         servo_gain_rel: Relative std of each servo's stiffness and damping gain [-].
         start_delay_max_s: The motion starts after a uniform delay in [0, this) [s].
         tempo_rel: Relative std of the motion's duration (a person never repeats a tempo

@@ -76,8 +76,8 @@ def hand_from_demo(
     """The hand lab a demonstration was made in, holding rope ``rope`` (an id or a name,
     from ``ropes``, a user's ropes file, for a custom rope)."""
     stored = demo.metadata.get("hand", {})
-    # The settle is the lab's own rule (judged at rest, issue 10), not the fixed wait a
-    # demonstration made before it stored.
+    # The settle is the lab's own rule (judged at rest), not a fixed wait a demonstration
+    # may have stored.
     kwargs = {f: stored[f] for f in HAND_META_FIELDS if f in stored and f != "settle_s"}
     if "home" in kwargs:
         kwargs["home"] = tuple(kwargs["home"])

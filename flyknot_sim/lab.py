@@ -55,8 +55,7 @@ class VariationParams:
 
     Attributes:
         sway_deg: Std of an extra initial tilt of the rope from vertical [deg], |N(0, s^2)|
-            toward a uniform azimuth, for robustness studies (0: the settled start alone;
-            before issue 10 the lab used 1 deg).
+            toward a uniform azimuth, for robustness studies (0: the settled start alone).
         servo_gain_rel: Relative std of each servo's stiffness and damping gains [-].
         start_delay_max_s: The command starts after a uniform delay in [0, this) [s].
         rest_start: Draw the rope's start state uniformly within the lab's rest criterion

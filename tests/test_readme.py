@@ -27,3 +27,19 @@ def test_the_test_command_is_what_ci_runs_and_installs_the_browser():
     assert "chromium-driver" in ci and "apt-get install" in ci
     assert "pytest -q -n 2" in ci
     assert '"$status" -eq 5' in ci  # pytest's "no tests" exit fails CI
+
+
+def test_code_and_docs_say_what_is_not_what_was():
+    """No history narration ("issue 10", "session 4") in the packages, README, docs, data."""
+    pattern = re.compile(r"\b(issue|session) [0-9]+", re.IGNORECASE)
+    roots = ["flyknot", "flyknot_sim", "flyknot_hw", "learner", "flyknot_app", "flyknot_tools"]
+    files = [ROOT / "README.md"]
+    for d in ["docs", "scenarios", "assets", *roots]:
+        files += [p for p in (ROOT / d).rglob("*") if p.suffix in (".py", ".md", ".toml")]
+    hits = [
+        f"{p.relative_to(ROOT)}:{n}"
+        for p in files
+        for n, line in enumerate(p.read_text().splitlines(), 1)
+        if pattern.search(line)
+    ]
+    assert hits == []
