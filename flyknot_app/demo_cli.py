@@ -61,10 +61,11 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(result.to_json()))
     else:
-        for i, (o, t) in enumerate(zip(result.outcomes, result.t_c, strict=True)):
+        for i, (v, t) in enumerate(zip(result.verdicts, result.t_c, strict=True)):
             tc = "none" if t is None else f"{t:.3f} s"
-            print(f"replay {i}: {o}, t_c {tc}")
-        print(f"knots: {result.knots}/{len(result.outcomes)} (rope {result.rope})")
+            print(f"replay {i}: {'diverged' if v is None else v.describe()}, t_c {tc}")
+        n = len(result.outcomes)
+        print(f"knots in the hanging rope: {result.knots}/{n} (rope {result.rope})")
     return 0
 
 
