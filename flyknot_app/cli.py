@@ -11,80 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from flyknot.errors import ConfigError, FlyknotError
-from flyknot_app.scenario import parse_rope_arg
-
-
-def _cmd_knot(args: argparse.Namespace) -> int:
-    from flyknot.knot import load_centreline
-    from flyknot.verdict import judge_centreline
-
-    verdict = judge_centreline(load_centreline(args.file))
-    print(verdict.describe() if args.verdict else verdict.knot)
-    return 0
-
-
-def load_command(path: str | Path):
-    """A command file: ``.csv``/``.npy`` (:meth:`JointCommand.load`) or ``.npz`` Bezier knots
-    (``knots`` (10, 8) and ``T`` [s], as ``final_knots``-style files and the robot
-    demonstration's seed ``assets/demos/seeds/robot_command.npz`` hold)."""
-    from flyknot.errors import CommandError
-    from flyknot.record import JointCommand
-
-    path = Path(path)
-    if path.suffix != ".npz":
-        return JointCommand.load(path)
-    from learner.bezier import BezierCommand
-
-    if not path.is_file():
-        raise CommandError(f"command file {str(path)!r} does not exist")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            knots, T = np.asarray(z["knots"], dtype=float), float(z["T"])
-    except Exception as e:  # not a zip, or no knots/T
-        raise CommandError(f"command file {str(path)!r}: needs arrays knots and T ({e})") from e
-    return BezierCommand(knots, T).joint_command()
-
-
-def _cmd_trial(args: argparse.Namespace) -> int:
-    from flyknot_sim.lab import LabParams, SimLab
-
-    out = Path(args.out)
-    if args.repeats < 1:
-        raise ConfigError("--repeats", f"must be an integer >= 1, got {args.repeats}")
-    stems = ["trial"] if args.repeats == 1 else [f"trial_{i:03d}" for i in range(args.repeats)]
-    if (out / f"{stems[0]}.json").exists() and not args.force:
-        raise ConfigError("--out", f"{str(out)!r} already holds a trial; use --force to replace it")
-    command = load_command(args.command)
-    lab = SimLab(LabParams(rope=args.rope, seed=args.seed, settle_s=args.settle, ropes=args.ropes))
-    out.mkdir(parents=True, exist_ok=True)
-    summaries = []
-    for stem in stems:  # the lab's trials 0, 1, ... of its seed: each with its own variation
-        record = lab.run(command)
-        path = record.save(out / stem)
-        summaries.append(
-            {
-                "rope": lab.rope_params.id,
-                "fault": record.fault,
-                "knot": record.knot,
-                "verdict": None if record.verdict is None else record.verdict.to_json(),
-                "first_contact_time": record.first_contact_time,
-                "record": str(path),
-            }
-        )
-        if args.repeats > 1 and not args.json:
-            v = record.verdict
-            print(f"{stem}: {'fault: ' + record.fault if record.fault else v.describe()}")
-    if args.repeats == 1:
-        summary = summaries[0]
-        text = "\n".join(f"{k}: {v}" for k, v in summary.items())
-        print(json.dumps(summary) if args.json else text)
-        return 0
-    knots = sum(x["verdict"] is not None and x["verdict"]["klass"] == "knot" for x in summaries)
-    if args.json:
-        print(json.dumps({"trials": summaries, "knots": knots, "repeats": args.repeats}))
-    else:
-        print(f"knots in the hanging rope: {knots} of {args.repeats} (rope {lab.rope_params.id})")
-    return 0
+from flyknot_app.trial_cli import add_trial_parsers
 
 
 def _cmd_showcase(args: argparse.Namespace) -> int:
@@ -214,26 +141,6 @@ def _cmd_explain(args: argparse.Namespace) -> int:
     else:
         print(format_table(anatomy, trials=args.trials))
         print(f"figure: {figure}")
-    return 0
-
-
-def _cmd_judge(args: argparse.Namespace) -> int:
-    from flyknot_app.judging import judge_command
-
-    print(judge_command(args.dir, pictures=args.pictures, out=args.out, as_json=args.json))
-    return 0
-
-
-def _cmd_results(args: argparse.Namespace) -> int:
-    from flyknot_app.results import results_table
-
-    command = "flyknot results " + " ".join(args.dirs) + (f" --out {args.out}" if args.out else "")
-    text = results_table(args.dirs, command)
-    if args.out:
-        Path(args.out).write_text(text)
-        print(f"written: {args.out}")
-    else:
-        print(text, end="")
     return 0
 
 
@@ -454,51 +361,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--port", type=int, default=8080, help="with --view: the viewer's port")
     r.set_defaults(func=_cmd_run)
 
-    k = sub.add_parser(
-        "knot",
-        help="the knot of a rope centreline (.npy or .csv, (n, 3), held end first; the tube "
-        "continues the first segment)",
-    )
-    k.add_argument(
-        "--verdict",
-        action="store_true",
-        help="print the verdict: class, closure vote and where the knot sits",
-    )
-    k.add_argument("file", help="centreline file; first point at the held end")
-    k.set_defaults(func=_cmd_knot)
-
-    t = sub.add_parser("trial", help="run one command on the simulated lab and save its record")
-    t.add_argument(
-        "--rope",
-        type=parse_rope_arg,
-        default=1,
-        help="rope id 1..7 or a rope's name, e.g. of --ropes (default 1)",
-    )
-    t.add_argument(
-        "--ropes", default=None, help="your own ropes file (.toml; see assets/ropes_example.toml)"
-    )
-    t.add_argument(
-        "--command",
-        required=True,
-        help="command file (.csv or .npy, see README; or .npz Bezier knots with knots and T)",
-    )
-    t.add_argument(
-        "--repeats",
-        type=int,
-        default=1,
-        help="play the command this many times (the lab's trials 0.. of --seed, each varied)",
-    )
-    t.add_argument("--out", required=True, help="directory for the trial record")
-    t.add_argument("--seed", type=int, default=0, help="trial-to-trial variation seed")
-    t.add_argument(
-        "--settle",
-        type=float,
-        default=None,
-        help="fixed settling time after the command [s] (default: until the rope is at rest)",
-    )
-    t.add_argument("--force", action="store_true", help="replace a trial already in --out")
-    t.add_argument("--json", action="store_true", help="print a JSON summary")
-    t.set_defaults(func=_cmd_trial)
+    add_trial_parsers(sub)
 
     s = sub.add_parser("showcase", help="one fast showcase trial on the simulated lab")
     s.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
@@ -581,29 +444,6 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--workers", type=int, default=1, help="worker processes for the diagnoses")
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.set_defaults(func=_cmd_explain)
-
-    jg = sub.add_parser(
-        "judge",
-        help="judge every trial under a run or replay directory again: old and new verdict, "
-        "closure vote, where the knot sits, totals",
-    )
-    jg.add_argument("dir", help="run directory (flyknot run) or replay directory (demo replay)")
-    jg.add_argument(
-        "--pictures",
-        action="store_true",
-        help="close-up renders of every knot and one trial per other class",
-    )
-    jg.add_argument("--out", default=None, help="folder of the pictures (default DIR/judge)")
-    jg.add_argument("--json", action="store_true", help="print one JSON object")
-    jg.set_defaults(func=_cmd_judge)
-
-    rs = sub.add_parser(
-        "results",
-        help="one dated results table (markdown) from run, baseline, replay or trial dirs",
-    )
-    rs.add_argument("dirs", nargs="+", help="measured directories, in the table's order")
-    rs.add_argument("--out", default=None, help="markdown file (default: print)")
-    rs.set_defaults(func=_cmd_results)
 
     bl = sub.add_parser(
         "baseline",

@@ -270,6 +270,8 @@ def report_section(out_dir: str | Path) -> list[str]:
     """``report.md`` lines: the run's verdicts (stored ones kept), a picture of every knot
     and of one trial per other class (written to ``out_dir/verdicts``)."""
     out_dir = Path(out_dir)
+    if not find_trials(out_dir):
+        return []
     rows = [r for r in rejudge_directory(out_dir, keep_stored=True) if r.fault is None]
     t, p = totals(rows), JudgeParams()
     lines = [

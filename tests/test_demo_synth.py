@@ -623,6 +623,7 @@ def test_demo_commands_are_split_between_flyknot_and_flyknot_tools(capsys):
         "demo",
         "rope-study",
         "lab-study",
+        "closure-study",
     }
 
 
