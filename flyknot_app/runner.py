@@ -62,13 +62,14 @@ def prepare_target(
     return trimmed, DemoTarget.from_demonstration(trimmed, dt=rope_dt)
 
 
-def guess_cache_name(demo_name: str, window: tuple[float, float]) -> str:
-    """File name of a cached initial guess: the demo's stem, plus the window when it is not
-    the paper's."""
+def guess_cache_name(demo_name: str, window: tuple[float, float], base_height: float) -> str:
+    """File name of a cached initial guess: the demo's stem, the window when it is not the
+    paper's, and the robot base's height [m] (the guess keeps the fingertip z_min above the
+    floor, so a lab with another base height needs its own)."""
     stem = Path(demo_name).stem
-    if tuple(window) == (FOLLOW_THROUGH_S, PATH_FRAC):
-        return f"{stem}.npz"
-    return f"{stem}_ft{window[0]:g}_p{window[1]:g}.npz"
+    if tuple(window) != (FOLLOW_THROUGH_S, PATH_FRAC):
+        stem += f"_ft{window[0]:g}_p{window[1]:g}"
+    return f"{stem}_base{base_height:.4f}.npz"
 
 
 def initial_knots(
@@ -92,7 +93,7 @@ def initial_knots(
 
     from learner.initial_guess import InitialGuessParams, initial_guess
 
-    cache = out_dir / "initial_guess" / guess_cache_name(demo_name, window)
+    cache = out_dir / "initial_guess" / guess_cache_name(demo_name, window, base_height)
     if cache.is_file():
         with np.load(cache, allow_pickle=False) as z:
             return z["knots"], json.loads(str(z["info"]))
@@ -381,7 +382,9 @@ def run_scenario(
     from learner.kinematics import RobotModel
 
     robot = RobotModel.from_mjcf()
-    for demo, window in sorted({(r.demo, r.window) for r in scen.runs if r.start_from is None}):
+    # Here for the simulated lab's base only: another cell's runs make their own guess.
+    sim_runs = [r for r in scen.runs if r.start_from is None and r.cell == "sim"]
+    for demo, window in sorted({(r.demo, r.window) for r in sim_runs}):
         dt = next(_rope_model(r).dt for r in scen.runs if r.demo == demo)
         if progress:
             print(f"initial guess for demo {demo!r} (trajectory optimisation)...", flush=True)

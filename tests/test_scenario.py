@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from flyknot.constants import SCENARIOS_DIR
@@ -155,11 +156,42 @@ def test_demo_window_fields():
     assert str(e.value) == "follow_through_s: must be a finite number >= 0, got -0.1"
 
 
-def test_guess_cache_name_separates_windows():
+def test_guess_cache_name_separates_windows_and_base_heights():
     from flyknot_app.runner import guess_cache_name
 
-    assert guess_cache_name("fast", (0.035, 0.05)) == "fast.npz"
-    assert guess_cache_name("/x/robot.npz", (0.25, 0.0)) == "robot_ft0.25_p0.npz"
+    assert guess_cache_name("fast", (0.035, 0.05), 1.2) == "fast_base1.2000.npz"
+    assert guess_cache_name("/x/robot.npz", (0.25, 0.0), 0.9) == "robot_ft0.25_p0_base0.9000.npz"
+
+
+def test_a_lab_with_another_base_height_gets_its_own_initial_guess(tmp_path, monkeypatch):
+    """The guess keeps the fingertip z_min above the floor: a cell whose base stands lower
+    than the simulated one must not start from the simulated lab's cached guess."""
+    import flyknot_app.runner as runner
+    from learner import initial_guess as ig
+
+    heights = []
+
+    def fake_guess(t, p, R, T, robot, params, on_iteration=None):
+        heights.append(params.base_height)
+
+        from types import SimpleNamespace
+
+        return SimpleNamespace(
+            success=True,
+            status="ok",
+            cost=0.0,
+            solve_time=0.0,
+            max_errors={},
+            rms_errors={},
+            knots=np.full((10, 8), params.base_height),
+        )
+
+    monkeypatch.setattr(ig, "initial_guess", fake_guess)
+    a, _ = runner.initial_knots("robot", tmp_path, None, 0.005, 1.3, (0.25, 0.0))
+    b, _ = runner.initial_knots("robot", tmp_path, None, 0.005, 0.8, (0.25, 0.0))
+    again, _ = runner.initial_knots("robot", tmp_path, None, 0.005, 1.3, (0.25, 0.0))
+    assert heights == [1.3, 0.8]  # the third call is the first one's cache
+    assert a[0, 0] == again[0, 0] == 1.3 and b[0, 0] == 0.8
 
 
 def test_bad_override():

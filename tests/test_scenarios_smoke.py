@@ -78,7 +78,8 @@ def test_tracking_repeats_play_the_initial_command(tmp_path, guess_cache):
     shutil.copytree(guess_cache, out / "initial_guess")
     run_scenario(scen, out, progress=False)
     spec = scen.runs[0]
-    cache = out / "initial_guess" / guess_cache_name(spec.demo, spec.window)
+    z = float(robot_base_pose(SceneParams())[2])
+    cache = out / "initial_guess" / guess_cache_name(spec.demo, spec.window, z)
     with np.load(cache) as z:
         k0 = z["knots"]
     np.testing.assert_array_equal(np.load(out / "runs" / spec.name / "final_knots.npy"), k0)
