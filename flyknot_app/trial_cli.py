@@ -26,19 +26,30 @@ def _cmd_knot(args: argparse.Namespace) -> int:
 
 
 def load_command(path: str | Path):
-    """A command file: ``.csv``/``.npy`` (:meth:`JointCommand.load`) or ``.npz`` Bezier knots
-    (``knots`` (10, 8) and ``T`` [s], as ``final_knots``-style files and the robot
-    demonstration's seed ``assets/demos/seeds/robot_command.npz`` hold)."""
+    """A command file (README, "Command files"): ``.csv``/``.npy`` joint targets
+    (:meth:`JointCommand.load`); ``.npz`` Bezier knots (``knots`` (10, 8) and ``T`` [s], as
+    the robot demonstration's seed ``assets/demos/seeds/robot_command.npz`` holds); or a run's
+    ``final_knots.npy`` (10, 8), whose duration ``T`` is read from ``result.json`` beside it.
+    """
     from flyknot.errors import CommandError
     from flyknot.record import JointCommand
-
-    path = Path(path)
-    if path.suffix != ".npz":
-        return JointCommand.load(path)
     from learner.bezier import BezierCommand
 
+    path = Path(path)
     if not path.is_file():
         raise CommandError(f"command file {str(path)!r} does not exist")
+    if path.suffix == ".npy" and np.load(path, mmap_mode="r").shape == (10, 8):
+        result = path.with_name("result.json")
+        if not result.is_file():
+            raise CommandError(
+                f"command file {str(path)!r} holds Bezier knots (10, 8): their duration T is "
+                "read from result.json beside it, which is missing (or give an .npz with "
+                "knots and T)"
+            )
+        T = float(json.loads(result.read_text())["T"])
+        return BezierCommand(np.load(path), T).joint_command()
+    if path.suffix != ".npz":
+        return JointCommand.load(path)
     try:
         with np.load(path, allow_pickle=False) as z:
             knots, T = np.asarray(z["knots"], dtype=float), float(z["T"])
@@ -137,7 +148,8 @@ def add_trial_parsers(sub) -> None:
     t.add_argument(
         "--command",
         required=True,
-        help="command file (.csv or .npy, see README; or .npz Bezier knots with knots and T)",
+        help="command file (.csv or .npy joint targets; .npz Bezier knots with knots and T; "
+        "a run's final_knots.npy, T from result.json beside it)",
     )
     t.add_argument(
         "--repeats",

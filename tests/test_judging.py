@@ -169,3 +169,22 @@ def test_the_report_shows_every_knot_and_one_trial_per_class(run_dir):
     assert len(pictures) == 3 and all(
         f"]({p.relative_to(run_dir)})" in "".join(rows) for p in pictures
     )
+
+
+def test_a_learned_command_replays_from_its_run(tmp_path):
+    """``flyknot trial --command RUN/runs/NAME/final_knots.npy`` plays the learned command."""
+    from flyknot.errors import CommandError
+    from flyknot_app.trial_cli import load_command
+    from learner.bezier import BezierCommand
+
+    knots = np.load(Path(__file__).parent.parent / "assets/demos/seeds/robot_command.npz")["knots"]
+    run = tmp_path / "runs" / "rope1"
+    run.mkdir(parents=True)
+    np.save(run / "final_knots.npy", knots)
+    with pytest.raises(CommandError, match=r"result\.json beside it, which is missing"):
+        load_command(run / "final_knots.npy")
+    (run / "result.json").write_text(json.dumps({"T": 0.9}))
+    got = load_command(run / "final_knots.npy")
+    np.testing.assert_array_equal(got.q, BezierCommand(knots, 0.9).joint_command().q)
+    np.savez(tmp_path / "k.npz", knots=knots, T=0.9)
+    np.testing.assert_array_equal(load_command(tmp_path / "k.npz").q, got.q)
