@@ -46,6 +46,7 @@ MODEL_DT = 0.005  # learner rope model step [s]
 N_KNOTS = 8  # Bezier knots per row
 N_BASE_ROWS = 3  # base-offset rows (x, y, z) [m]
 N_ROWS = N_JOINTS + N_BASE_ROWS  # 10
+N_VARS = N_ROWS * N_KNOTS  # 80: the command's decision variables, row-major (10, 8)
 
 # --- rope and markers ----------------------------------------------------------------
 ROPE_LENGTH = 1.1  # [m], all ropes

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from flyknot.errors import ConfigError, FlyknotError
+from flyknot.errors import ConfigError
+from flyknot_app.dispatch import dispatch
 from flyknot_app.trial_cli import add_trial_parsers
 
 
@@ -510,23 +510,6 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``flyknot`` console script."""
     return dispatch(build_parser().parse_args(argv))
-
-
-def dispatch(args: argparse.Namespace, prog: str = "flyknot") -> int:
-    """Run a parsed command; errors of the FlyknotError family become one line, exit 2.
-
-    Args:
-        args: Parsed arguments whose ``func`` runs the command.
-        prog: Program name the messages start with.
-    """
-    try:
-        return int(args.func(args) or 0)
-    except FlyknotError as e:
-        print(f"{prog}: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted", file=sys.stderr)
-        return 130
 
 
 if __name__ == "__main__":

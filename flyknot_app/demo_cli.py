@@ -282,7 +282,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``flyknot demo replay ...`` (errors as ``flyknot`` prints them, exit status 2)."""
-    from flyknot_app.cli import dispatch
+    from flyknot_app.dispatch import dispatch
 
     return dispatch(build_parser().parse_args(argv))
 

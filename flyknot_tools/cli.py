@@ -27,7 +27,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from flyknot.errors import ConfigError, SolverError, check_int
-from flyknot_app.cli import dispatch
+from flyknot_app.dispatch import dispatch
 
 PROG = "flyknot-tools"
 ROPE_STUDY = "rope-study"

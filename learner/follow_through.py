@@ -42,14 +42,13 @@ import numbers
 import casadi as ca
 import numpy as np
 
-from flyknot.constants import N_BASE_ROWS, N_JOINTS, N_KNOTS, N_ROWS
+from flyknot.constants import N_BASE_ROWS, N_JOINTS, N_KNOTS, N_VARS
 from flyknot.errors import ConfigError, check_positive
 from flyknot.geometry import as_mat3, as_vec3, right_jacobian_inv, so3_log
 from learner.bezier import bernstein_basis, check_knots
 from learner.inverse_qp import FollowThrough
 from learner.kinematics import RobotModel
 
-N_VARS = N_ROWS * N_KNOTS  # 80
 _T_C_SLACK = 1e-9  # [s] the first sample must be t_c within this
 
 

@@ -62,6 +62,7 @@ from flyknot.constants import (
     N_JOINTS,
     N_KNOTS,
     N_ROWS,
+    N_VARS,
 )
 from flyknot.errors import (
     ConfigError,
@@ -75,7 +76,6 @@ from flyknot.geometry import readonly
 if TYPE_CHECKING:
     from learner.limit_rows import LimitRows
 
-N_VARS = N_ROWS * N_KNOTS  # 80
 FT_DIM = 9  # follow-through error: position (3), rotation log (3), velocity (3)
 BACKENDS = ("osqp", "clarabel")
 BASE_UPDATES = ("constant", "zero")

@@ -24,12 +24,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from flyknot.constants import N_JOINTS
+from flyknot.constants import N_JOINTS, N_VARS
 from flyknot.errors import ConfigError, check_choice
 from flyknot.geometry import readonly
 from flyknot.limits import JointLimits
 from learner.bezier import sample_command, sample_jacobian
-from learner.inverse_qp import N_VARS
 
 if TYPE_CHECKING:
     from learner.inverse_qp import QPResult

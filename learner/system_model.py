@@ -51,7 +51,7 @@ from flyknot.constants import (
     N_BASE_ROWS,
     N_JOINTS,
     N_KNOTS,
-    N_ROWS,
+    N_VARS,
 )
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, check_choice, check_positive
@@ -68,7 +68,6 @@ from learner.rope_model import (
 )
 from learner.rope_sensitivity import check_steps, hanging_sensitivity, state_sensitivity
 
-N_VARS = N_ROWS * N_KNOTS  # 80
 INTERPOLATIONS = ("cubic", "linear")
 HANG_TOL = 1e-13  # [m] position-change tolerance of the initial hanging state
 _GRID_SLACK = 1e-9  # relative slack when T is (almost) a multiple of dt

@@ -144,3 +144,83 @@ def test_the_checker_sees_hidden_and_relative_imports(tmp_path):
         "    return lab\n"
     )
     assert _imported(probe, APP) == [(1, "numpy"), (3, "flyknot_sim"), (4, "learner"), (5, APP)]
+
+
+def _module_of(path: Path) -> str:
+    return ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+
+
+def _type_only(tree: ast.AST) -> set[int]:
+    """Line numbers of imports inside ``if TYPE_CHECKING:`` blocks (no runtime import)."""
+    lines: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            lines |= {n.lineno for b in node.body for n in ast.walk(b) if hasattr(n, "lineno")}
+    return lines
+
+
+def _module_graph(pkg: str) -> dict[str, set[str]]:
+    """Module -> modules of the same package it imports at run time (any depth, in functions
+    too; ``if TYPE_CHECKING:`` imports excluded)."""
+    mods = {_module_of(f): f for f in _files(pkg)}
+    graph: dict[str, set[str]] = {m: set() for m in mods}
+    for m, f in mods.items():
+        tree = ast.parse(f.read_text())
+        skip = _type_only(tree)
+        for node in ast.walk(tree):
+            if node.__class__ not in (ast.Import, ast.ImportFrom) or node.lineno in skip:
+                continue
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            else:
+                base = node.module or ""
+                if node.level:
+                    parent = (
+                        m.split(".")[: -node.level] if f.name != "__init__.py" else m.split(".")
+                    )
+                    base = ".".join([*parent, *([node.module] if node.module else [])])
+                targets = [f"{base}.{a.name}" for a in node.names] + [base]
+            graph[m] |= {t for t in targets if t in mods and t != m}
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected sets of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                found.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+@pytest.mark.parametrize("pkg", [CORE, SIM, HW, LEARNER, APP, TOOLS])
+def test_no_import_circle_inside_a_package(pkg):
+    assert _cycles(_module_graph(pkg)) == []
+
+
+def test_the_circle_finder_finds_a_circle():
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
