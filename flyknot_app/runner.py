@@ -175,9 +175,8 @@ def _execute_on(
 ) -> dict[str, Any]:
     from tqdm import tqdm
 
-    from flyknot.record import TrialRecord
     from learner.bezier import BezierCommand
-    from learner.ilc import ILCParams, learn
+    from learner.ilc import ILCParams, learn, written_record
     from learner.inverse_qp import InverseModelWeights
     from learner.kinematics import RobotModel
 
@@ -251,9 +250,8 @@ def _execute_on(
             # Repeat i is the cell's trial len(learning trials) + i, resumed or not.
             lab.trial_index = len(res.trials) + i
             stem = run_dir / "repeats" / f"repeat_{i:03d}"
-            if resume and stem.with_name(stem.name + ".json").is_file():
-                rec = TrialRecord.load(stem)
-            else:
+            rec = written_record(stem) if resume else None
+            if rec is None:  # not written, or cut short by a kill: play it (again)
                 rec = lab.run(command)
                 rec.save(stem)
             verdict = None if rec.fault else judge(rec)

@@ -270,10 +270,10 @@ def learn(
                 continue
             t0 = time.perf_counter()
             stem = rd.record_stem(k, attempt) if rd is not None else None
-            if stem is not None and resume and stem.with_name(stem.name + ".json").is_file():
+            record = written_record(stem) if resume else None
+            if record is not None:
                 # Interrupted after the trial ran but before it was assessed: keep it (it
                 # used the cell's next trial index).
-                record = TrialRecord.load(stem)
                 if hasattr(cell, "trial_index"):
                     cell.trial_index += 1
             else:
@@ -499,6 +499,17 @@ def _safe_step(
             return new
         alpha *= 0.5
     return knots - 2 * alpha * dkappa
+
+
+def written_record(stem: Path | None) -> TrialRecord | None:
+    """The record a killed run left at ``stem``, or None when it is absent or unreadable (a
+    file cut short: the trial is played again, on the same trial index of the cell)."""
+    if stem is None or not stem.with_name(stem.name + ".json").is_file():
+        return None
+    try:
+        return TrialRecord.load(stem, with_truth=True)
+    except RecordError:
+        return None
 
 
 def _finish(trials, knots, params, why) -> LearnResult:

@@ -7,11 +7,15 @@ resumes from the ledger without losing or repeating a trial.
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from flyknot.errors import RecordError
+from flyknot.record import atomic_write_text
 
 
 @dataclass(frozen=True)
@@ -80,24 +84,47 @@ class RunDirectory:
         return np.load(self.knots_path(k))
 
     def append_ledger(self, summary: TrialSummary) -> None:
-        """Append one attempt to the ledger (the commit point of a resumed run)."""
-        with open(self.path / "ledger.jsonl", "a") as f:
+        """Append one attempt to the ledger (the commit point of a resumed run), flushed and
+        synced: a line is on disk whole, or it is the last line, cut short (dropped here
+        before the next line is written)."""
+        p = self.path / "ledger.jsonl"
+        if p.is_file():
+            text = p.read_bytes()
+            if text and not text.endswith(b"\n"):
+                with open(p, "r+b") as f:
+                    f.truncate(text.rfind(b"\n") + 1)
+        with open(p, "a") as f:
             f.write(json.dumps(asdict(summary)) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
 
     def ledger(self) -> list[TrialSummary]:
-        """Every attempt written so far, in order."""
+        """Every attempt written so far, in order; a last line cut short by a kill is not
+        written (its attempt runs again).
+
+        Raises:
+            RecordError: A line before the last is not a ledger line (the message names it).
+        """
         p = self.path / "ledger.jsonl"
         if not p.is_file():
             return []
+        text = p.read_text()
+        lines = text.splitlines()
         out = []
-        for line in p.read_text().splitlines():
-            if line.strip():
+        for n, line in enumerate(lines, start=1):
+            if not line.strip():
+                continue
+            try:
                 out.append(TrialSummary(**json.loads(line)))
+            except (ValueError, TypeError) as e:
+                if n == len(lines) and not text.endswith("\n"):
+                    break  # the write of the last attempt was cut short
+                raise RecordError(f"{str(p)!r} line {n} is not a ledger line ({e})") from e
         return out
 
     def save_update(self, k: int, info: dict[str, Any]) -> None:
-        """Save the update computed after trial ``k``."""
-        (self.path / f"update_{k:04d}.json").write_text(json.dumps(info, indent=2))
+        """Save the update computed after trial ``k`` (atomically)."""
+        atomic_write_text(self.path / f"update_{k:04d}.json", json.dumps(info, indent=2))
 
     def load_update(self, k: int) -> dict[str, Any] | None:
         """The update computed after trial ``k``, or None if there is none."""

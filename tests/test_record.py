@@ -114,3 +114,39 @@ def test_command_csv_errors(tmp_path):
         JointCommand.load(tmp_path / "x.txt")
     with pytest.raises(CommandError, match="does not exist"):
         JointCommand.load(tmp_path / "missing.csv")
+
+
+def test_a_record_cut_short_is_not_written(tmp_path):
+    """A truth file truncated by a kill (a writer without atomic renames) is unreadable: the
+    record counts as not written, and resuming plays the trial again."""
+    from flyknot.errors import RecordError
+    from learner.ilc import written_record
+
+    rec = _record()
+    json_path = rec.save(tmp_path / "trial_0001_a0")
+    assert written_record(tmp_path / "trial_0001_a0") is not None
+    truth = tmp_path / "trial_0001_a0.truth.npz"
+    truth.write_bytes(truth.read_bytes()[:100])
+    with pytest.raises(RecordError, match=r"truth\.npz' is not a readable array file"):
+        TrialRecord.load(tmp_path / "trial_0001_a0", with_truth=True)
+    assert written_record(tmp_path / "trial_0001_a0") is None
+    json_path.unlink()
+    assert written_record(tmp_path / "trial_0001_a0") is None
+    assert not list(tmp_path.glob(".*.tmp"))  # the writer leaves no temporary file
+
+
+def test_a_ledger_line_cut_short_is_dropped(tmp_path):
+    from flyknot.errors import RecordError
+    from learner.run_directory import RunDirectory, TrialSummary
+
+    rd = RunDirectory(tmp_path)
+    row = TrialSummary(0, 0, None, "unknot", False, 0.5, True, "solved", 0.4, "update", 1.0)
+    rd.append_ledger(row)
+    with open(tmp_path / "ledger.jsonl", "a") as f:
+        f.write('{"trial": 1, "att')
+    assert rd.ledger() == [row]
+    rd.append_ledger(row)  # the cut line is dropped before the next is written
+    assert rd.ledger() == [row, row]
+    (tmp_path / "ledger.jsonl").write_text('{"trial": 1}\n' + "x\n")
+    with pytest.raises(RecordError, match=r"ledger\.jsonl' line 1 is not a ledger line"):
+        rd.ledger()

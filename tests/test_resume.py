@@ -1,4 +1,4 @@
-"""Kill -9 in the middle of a run, resume, and get exactly the uninterrupted run (issue 12)."""
+"""Kill -9 in the middle of a run, resume, and get exactly the uninterrupted run."""
 
 from __future__ import annotations
 
@@ -30,8 +30,31 @@ ARGS = [
 ]
 
 
-def _run(out: Path, *extra: str) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "flyknot_app", "run", "quick", "--out", str(out), *ARGS, *extra]
+def _run(out: Path, *extra: str, kill_in_save: int | None = None) -> subprocess.Popen:
+    """``flyknot run quick`` in a child process; with ``kill_in_save = n`` the child kills
+    itself (SIGKILL) in its n-th record file write, after the bytes are out and before the
+    file is renamed into place: a kill while a record is being written."""
+    argv = ["run", "quick", "--out", str(out), *ARGS, *extra]
+    code = "import sys; from flyknot_app.cli import main; sys.exit(main(sys.argv[1:]))"
+    if kill_in_save is not None:
+        code = (
+            "import os, signal, sys\n"
+            "import flyknot.record as r\n"
+            "write, calls = r._atomic_npz, [0]\n"
+            "def dying(path, arrays):\n"
+            "    calls[0] += 1\n"
+            f"    if calls[0] == {kill_in_save}:\n"
+            "        tmp = path.with_name(f'.{path.name}.tmp')\n"
+            "        import numpy as np\n"
+            "        with open(tmp, 'wb') as f:\n"
+            "            np.savez_compressed(f, **arrays)\n"
+            "        os.kill(os.getpid(), signal.SIGKILL)\n"
+            "    write(path, arrays)\n"
+            "r._atomic_npz = dying\n"
+            "from flyknot_app.cli import main\n"
+            "sys.exit(main(sys.argv[1:]))\n"
+        )
+    cmd = [sys.executable, "-c", code, *argv]
     return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
 
@@ -56,10 +79,19 @@ def guess(tmp_path_factory):
     return root / "initial_guess"
 
 
-def test_kill_and_resume_equals_the_uninterrupted_run(tmp_path, guess):
-    whole, killed = tmp_path / "whole", tmp_path / "killed"
-    for d in (whole, killed):
-        shutil.copytree(guess, d / "initial_guess")
+@pytest.fixture(scope="module")
+def whole(tmp_path_factory, guess):
+    """The uninterrupted run."""
+    out = tmp_path_factory.mktemp("whole") / "run"
+    shutil.copytree(guess, out / "initial_guess")
+    w = _run(out)
+    assert w.wait(timeout=600) == 0, w.stderr.read().decode()
+    return out
+
+
+def test_kill_and_resume_equals_the_uninterrupted_run(tmp_path, guess, whole):
+    killed = tmp_path / "killed"
+    shutil.copytree(guess, killed / "initial_guess")
     p = _run(killed)
     deadline = time.monotonic() + 300
     while len(_ledger(killed)) < 1:
@@ -72,9 +104,28 @@ def test_kill_and_resume_equals_the_uninterrupted_run(tmp_path, guess):
     assert 1 <= len(_ledger(killed)) < 4
     r = _run(killed, "--resume")
     assert r.wait(timeout=600) == 0, r.stderr.read().decode()
-    w = _run(whole)
-    assert w.wait(timeout=600) == 0, w.stderr.read().decode()
+    _assert_same_run(killed, whole)
 
+
+def test_a_kill_while_a_record_is_written_resumes_to_the_same_run(tmp_path, guess, whole):
+    """Killed inside the write of trial 1's truth file: the trial has no JSON, so the resumed
+    run plays it again with the same variation and ends as the uninterrupted run."""
+    killed = tmp_path / "killed"
+    shutil.copytree(guess, killed / "initial_guess")
+    p = _run(killed, kill_in_save=4)  # trial 0: .npz, .truth.npz; trial 1: .npz, .truth.npz
+    assert p.wait(timeout=600) == -signal.SIGKILL, p.stderr.read().decode()
+    learning = killed / "runs" / "rope1" / "learning"
+    assert (learning / ".trial_0001_a0.truth.npz.tmp").is_file()
+    assert not (learning / "trial_0001_a0.json").exists()
+    # A ledger line cut short by the kill is not written either.
+    with open(learning / "ledger.jsonl", "a") as f:
+        f.write('{"trial": 1, "attempt"')
+    r = _run(killed, "--resume")
+    assert r.wait(timeout=600) == 0, r.stderr.read().decode()
+    _assert_same_run(killed, whole)
+
+
+def _assert_same_run(killed: Path, whole: Path) -> None:
     assert _ledger(killed) == _ledger(whole)
     a = json.loads((killed / "summary.json").read_text())["runs"][0]
     b = json.loads((whole / "summary.json").read_text())["runs"][0]
