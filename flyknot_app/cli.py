@@ -11,6 +11,7 @@ import numpy as np
 
 from flyknot.errors import ConfigError
 from flyknot_app.dispatch import dispatch
+from flyknot_app.scenario import parse_rope_arg
 from flyknot_app.trial_cli import add_trial_parsers
 
 
@@ -364,7 +365,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_trial_parsers(sub)
 
     s = sub.add_parser("showcase", help="one fast showcase trial on the simulated lab")
-    s.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
+    s.add_argument(
+        "--rope", type=parse_rope_arg, default=1, help="rope id 1..7 or a rope's name (default 1)"
+    )
     s.add_argument("--seed", type=int, default=0, help="trial-to-trial variation seed")
     s.add_argument("--out", default="runs/showcase", help="output directory")
     s.set_defaults(func=_cmd_showcase)
@@ -403,7 +406,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="compare the learner's rope-model Jacobian with the lab's measured response",
     )
     m.add_argument("--demo", default="robot", help="demonstration name or file (default robot)")
-    m.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
+    m.add_argument(
+        "--rope", type=parse_rope_arg, default=1, help="rope id 1..7 or a rope's name (default 1)"
+    )
     m.add_argument(
         "--knots", default=None, help="command knots (.npy/.npz; default: initial guess)"
     )
@@ -450,7 +455,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="a baseline through the gym envs: random search, CMA-ES, PPO (the rl extra)",
     )
     bl.add_argument("name", choices=["random", "cma", "ppo"])
-    bl.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
+    bl.add_argument(
+        "--rope", type=parse_rope_arg, default=1, help="rope id 1..7 or a rope's name (default 1)"
+    )
     bl.add_argument("--budget", type=int, default=30, help="trials per seed (default 30)")
     bl.add_argument("--seeds", default="0", help="lab seeds: A-B or A,B,... (default 0)")
     bl.add_argument(

@@ -140,7 +140,7 @@ def evaluation_time(t_marker: np.ndarray, markers: np.ndarray, t_c: float, dt: f
 
 def check_models(
     demo: str,
-    rope: int,
+    rope: int | str,
     models: Sequence[tuple[float, float]],
     *,
     knots: np.ndarray | None = None,
@@ -154,7 +154,7 @@ def check_models(
 
     Args:
         demo: Demonstration name or path (its target gives t_c and T).
-        rope: Rope id of the lab.
+        rope: Rope id of the lab, or a rope's name.
         models: (stiffness, damping) pairs to score (other model parameters: defaults).
         knots: Command to linearise about (default: the demonstration's initial guess).
         window: Demonstration window (follow-through [s], path fraction at t_0).

@@ -8,6 +8,7 @@ says what a record stores about it. The paper's table is :mod:`flyknot_sim.rope_
 from __future__ import annotations
 
 import functools
+import tomllib as _toml
 from collections.abc import Mapping
 from dataclasses import replace
 from pathlib import Path
@@ -23,11 +24,6 @@ from flyknot_sim.rope_table import (
     _read_toml,
     get_rope,
 )
-
-try:  # Python >= 3.11
-    import tomllib as _toml
-except ModuleNotFoundError:  # pragma: no cover - Python 3.10 needs the tomli backport
-    import tomli as _toml  # type: ignore[no-redef]
 
 __all__ = [
     "CUSTOM_KEYS",

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import math
+import tomllib as _toml
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -18,11 +19,6 @@ from typing import Any
 
 from flyknot.constants import ROPE_TABLE
 from flyknot.errors import ConfigError, check_choice, check_nonnegative, check_positive
-
-try:  # Python >= 3.11
-    import tomllib as _toml
-except ModuleNotFoundError:  # pragma: no cover - Python 3.10 needs the tomli backport
-    import tomli as _toml  # type: ignore[no-redef]
 
 __all__ = [
     "CLEARANCE_EXTRA",

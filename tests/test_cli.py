@@ -92,3 +92,27 @@ def test_knot_verdict_line(capsys):
     assert capsys.readouterr().out.startswith("knot (trefoil 30/31, 0.")
     assert main(["knot", str(KNOTS / "free_end_above_hand_60.npy"), "--verdict"]) == 0
     assert capsys.readouterr().out == "wrapped_at_grip (unknot 31/31, 0.00 m down)\n"
+
+
+def _subparsers(parser):
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield name, sub
+                yield from ((f"{name} {n}", s) for n, s in _subparsers(sub))
+
+
+def test_every_rope_option_takes_a_name():
+    from flyknot_app.cli import build_parser
+    from flyknot_app.scenario import parse_rope_arg
+
+    with_rope = {
+        name: action.type
+        for name, sub in _subparsers(build_parser())
+        for action in sub._actions
+        if "--rope" in action.option_strings
+    }
+    assert {"trial", "showcase", "model-check", "baseline", "demo replay"} <= set(with_rope)
+    assert all(t is parse_rope_arg for t in with_rope.values()), with_rope
