@@ -262,6 +262,7 @@ def _execute_on(
         "name": spec.name,
         "label": spec.label,
         "rope": spec.rope,
+        "seed": spec.seed,
         **(_custom_rope_summary(lab) if spec.cell == "sim" else {}),
         "demo": spec.demo,
         "objective": spec.objective,

@@ -85,5 +85,7 @@ def test_tracking_repeats_play_the_initial_command(tmp_path, guess_cache):
     np.testing.assert_array_equal(np.load(out / "runs" / spec.name / "final_knots.npy"), k0)
     summary = json.loads((out / "summary.json").read_text())
     assert len(summary["runs"][0]["costs"]) == 1 and len(summary["runs"][0]["repeats"]) == 1
+    assert summary["runs"][0]["seed"] == spec.seed  # flyknot compare names the run's seed
+    assert summary["runs"][0]["judge"] == "verdict"
     assert (out / "success_rates.png").is_file()
     assert "Tracking alone (no learning)" in (out / "report.md").read_text()
