@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,7 @@ from flyknot_app.judging import report_section as verdict_section
 
 # The paper's results (Suresh & Atkeson), quoted per scenario kind.
 PAPER = {
+    "smoke": "(A check of the pipeline; the paper has no such experiment.)",
     "track": "Tracking the demonstration hand alone never tied the knot on rope 1; "
     "ropes 4 and 7 nearly succeeded.",
     "objectives": "Critical-point objective: knot learned; equally weighted objective: "
@@ -47,9 +49,31 @@ def _trials_text(run: dict[str, Any]) -> str:
     return str(n) if n is not None else f">{len(run['costs'])}"
 
 
+def smoke_line(runs: list[dict[str, Any]]) -> str:
+    """Whether the pipeline worked: trials played and judged, errors measured and updates
+    made (a ``smoke`` scenario checks the pipeline, not the knot)."""
+    trials = sum(len(r["costs"]) for r in runs)
+    measured = sum(c is not None for r in runs for c in r["costs"])
+    faults = sum(f is not None for r in runs for f in r.get("faults") or [])
+    classes = Counter(v["klass"] for r in runs for v in r.get("verdicts") or [] if v)
+    judged = ", ".join(f"{k} {n}" for k, n in sorted(classes.items())) or "none"
+    works = measured > 0 and trials > 0
+    head = "Smoke run: the pipeline works" if works else "Smoke run: the pipeline FAILED"
+    text = (
+        f"{head}: {trials} trials played ({faults} faulted), judged ({judged}), the "
+        f"critical-point error measured in {measured}"
+    )
+    if not works:
+        text += " (no trial gave the learner a measurement: see the failure anatomy)"
+    return text + "."
+
+
 def outcome_line(kind: str, runs: list[dict[str, Any]]) -> str:
-    """One sentence on a scenario's outcome: knots learned, or (``track``) how often tracking
-    alone tied, in the first trial and in the repeats."""
+    """One sentence on a scenario's outcome: knots learned, (``track``) how often tracking
+    alone tied, in the first trial and in the repeats, or (``smoke``) whether the pipeline
+    worked."""
+    if kind == "smoke":
+        return smoke_line(runs)
     n_ok = sum(r["trials_to_success"] is not None for r in runs)
     if kind != "track":
         text = f"Knot learned in {n_ok} of {len(runs)} runs"

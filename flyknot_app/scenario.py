@@ -4,7 +4,7 @@ Format (every field is validated; unknown keys are errors that list the valid on
 
     name = "ropes"                      # defaults to the file's stem
     description = "Learning on each rope from the rope-1 demonstration"
-    kind = "learn"          # learn | track | transfer | sensitivity | objectives | demos
+    kind = "learn"          # learn | track | transfer | sensitivity | objectives | demos | smoke
     paper = "all 7 ropes within 10 trials"   # the paper's result, quoted in report.md
 
     [defaults]                          # fields shared by every run (RunSpec below)
@@ -45,7 +45,7 @@ from flyknot_app.cells import cell_kind, cell_spec
 from learner.ilc import parse_confirm
 from learner.update import OBJECTIVES
 
-KINDS = ("learn", "track", "transfer", "sensitivity", "objectives", "demos")
+KINDS = ("learn", "track", "transfer", "sensitivity", "objectives", "demos", "smoke")
 ROPE_MODEL_KEYS = ("stiffness", "damping", "link_mass", "end_mass", "link_length", "n_links", "dt")
 WEIGHT_KEYS = (
     "w_control",

@@ -74,7 +74,7 @@ def test_limit_runs_keeps_dependencies():
         (
             {"kind": "dance", "run": [{"name": "a"}]},
             "kind: unknown value 'dance' (valid choices: learn, track, transfer, sensitivity, "
-            "objectives, demos)",
+            "objectives, demos, smoke)",
         ),
         (
             {"run": [{"name": "a", "rope": 9}]},
@@ -245,7 +245,7 @@ def test_wilson_interval_known_values():
 
 
 def test_confirm_field_from_toml_and_command_line():
-    scen = load_scenario("quick", parse_overrides(["confirm=19/20"]))
+    scen = load_scenario("learn-rope1", parse_overrides(["confirm=19/20"]))
     assert scen.runs[0].confirm == (19, 20)
     from flyknot_app.scenario import RunSpec
 
@@ -279,3 +279,42 @@ def test_paper_settings_set_the_papers_learner(tmp_path, monkeypatch):
     assert seen["overrides"]["gain"] == 0.7  # a later --set wins
     assert seen["overrides"]["rope_model"] == {"stiffness": 1e5, "damping": 50}
     assert seen["scen"].runs[0].follow_through_s == 0.035
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in SCENARIOS_DIR.glob("*.toml")))
+def test_every_scenarios_description_says_what_it_runs(name):
+    """The demonstration, the ropes, the trial budget, the repeats and a fixed settle."""
+    scen = load_scenario(name)
+    text = scen.description
+    demos = {r.demo for r in scen.runs}
+    for demo in demos:
+        assert ("robot demonstration" if demo == "robot" else demo.capitalize()) in text, demo
+    ropes = {r.rope for r in scen.runs}
+    if len(ropes) == 1:
+        assert f"rope {next(iter(ropes))}" in text
+    else:
+        assert any(w in text for w in ("each rope", "every rope", "all 7 ropes"))
+    assert f"{max(r.max_trials for r in scen.runs)} trials" in text
+    repeats = max(r.repeats for r in scen.runs)
+    if repeats:
+        assert f"{repeats} repeats" in text or f"{repeats} times" in text
+    settles = {r.settle_s for r in scen.runs}
+    if settles != {None}:
+        assert all(f"{s:g} s settle" in text for s in settles)
+
+
+def test_the_smoke_line_says_whether_the_pipeline_worked():
+    from flyknot_app.report import outcome_line
+
+    ok = {
+        "costs": [0.6, 0.4],
+        "faults": [None, None],
+        "verdicts": [{"klass": "unknot"}, {"klass": "wrapped_at_grip"}],
+        "trials_to_success": None,
+    }
+    assert outcome_line("smoke", [ok]) == (
+        "Smoke run: the pipeline works: 2 trials played (0 faulted), judged (unknot 1, "
+        "wrapped_at_grip 1), the critical-point error measured in 2."
+    )
+    bad = {**ok, "costs": [None], "faults": ["joint 4 torque limit"], "verdicts": [None]}
+    assert outcome_line("smoke", [bad]).startswith("Smoke run: the pipeline FAILED: 1 trials")
