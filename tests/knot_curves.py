@@ -98,3 +98,10 @@ def judged(record, tied: bool):
     """``record`` with a knot in the hanging rope (``tied``) or an unknot, verdict included."""
     v = verdict(KNOT if tied else UNKNOTTED)
     return dataclasses.replace(record, knot=v.knot, verdict=v)
+
+
+def end_in_its_loop(*, above: float = 0.4) -> np.ndarray:
+    """An overhand knot whose free end stops half way through the loop: whether it is knotted
+    depends on which way the end is closed (no supermajority: ambiguous)."""
+    arc = trefoil_arc(0.03, 80)[:70]
+    return np.vstack([_segment(arc[0] + np.array([0.0, 0.0, above]), arc[0], 0.03), arc])

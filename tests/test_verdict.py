@@ -24,6 +24,7 @@ from flyknot.verdict import (
 )
 from tests.knot_curves import (
     TUBE_AXIS,
+    end_in_its_loop,
     figure_eight,
     loop_round_held_end,
     overhand,
@@ -42,7 +43,9 @@ CASES = {
     "a figure-eight": (figure_eight(), "other_knot"),
     "one loop round the held end, tail hanging": (loop_round_held_end(), "wrapped_at_grip"),
     "a straight rope": (straight(), "unknot"),
+    "the free end half way through its loop": (end_in_its_loop(), "ambiguous"),
 }
+DECISIVE = sorted(name for name, (_, klass) in CASES.items() if klass != "ambiguous")
 
 
 def _mirror(points: np.ndarray) -> np.ndarray:
@@ -136,7 +139,7 @@ def test_knot_core_lies_round_the_knot():
     rot=st.lists(st.floats(-3.0, 3.0), min_size=3, max_size=3),
     shift=st.lists(st.floats(-2.0, 2.0), min_size=3, max_size=3),
     scale=st.floats(0.5, 2.0),
-    name=st.sampled_from(sorted(CASES)),
+    name=st.sampled_from(DECISIVE),
 )
 def test_rigid_motions_leave_the_knot_and_its_vote_alone(rot, shift, scale, name):
     curve = CASES[name][0]
