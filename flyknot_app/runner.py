@@ -30,9 +30,10 @@ import numpy as np
 from flyknot import __version__
 from flyknot.constants import DEMOS_DIR, FOLLOW_THROUGH_S, PATH_FRAC
 from flyknot.demo import Demonstration
-from flyknot.errors import ConfigError, FlyknotError
+from flyknot.errors import ConfigError, FlyknotError, RecordError
 from flyknot.judge import CellVerdict
 from flyknot.progress import bar_disable
+from flyknot.record import TrialRecord
 from flyknot.verdict import JUDGE_NAME, KNOT
 from flyknot_app.cells import open_cell
 from flyknot_app.scenario import RunSpec, Scenario, find_named_file
@@ -176,7 +177,7 @@ def _execute_on(
     from tqdm import tqdm
 
     from learner.bezier import BezierCommand
-    from learner.ilc import ILCParams, learn, written_record
+    from learner.ilc import ILCParams, learn
     from learner.inverse_qp import InverseModelWeights
     from learner.kinematics import RobotModel
 
@@ -250,7 +251,7 @@ def _execute_on(
             # Repeat i is the cell's trial len(learning trials) + i, resumed or not.
             lab.trial_index = len(res.trials) + i
             stem = run_dir / "repeats" / f"repeat_{i:03d}"
-            rec = written_record(stem) if resume else None
+            rec = _written_with_truth(stem) if resume else None
             if rec is None:  # not written, or cut short by a kill: play it (again)
                 rec = lab.run(command)
                 rec.save(stem)
@@ -299,6 +300,17 @@ def _execute_on(
     }
     result_path.write_text(json.dumps(summary, indent=2))
     return summary
+
+
+def _written_with_truth(stem: Path) -> TrialRecord | None:
+    """A repeat's record a killed run left, truth included, or None when it is absent or any
+    of its files is unreadable (the repeat is played again on the same trial index)."""
+    if not stem.with_name(stem.name + ".json").is_file():
+        return None
+    try:
+        return TrialRecord.load(stem, with_truth=True)
+    except RecordError:
+        return None
 
 
 def _custom_rope_summary(lab) -> dict[str, Any]:

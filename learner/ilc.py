@@ -41,7 +41,7 @@ from learner.inverse_qp import BACKENDS, InverseModelWeights
 from learner.kinematics import RobotModel
 from learner.limit_rows import sampled_violation
 from learner.rope_model import RopeModelParams
-from learner.run_directory import RunDirectory, TrialSummary
+from learner.run_directory import RunDirectory, TrialSummary, written_record
 from learner.target import DemoTarget
 from learner.update import OBJECTIVES, UpdateSettings, ilc_update
 
@@ -499,17 +499,6 @@ def _safe_step(
             return new
         alpha *= 0.5
     return knots - 2 * alpha * dkappa
-
-
-def written_record(stem: Path | None) -> TrialRecord | None:
-    """The record a killed run left at ``stem``, or None when it is absent or unreadable (a
-    file cut short: the trial is played again, on the same trial index of the cell)."""
-    if stem is None or not stem.with_name(stem.name + ".json").is_file():
-        return None
-    try:
-        return TrialRecord.load(stem, with_truth=True)
-    except RecordError:
-        return None
 
 
 def _finish(trials, knots, params, why) -> LearnResult:

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from flyknot.errors import RecordError
-from flyknot.record import atomic_write_text
+from flyknot.record import TrialRecord, atomic_write_text
 
 
 @dataclass(frozen=True)
@@ -132,4 +132,16 @@ class RunDirectory:
         return json.loads(p.read_text()) if p.is_file() else None
 
 
-__all__ = ["RunDirectory", "TrialSummary"]
+def written_record(stem: Path | None) -> TrialRecord | None:
+    """The record a killed run left at ``stem``, or None when it is absent or unreadable (a
+    file cut short: the trial is played again, on the same trial index of the cell). The
+    learner's view: the record without the simulator's truth."""
+    if stem is None or not stem.with_name(stem.name + ".json").is_file():
+        return None
+    try:
+        return TrialRecord.load(stem)
+    except RecordError:
+        return None
+
+
+__all__ = ["RunDirectory", "TrialSummary", "written_record"]

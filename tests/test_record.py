@@ -120,18 +120,23 @@ def test_a_record_cut_short_is_not_written(tmp_path):
     """A truth file truncated by a kill (a writer without atomic renames) is unreadable: the
     record counts as not written, and resuming plays the trial again."""
     from flyknot.errors import RecordError
-    from learner.ilc import written_record
+    from flyknot_app.runner import _written_with_truth
+    from learner.run_directory import written_record
 
     rec = _record()
-    json_path = rec.save(tmp_path / "trial_0001_a0")
-    assert written_record(tmp_path / "trial_0001_a0") is not None
+    stem = tmp_path / "trial_0001_a0"
+    json_path = rec.save(stem)
+    assert written_record(stem) is not None and _written_with_truth(stem) is not None
     truth = tmp_path / "trial_0001_a0.truth.npz"
     truth.write_bytes(truth.read_bytes()[:100])
     with pytest.raises(RecordError, match=r"truth\.npz' is not a readable array file"):
-        TrialRecord.load(tmp_path / "trial_0001_a0", with_truth=True)
-    assert written_record(tmp_path / "trial_0001_a0") is None
+        TrialRecord.load(stem, with_truth=True)
+    assert _written_with_truth(stem) is None  # the application reads truth, the learner not
+    arrays = tmp_path / "trial_0001_a0.npz"
+    arrays.write_bytes(arrays.read_bytes()[:100])
+    assert written_record(stem) is None
     json_path.unlink()
-    assert written_record(tmp_path / "trial_0001_a0") is None
+    assert written_record(stem) is None
     assert not list(tmp_path.glob(".*.tmp"))  # the writer leaves no temporary file
 
 
