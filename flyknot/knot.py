@@ -1,12 +1,16 @@
-"""Knot type of an open rope centreline, decided by a vote over ray closures.
+"""Knot type of an open curve, decided by a vote over ray closures.
 
-An open curve has no knot type until it is closed. The simulated lab judges a settled rope
-that hangs from the fingertip, and its free end may lie anywhere, even above the hand. A
-closure tied to gravity ("held end up, free end down") invents knots when the free end is
-above the hand (measured: /work/shared/notes/flying-knot-feasibility.md), so this module does
-not use one. Instead, for each direction ``d`` of a fixed, near-uniform set on the unit sphere,
-both ends are extended by parallel rays along ``d`` to infinity and joined there (topoly calls
-this the "rays" closure, ``topoly.Closure.RAYS``, but draws ``d`` at random). The knot type of
+This is the topology kernel; the verdict on a rope held in the fingertip tube (the held end
+continued along the tube, where the knot sits, the classes) is :mod:`flyknot.verdict`, which
+closes the curve with these functions.
+
+An open curve has no knot type until it is closed. A settled rope hangs from the fingertip,
+and its free end may lie anywhere, even above the hand. A closure tied to gravity ("held end
+up, free end down") invents knots when the free end is above the hand (measured while the
+project was set up), so this module does not use one. Instead, for each direction ``d`` of
+a fixed, near-uniform set on the unit sphere, both ends are extended by parallel rays along
+``d`` to infinity and joined there (topoly calls this the "rays" closure,
+``topoly.Closure.RAYS``, but draws ``d`` at random). The knot type of
 the open curve is the most frequent type over the directions: the "dominant knot type" over
 closures of Millett, Dobay & Stasiak, Macromolecules 38 (2005) 601-606. A ray closure
 misleads only for directions in which a ray from an end threads the rope; for a hanging rope
