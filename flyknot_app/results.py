@@ -50,8 +50,23 @@ def _trials(run: dict[str, Any]) -> str:
     return f"none in {len(run.get('costs') or [])}"
 
 
+def _settings(directory: Path) -> str:
+    """How a directory was made, as far as it says: ``--set`` overrides of a scenario run,
+    a baseline's budget and repeats."""
+    manifest = directory / "manifest.json"
+    if manifest.is_file():
+        over = json.loads(manifest.read_text()).get("overrides") or {}
+        return " ".join(f"`{k}={v}`" for k, v in over.items()) or "-"
+    base = directory / "baseline.json"
+    if base.is_file():
+        params = json.loads(base.read_text()).get("params") or {}
+        return ", ".join(f"{k} {params[k]}" for k in ("budget", "repeats") if k in params)
+    return "-"
+
+
 def _run_rows(directory: Path, doc: dict[str, Any], what: str) -> list[str]:
     rows = []
+    settings = _settings(directory)
     for r in doc["runs"]:
         if r.get("judge") != JUDGE_NAME:
             raise ConfigError(
@@ -62,7 +77,10 @@ def _run_rows(directory: Path, doc: dict[str, Any], what: str) -> list[str]:
         label = r.get("label") or r.get("name") or f"seed {r.get('seed')}"
         rope = r.get("rope", doc.get("rope"))
         reps = r.get("repeats") or []
-        rows.append(f"| {what} | {label} | {rope} | {_trials(r)} | {_rate(reps)} |")
+        seed = r.get("seed", "-")
+        rows.append(
+            f"| {what} | {label} | {rope} | {seed} | {settings} | {_trials(r)} | {_rate(reps)} |"
+        )
     return rows
 
 
@@ -83,7 +101,7 @@ def rows_of(directory: str | Path) -> list[str]:
     trials = rejudge_directory(d, keep_stored=True)
     classes = [FAULT if t.fault else (t.new.klass if t.new else None) for t in trials]
     kind = "replays" if trials[0].kind == "replay" else "trials"
-    return [f"| {kind} | `{d.name}` | - | - | {_rate(classes)} |"]
+    return [f"| {kind} | `{d.name}` | - | - | - | - | {_rate(classes)} |"]
 
 
 def _commit() -> str:
@@ -110,9 +128,9 @@ def results_table(directories: Sequence[str | Path], command: str) -> str:
         f"{_commit()} by `{command}`. A knot is a verdict `knot` of `flyknot.verdict` (an "
         "overhand knot in the hanging rope); intervals are 95 % Wilson.",
         "",
-        "| what | run | rope | trials until the first knot | knots in the repeats or "
-        "trials; other verdicts |",
-        "|---|---|---|---|---|",
+        "| what | run | rope | seed | settings | trials until the first knot | knots in the "
+        "repeats or trials; other verdicts |",
+        "|---|---|---|---|---|---|---|",
     ]
     for d in directories:
         lines += rows_of(d)

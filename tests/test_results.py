@@ -20,10 +20,13 @@ def _summary(tmp_path, judge="verdict"):
         "trials_to_success": 2,
         "repeats": ["knot", "wrapped_at_grip", "knot", "fault"],
         "judge": judge,
+        "seed": 0,
     }
     none = {**run, "name": "rope4", "rope": 4, "trials_to_success": None, "repeats": []}
+    del none["seed"]
     doc = {"scenario": "04-success-rate", "runs": [run, none]}
     (d / "summary.json").write_text(json.dumps(doc))
+    (d / "manifest.json").write_text(json.dumps({"overrides": {"repeats": 4}}))
     return d
 
 
@@ -36,10 +39,13 @@ def test_the_table_has_runs_and_trials(tmp_path, capsys):
     assert main(["results", str(runs), str(trials), "--out", str(out)]) == 0
     text = out.read_text()
     assert text.startswith("# Results\n") and f"by `flyknot results {runs} {trials} --out" in text
-    row = "| `04-success-rate` | rope1 | 1 | 2 | 2/4 (15-85 %); fault 1, wrapped_at_grip 1 |"
+    row = (
+        "| `04-success-rate` | rope1 | 1 | 0 | `repeats=4` | 2 | 2/4 (15-85 %); fault 1, "
+        "wrapped_at_grip 1 |"
+    )
     assert row in text
-    assert "| `04-success-rate` | rope4 | 4 | none in 2 | - |" in text
-    row = "| trials | `robot-command` | - | - | 1/3 (6-79 %); unknot 1, wrapped_at_grip 1 |"
+    assert "| `04-success-rate` | rope4 | 4 | - | `repeats=4` | none in 2 | - |" in text
+    row = "| trials | `robot-command` | - | - | - | - | 1/3 (6-79 %); unknot 1, wrapped_at_grip 1 |"
     assert row in text
 
 
