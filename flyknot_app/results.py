@@ -64,9 +64,19 @@ def _settings(directory: Path) -> str:
     return "-"
 
 
+def _manifest_seeds(directory: Path) -> dict[str, Any]:
+    """Each run's lab seed by run name, from the run directory's ``manifest.json``."""
+    manifest = directory / "manifest.json"
+    if not manifest.is_file():
+        return {}
+    runs = json.loads(manifest.read_text()).get("runs") or []
+    return {r["name"]: r.get("seed") for r in runs if isinstance(r, dict) and "name" in r}
+
+
 def _run_rows(directory: Path, doc: dict[str, Any], what: str) -> list[str]:
     rows = []
     settings = _settings(directory)
+    seeds = _manifest_seeds(directory)
     for r in doc["runs"]:
         if r.get("judge") != JUDGE_NAME:
             raise ConfigError(
@@ -77,7 +87,7 @@ def _run_rows(directory: Path, doc: dict[str, Any], what: str) -> list[str]:
         label = r.get("label") or r.get("name") or f"seed {r.get('seed')}"
         rope = r.get("rope", doc.get("rope"))
         reps = r.get("repeats") or []
-        seed = r.get("seed", "-")
+        seed = r.get("seed", seeds.get(r.get("name"), "-"))
         rows.append(
             f"| {what} | {label} | {rope} | {seed} | {settings} | {_trials(r)} | {_rate(reps)} |"
         )
