@@ -1,0 +1,55 @@
+"""The simulated lab's records, bit for bit: a refactor must not change a trial.
+
+``tests/data/lab_fingerprints.json`` holds SHA-256 digests of the records of a fixed set of
+trials (the robot demonstration's seed command on ropes 1 and 7, lab seed 3, two trials each,
+0.3 s settle): every array the record carries, the truth, the fault, the first contact and
+the verdict. A change of the lab's physics or variation changes them on purpose; then
+regenerate the file with ``python tests/test_lab_fingerprint.py > tests/data/lab_fingerprints.json``
+and say why in the commit.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+
+from flyknot.record import TrialRecord
+from flyknot_app.trial_cli import load_command
+from flyknot_sim.lab import LabParams, SimLab
+
+ROOT = Path(__file__).resolve().parent.parent
+STORED = ROOT / "tests" / "data" / "lab_fingerprints.json"
+ARRAYS = ("q_cmd", "q_meas", "t_marker", "markers", "fingertip_pos", "fingertip_quat")
+
+
+def fingerprint(rec: TrialRecord) -> str:
+    """SHA-256 of a record's arrays, truth, fault, first contact and verdict."""
+    h = hashlib.sha256()
+    for name in ARRAYS:
+        h.update(np.ascontiguousarray(getattr(rec, name)).tobytes())
+    for k in sorted(rec.truth):
+        h.update(np.ascontiguousarray(rec.truth[k]).tobytes())
+    verdict = None if rec.verdict is None else rec.verdict.to_json()
+    h.update(json.dumps([rec.fault, rec.first_contact_time, rec.knot, verdict]).encode())
+    return h.hexdigest()
+
+
+def fingerprints() -> dict[str, list[str]]:
+    """The digests of the fixed set of trials (module docstring)."""
+    command = load_command(ROOT / "assets" / "demos" / "seeds" / "robot_command.npz")
+    out = {}
+    for rope in (1, 7):
+        lab = SimLab(LabParams(rope=rope, seed=3, settle_s=0.3))
+        out[f"rope{rope}"] = [fingerprint(lab.run(command)) for _ in range(2)]
+    return out
+
+
+def test_the_fixed_trials_are_bit_identical():
+    assert fingerprints() == json.loads(STORED.read_text())
+
+
+if __name__ == "__main__":
+    print(json.dumps(fingerprints(), indent=1))
