@@ -37,16 +37,18 @@ import numpy as np
 
 from flyknot.constants import COMMAND_RATE_HZ
 from flyknot.errors import ConfigError, check_int, check_nonnegative, check_positive
+from flyknot.geometry import readonly
 from flyknot.record import JointCommand, TrialRecord
 from flyknot.rest import SettleParams, start_with_sway
 from flyknot_sim import mocap, robot
 from flyknot_sim.aero import AeroParams, RopeDrag
 from flyknot_sim.bend_friction import BendFrictionParams, RopeBendFriction
+from flyknot_sim.faults import check_sample
 from flyknot_sim.rope import add_rope, configure_options
 from flyknot_sim.rope_custom import resolve_rope
 from flyknot_sim.rope_table import RopeParams
 from flyknot_sim.scene import ROBOT_PREFIX, SceneParams, robot_base_pose, scene_spec
-from flyknot_sim.session import TrialSession
+from flyknot_sim.session import Plant, TrialSession, TrialStart
 
 
 @dataclass(frozen=True)
@@ -176,24 +178,30 @@ class SimLab:
         self.data = mujoco.MjData(self.model)
         self.rope = self.rope.bind(self.model) if hasattr(self.rope, "bind") else self.rope
         m = self.model
-        self._qadr = np.array(
-            [m.jnt_qposadr[m.joint(ROBOT_PREFIX + n).id] for n in robot.JOINT_NAMES]
-        )
-        self._dadr = np.array(
-            [m.jnt_dofadr[m.joint(ROBOT_PREFIX + n).id] for n in robot.JOINT_NAMES]
-        )
-        self._act = robot.actuator_ids(m, ROBOT_PREFIX)
-        self._tip_site = m.site(ROBOT_PREFIX + robot.FINGERTIP_SITE).id
+        qadr = np.array([m.jnt_qposadr[m.joint(ROBOT_PREFIX + n).id] for n in robot.JOINT_NAMES])
+        dadr = np.array([m.jnt_dofadr[m.joint(ROBOT_PREFIX + n).id] for n in robot.JOINT_NAMES])
         self._servo_default = robot.ServoParams.default()
-        self._robot_only = robot.load_robot_model()
         self._trial_index = 0
         self.base_pose = robot_base_pose(params.scene)
-        self._bound = self.rope.bind(self.model) if hasattr(self.rope, "bind") else self.rope
+        bound = self.rope.bind(self.model) if hasattr(self.rope, "bind") else self.rope
         aero = params.aero
         if self.rope_params.cd is not None:  # the rope's own drag coefficient
             aero = dataclasses.replace(aero, cd=self.rope_params.cd)
-        self._drag = RopeDrag(self._bound, aero)
-        self._bend = RopeBendFriction(self._bound, params.bend_friction.moment)
+        self.plant = Plant(
+            model=m,
+            data=self.data,
+            rope=bound,
+            rope_params=self.rope_params,
+            base_pose=self.base_pose,
+            qadr=readonly(qadr, int),
+            dadr=readonly(dadr, int),
+            act=readonly(robot.actuator_ids(m, ROBOT_PREFIX), int),
+            tip_site=m.site(ROBOT_PREFIX + robot.FINGERTIP_SITE).id,
+            torque_model=robot.load_robot_model(),
+            drag=RopeDrag(bound, aero),
+            bend=RopeBendFriction(bound, params.bend_friction.moment),
+        )
+        """The model, data and handles a trial drives (:class:`flyknot_sim.session.Plant`)."""
 
     @property
     def trial_index(self) -> int:
@@ -215,9 +223,9 @@ class SimLab:
         mujoco.mj_resetData(m, d)
         var = self.params.variation
         gains = self._servo_default.perturbed(rng, var.servo_gain_rel)
-        robot.apply_servo_params(m, self._act, gains)
-        d.qpos[self._qadr] = q0
-        d.ctrl[self._act] = q0
+        robot.apply_servo_params(m, self.plant.act, gains)
+        d.qpos[self.plant.qadr] = q0
+        d.ctrl[self.plant.act] = q0
         mujoco.mj_kinematics(m, d)
         sway = math.radians(var.sway_deg) * abs(rng.standard_normal())
         azimuth = rng.uniform(0, 2 * math.pi)
@@ -230,6 +238,29 @@ class SimLab:
         mujoco.mj_forward(m, d)
         return float(rng.uniform(0.0, var.start_delay_max_s)) if var.start_delay_max_s else 0.0
 
+    def _open(
+        self,
+        q0: np.ndarray,
+        dt: float,
+        *,
+        plan: JointCommand | None = None,
+        progress: bool = False,
+    ) -> TrialSession:
+        """Open trial ``trial_index``: draw its variation, set the model's step to a whole
+        number of physics steps per tick ``dt`` [s], reset the arm at ``q0`` and the rope, and
+        hand the session the plant (the session changes nothing else of the lab's)."""
+        check_positive("dt", dt)
+        q0 = check_sample(q0)
+        index = self.trial_index
+        rng = self._rng(index)
+        self.trial_index = index + 1
+        m = self.model
+        substeps = max(1, round(float(dt) / m.opt.timestep))
+        m.opt.timestep = float(dt) / substeps
+        delay = self.reset(q0, rng)
+        start = TrialStart(index, rng, delay, float(dt), substeps)
+        return TrialSession(self.plant, self.params, start, q0, plan=plan, progress=progress)
+
     def start(self, q0: np.ndarray, dt: float = 1.0 / COMMAND_RATE_HZ) -> TrialSession:
         """Open the next trial for tick-by-tick play from rest at ``q0`` (7,) [rad].
 
@@ -237,7 +268,7 @@ class SimLab:
         :meth:`TrialSession.finish` for the record; the controller checks the stream online
         (:mod:`flyknot_sim.session`).
         """
-        return TrialSession(self, q0, dt)
+        return self._open(q0, dt)
 
     def run(self, command: JointCommand, *, progress: bool = False) -> TrialRecord:
         """Play ``command`` once from rest and return what the lab measured.
@@ -247,7 +278,7 @@ class SimLab:
             progress: Show a progress bar over simulated time.
         """
         q_cmd = np.asarray(command.q)
-        session = TrialSession(self, q_cmd[0], command.dt, plan=command, progress=progress)
+        session = self._open(q_cmd[0], command.dt, plan=command, progress=progress)
         for target in q_cmd:
             if session.send(target) is not None:
                 break  # the controller faulted: the arm brakes, the trial is aborted

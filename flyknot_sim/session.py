@@ -32,15 +32,14 @@ from __future__ import annotations
 import math
 import platform
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import mujoco
 import numpy as np
 from tqdm import tqdm
 
 from flyknot import __version__
-from flyknot.constants import COMMAND_RATE_HZ
-from flyknot.errors import CommandError, check_positive
+from flyknot.errors import CommandError
 from flyknot.progress import bar_disable
 from flyknot.record import JointCommand, TrialRecord
 from flyknot.rest import SettleMonitor
@@ -51,7 +50,7 @@ from flyknot_sim.aero import DRAG_HOLD_S
 from flyknot_sim.rope_custom import rope_record
 
 if TYPE_CHECKING:
-    from flyknot_sim.lab import SimLab
+    from flyknot_sim.lab import LabParams
 
 _BAR = "{desc}: {percentage:3.0f}%|{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}]"
 
@@ -81,40 +80,93 @@ class TickObservation:
     fault: faults_mod.Fault | None
 
 
+@dataclass(frozen=True)
+class Plant:
+    """What a trial drives: the lab's MuJoCo model and data and the handles into them, built
+    once by :class:`~flyknot_sim.lab.SimLab` and handed to every :class:`TrialSession`.
+
+    Attributes:
+        model: The lab's model (arm, rope, scene).
+        data: Its data, the one state every trial of the lab advances.
+        rope: The rope bound to ``model`` (vertices, markers, self-contact).
+        rope_params: The rope's parameters.
+        base_pose: Robot base in the lab frame, (x, y, z, qw, qx, qy, qz).
+        qadr: qpos addresses of the arm's joints, shape (7,).
+        dadr: qvel addresses of the arm's joints, shape (7,).
+        act: The arm's servo actuators, shape (7,).
+        tip_site: The fingertip site (z axis out of the tube).
+        torque_model: The arm alone, for the controller's torque checks.
+        drag: Air drag on the rope.
+        bend: Bending friction of the rope.
+    """
+
+    model: mujoco.MjModel
+    data: mujoco.MjData
+    rope: Any
+    rope_params: Any
+    base_pose: np.ndarray
+    qadr: np.ndarray
+    dadr: np.ndarray
+    act: np.ndarray
+    tip_site: int
+    torque_model: mujoco.MjModel
+    drag: Any
+    bend: Any
+
+
+@dataclass(frozen=True)
+class TrialStart:
+    """How the lab opened a trial.
+
+    Attributes:
+        index: The trial's index on the lab (its variation is drawn from ``(seed, index)``).
+        rng: The trial's generator, after the lab's draws for the start.
+        delay: The start delay the lab drew [s].
+        dt: The tick [s].
+        substeps: Physics steps per tick (the model's step is ``dt / substeps``).
+    """
+
+    index: int
+    rng: np.random.Generator
+    delay: float
+    dt: float
+    substeps: int
+
+
 class TrialSession:
     """A trial of a :class:`~flyknot_sim.lab.SimLab` in progress (module docstring)."""
 
     def __init__(
         self,
-        lab: SimLab,
+        plant: Plant,
+        params: LabParams,
+        start: TrialStart,
         q0: np.ndarray,
-        dt: float = 1.0 / COMMAND_RATE_HZ,
         *,
         plan: JointCommand | None = None,
         progress: bool = False,
     ):
-        """Start trial ``lab.trial_index`` with the arm at rest at ``q0`` (7,) [rad].
+        """Run trial ``start.index`` from the state the lab set: the arm at rest at ``q0``
+        (7,) [rad], the rope in its settled start, the model's step ``start.sim_dt``.
 
         Args:
-            lab: The lab.
+            plant: The lab's model and data and the handles into them; the session drives
+                them and nothing else of the lab's.
+            params: The lab's parameters.
+            start: How the lab opened the trial (:meth:`~flyknot_sim.lab.SimLab.start`).
             q0: Start pose [rad].
-            dt: Tick [s].
             plan: The whole command when it is known up front (``SimLab.run``; its first
                 sample is ``q0``): the controller checks it before the motion, and the trial's
                 clock and settle start from its length. None: a stream checked online.
             progress: Show a progress bar over simulated time (with ``plan``).
         """
-        check_positive("dt", dt)
         q0 = faults_mod.check_sample(q0)
-        self.lab = lab
-        self.rng = lab._rng(lab.trial_index)
-        self.trial_index = lab.trial_index
-        lab.trial_index = self.trial_index + 1
-        m = lab.model
-        self.dt = tick = float(dt)
-        self.substeps = max(1, round(tick / m.opt.timestep))
+        self.plant, self.params = plant, params
+        self.rng = start.rng
+        self.trial_index = start.index
+        self.dt = tick = start.dt
+        self.substeps = start.substeps
         self.sim_dt = sim_dt = tick / self.substeps
-        m.opt.timestep = sim_dt
         self.plan = plan
         self._stream: faults_mod.StreamCheck | None = None
         self._plan_fault: faults_mod.Fault | None = None
@@ -123,11 +175,11 @@ class TrialSession:
             # effect at its tick, mid-motion, like the real controller.
             q_cmd = np.asarray(plan.q)
             qd, qdd = faults_mod.command_derivatives(q_cmd, tick)
-            tau = faults_mod.command_torques(lab._robot_only, q_cmd, qd, qdd)
+            tau = faults_mod.command_torques(plant.torque_model, q_cmd, qd, qdd)
             self._plan_fault = faults_mod.first_fault(q_cmd, tick, torques=tau)
         else:
-            self._stream = faults_mod.StreamCheck(q0, tick, torque_model=lab._robot_only)
-        self.delay = lab.reset(q0, self.rng)
+            self._stream = faults_mod.StreamCheck(q0, tick, torque_model=plant.torque_model)
+        self.delay = start.delay
         self.fault: faults_mod.Fault | None = None
         """The controller's fault, once it has faulted."""
         self._brake_at: int | None = None
@@ -145,9 +197,8 @@ class TrialSession:
         # the reading after step j is stored as sample j - 1 (time (j - 1) * sim_dt); the last
         # sample comes from one mj_kinematics at the end.
         self.pre_steps = round(self.delay / sim_dt)
-        bound = lab._bound
-        self._n_vert = bound.n_vert
-        rule = lab.params.settle_rule
+        self._n_vert = plant.rope.n_vert
+        rule = params.settle_rule
         n_guess = plan.n + math.ceil(rule.max_s / tick - 1e-9) if plan is not None else 256
         self._vert = np.empty((self.pre_steps + n_guess * self.substeps + 1, self._n_vert, 3))
         self.j = 0
@@ -159,7 +210,7 @@ class TrialSession:
         self._tip_quat: list[np.ndarray] = []
         self._q_sent: list[np.ndarray] = []
         self._noise = np.empty((0,))  # capture noise of the frames observed so far
-        self._obs_rng = np.random.default_rng([lab.params.seed, self.trial_index, 1])
+        self._obs_rng = np.random.default_rng([params.seed, self.trial_index, 1])
         self._frame: tuple[int, np.ndarray] | None = None  # the newest observed frame
         self._bar = None
         if plan is not None:
@@ -167,13 +218,13 @@ class TrialSession:
             n_total = (
                 plan.n * tick + rule.min_s
                 if pf is None
-                else (pf.tick + round(lab.params.brake_s / tick) + 1) * tick
+                else (pf.tick + round(params.brake_s / tick) + 1) * tick
             )
             self._bar = tqdm(
                 total=round(n_total, 2),
                 unit="sim s",
                 disable=bar_disable(progress),
-                desc=f"trial (rope {lab.rope_params.id})",
+                desc=f"trial (rope {plant.rope_params.id})",
                 bar_format=_BAR,
             )
         for _ in range(self.pre_steps):
@@ -181,11 +232,11 @@ class TrialSession:
 
     # ------------------------------------------------------------------------------------
     def _step(self) -> None:
-        lab = self.lab
-        m, d, bound = lab.model, lab.data, lab._bound
+        p = self.plant
+        m, d, bound = p.model, p.data, p.rope
         if self.j % self._drag_every == 0:
-            lab._drag.apply(d)
-        lab._bend.apply(d)  # adds to the drag; every step (it is solved at the step's end)
+            p.drag.apply(d)
+        p.bend.apply(d)  # adds to the drag; every step (it is solved at the step's end)
         mujoco.mj_step(m, d)
         self.j += 1
         if self.j >= self._vert.shape[0]:  # room for this sample and the last one
@@ -199,24 +250,24 @@ class TrialSession:
 
     def _advance(self, target: np.ndarray) -> None:
         """One tick: measure, send ``target`` (or the brake's hold), run the substeps."""
-        lab = self.lab
-        m, d = lab.model, lab.data
+        p = self.plant
+        m, d = p.model, p.data
         i = self.n_ticks
         if self._bar is not None and i % 25 == 0:
             self._bar.n = min(round(i * self.dt, 2), self._bar.total)
             self._bar.refresh()
         mujoco.mj_kinematics(m, d)  # fingertip pose of the current joint angles
-        q_meas = d.qpos[lab._qadr]
+        q_meas = d.qpos[p.qadr]
         self._q_meas.append(q_meas)
-        self._tip_pos.append(d.site_xpos[lab._tip_site].copy())
+        self._tip_pos.append(d.site_xpos[p.tip_site].copy())
         quat = np.empty(4)
-        mujoco.mju_mat2Quat(quat, d.site_xmat[lab._tip_site])
+        mujoco.mju_mat2Quat(quat, d.site_xmat[p.tip_site])
         self._tip_quat.append(quat)
         if self._brake_at == i:
             self._hold = q_meas.copy()  # brake: hold where the arm is
         sent = self._hold if self._hold is not None else target
         self._q_sent.append(sent)
-        d.ctrl[lab._act] = sent
+        d.ctrl[p.act] = sent
         for _ in range(self.substeps):
             self._step()
         self.n_ticks += 1
@@ -258,37 +309,36 @@ class TrialSession:
     # ------------------------------------------------------------------------------------
     def observe(self) -> TickObservation:
         """What the lab measures now (the newest capture frame: module docstring)."""
-        lab = self.lab
-        d = lab.data
+        p, rate = self.plant, self.params.mocap.rate_hz
+        d = p.data
         k = 0
         if self.j > 0:  # frames up to the newest stored sample, time (j - 1) * sim_dt
-            k = len(mocap.sample_times((self.j - 1) * self.sim_dt, lab.params.mocap.rate_hz)) - 1
+            k = len(mocap.sample_times((self.j - 1) * self.sim_dt, rate)) - 1
         if self._frame is None or self._frame[0] != k:
             self._frame = (k, self._capture_frame(k))
         return TickObservation(
             tick=self.n_ticks,
             t=self.n_ticks * self.dt,
-            q=d.qpos[lab._qadr].copy(),
-            qd=d.qvel[lab._dadr].copy(),
+            q=d.qpos[p.qadr].copy(),
+            qd=d.qvel[p.dadr].copy(),
             markers=self._frame[1].copy(),
-            t_marker=k / lab.params.mocap.rate_hz,
+            t_marker=k / rate,
             fault=self.fault,
         )
 
     def _capture_frame(self, k: int) -> np.ndarray:
         """Capture frame ``k`` (11, 3) [m] as the record will hold it (module docstring)."""
-        lab = self.lab
-        mp = lab.params.mocap
+        p, mp = self.plant, self.params.mocap
         t_k = np.array([k / mp.rate_hz])  # the frame's time as mocap.sample_times gives it
         if self.j == 0:  # before the first step: the reset state, at t = 0
-            verts = lab._bound.vertex_positions(lab.model, lab.data)[None]
+            verts = p.rope.vertex_positions(p.model, p.data)[None]
             t_hist = np.zeros(1)
         else:  # the stored samples around t_k (the pair the whole history would interpolate)
             j0 = math.floor(t_k[0] / self.sim_dt)
             lo, hi = max(0, j0 - 2), min(self.j, j0 + 3)
             verts = self._vert[lo:hi]
             t_hist = self.sim_dt * np.arange(lo, hi)
-        true = mocap.resample_markers(t_hist, lab._bound.markers_from_vertices(verts), t_k)
+        true = mocap.resample_markers(t_hist, p.rope.markers_from_vertices(verts), t_k)
         noisy = true + self._noise_rows(k + 1, true.shape[1:])[k] if mp.noise_std > 0 else true
         rng = self._obs_rng if mp.loss_mode == "random" else self.rng  # the latter: no draw
         return mocap.apply_tracking_loss(t_k, noisy, self.first_contact, mp, rng)[0]
@@ -298,7 +348,7 @@ class TrialSession:
         order from the trial's generator (a draw in pieces equals one draw of the whole)."""
         have = len(self._noise)
         if n > have:
-            std = self.lab.params.mocap.noise_std
+            std = self.params.mocap.noise_std
             more = self.rng.normal(0.0, std, size=(n - have, *shape))
             self._noise = more if have == 0 else np.concatenate([self._noise, more])
         return self._noise[:n]
@@ -316,9 +366,9 @@ class TrialSession:
         if self.n_sent == 0:
             raise CommandError("no target was sent; tick() at least once before finish()")
         self._finished = True
-        lab = self.lab
-        m, d, bound = lab.model, lab.data, lab._bound
-        params, tick, sim_dt = lab.params, self.dt, self.sim_dt
+        p = self.plant
+        m, d, bound = p.model, p.data, p.rope
+        params, tick, sim_dt = self.params, self.dt, self.sim_dt
         rule = params.settle_rule
         n_cmd = self.plan.n if self.plan is not None else self.n_sent
         if self._stream is not None and self.fault is None:
@@ -336,7 +386,7 @@ class TrialSession:
             n_max = n_cmd + math.ceil(rule.max_s / tick - 1e-9)
 
             def verdict() -> str:
-                axis = d.site_xmat[lab._tip_site].reshape(3, 3)[:, 2]
+                axis = d.site_xmat[p.tip_site].reshape(3, 3)[:, 2]
                 return tube_knot(d.qpos[bound.vert_qpos] + bound.body_pos0, axis)
 
             def settled() -> bool:
@@ -351,9 +401,9 @@ class TrialSession:
         return self._record(monitor)
 
     def _record(self, monitor: SettleMonitor) -> TrialRecord:
-        lab = self.lab
-        m, d, bound = lab.model, lab.data, lab._bound
-        params, sim_dt, rule, fault = lab.params, self.sim_dt, lab.params.settle_rule, self.fault
+        p = self.plant
+        m, d, bound = p.model, p.data, p.rope
+        params, sim_dt, rule, fault = self.params, self.sim_dt, self.params.settle_rule, self.fault
         n_ticks = self.n_ticks
         n_steps = self.j
         q_meas, tip_pos, tip_quat, q_sent = (
@@ -405,7 +455,7 @@ class TrialSession:
             markers=markers,
             fingertip_pos=tip_pos,
             fingertip_quat=tip_quat,
-            base_pose=lab.base_pose,
+            base_pose=p.base_pose,
             fault=None if fault is None else fault.reason,
             fault_time=None if fault is None else float(t_joint[fault.tick]),
             first_contact_time=self.first_contact,
@@ -413,7 +463,7 @@ class TrialSession:
             verdict=verdict,
             metadata={
                 "cell": "sim",
-                **rope_record(lab.rope_params, params.ropes),
+                **rope_record(p.rope_params, params.ropes),
                 "seed": params.seed,
                 "trial_index": self.trial_index,
                 "start_delay_s": self.delay,

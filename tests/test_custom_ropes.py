@@ -215,7 +215,7 @@ def test_sim_trial_with_a_custom_rope(ropes_file, tmp_path):
     assert lab.rope_params == load_custom_ropes(ropes_file)["my cord"]
     assert lab.rope.n_vert == 31
     # the cd override reaches the drag
-    assert params.aero.cd is None and lab._drag.params.cd == 1.5
+    assert params.aero.cd is None and lab.plant.drag.params.cd == 1.5
     rec = lab.run(swing_command(duration=0.3, amplitude=np.full(7, 0.1)))
     assert rec.fault is None and rec.knot is not None
     meta = rec.metadata
@@ -318,7 +318,7 @@ def test_gym_env_accepts_a_rope_name(ropes_file):
     from flyknot_app.gym_env import FlyknotEnv
 
     env = FlyknotEnv(rope="my cord", ropes=str(ropes_file), settle_s=0.1)
-    assert env._lab.rope_params.name == "my cord" and env._lab._drag.params.cd == 1.5
+    assert env._lab.rope_params.name == "my cord" and env._lab.plant.drag.params.cd == 1.5
 
 
 def test_demo_replay_on_a_custom_rope(ropes_file, tmp_path, capsys):

@@ -19,7 +19,7 @@ def lab():
 
 def test_settled_start_is_within_the_rest_criterion(lab):
     crit = RestCriterion()
-    bound = lab._bound
+    bound = lab.plant.rope
     for i in range(12):
         lab.reset(Q0, lab._rng(i))
         x = bound.vertex_positions(lab.model, lab.data)
@@ -31,7 +31,7 @@ def test_settled_start_is_within_the_rest_criterion(lab):
 
 def test_old_sway_is_a_robustness_option():
     lab = SimLab(LabParams(rope=1, variation=VariationParams(sway_deg=5.0, rest_start=False)))
-    bound = lab._bound
+    bound = lab.plant.rope
     tilts = []
     for i in range(6):
         lab.reset(Q0, lab._rng(i))
@@ -66,7 +66,7 @@ def test_bend_friction_is_a_lab_switch():
 
     on = SimLab(LabParams(rope=1, settle_s=0.2, bend_friction=BendFrictionParams(0.02)))
     off = SimLab(LabParams(rope=1, settle_s=0.2))
-    assert on._bend.moment == 0.02 and off._bend.moment == 0.0
+    assert on.plant.bend.moment == 0.02 and off.plant.bend.moment == 0.0
     cmd = JointCommand(np.tile(Q0, (50, 1)))
     a, b = on.run(cmd), off.run(cmd)
     assert not np.array_equal(a.truth["centreline"], b.truth["centreline"])
@@ -84,7 +84,7 @@ def test_twist_and_torsional_friction_switches():
     from flyknot_sim.rope_table import get_rope
 
     lab = SimLab(LabParams(rope=1, settle_s=0.1, twist=True))
-    assert len(lab._bound.twist_dof) == get_rope(1).segments
+    assert len(lab.plant.rope.twist_dof) == get_rope(1).segments
     rec = lab.run(JointCommand(np.tile(Q0, (20, 1))))
     assert rec.knot == "unknot"
     r4 = dataclasses.replace(get_rope(1), condim=4)

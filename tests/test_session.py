@@ -247,3 +247,19 @@ def test_observed_frames_lose_tracking_as_the_record_does(monkeypatch, mode):
             np.testing.assert_allclose(m[ok], rec.markers[k][ok], rtol=0, atol=1e-12)
     lost = np.array([np.isnan(frames[k][:, 0]).mean() for k in late])
     assert lost.min() == 1.0 if mode == "all" else 0.25 < lost.mean() < 0.75
+
+
+def test_the_session_holds_the_plant_not_the_lab():
+    """The lab opens a trial (index, variation, reset) and hands over one frozen plant; the
+    session holds no reference to the lab and changes nothing of it but through the plant."""
+    from flyknot_sim.session import Plant
+
+    lab = SimLab(LabParams(rope=1, settle_s=0.1))
+    session = lab.start(np.zeros(7))
+    assert lab.trial_index == 1 and session.trial_index == 0
+    assert isinstance(session.plant, Plant) and session.plant is lab.plant
+    assert not any(isinstance(v, SimLab) for v in vars(session).values())
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        lab.plant.tip_site = 0
+    with pytest.raises(ValueError, match="read-only"):
+        lab.plant.qadr[0] = 0

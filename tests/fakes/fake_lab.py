@@ -93,13 +93,14 @@ class LabScene:
     def __init__(self, rope: int = 1, seed: int = 0, q0=HOME, epoch_s: float = 0.0):
         self.lab = SimLab(LabParams(rope=rope, seed=seed))
         m, d = self.lab.model, self.lab.data
-        self.m, self.d, self.rope = m, d, self.lab._bound
+        self.m, self.d, self.rope = m, d, self.lab.plant.rope
         self.dt = float(m.opt.timestep)
         self.chunk = max(1, round(CHUNK_S / self.dt))
         self.rng = np.random.default_rng([seed, 12345])
         self.lab.reset(np.asarray(q0, dtype=float), self.rng)
-        self.qadr, self.dadr, self.act = self.lab._qadr, self.lab._dadr, self.lab._act
-        self.site = self.lab._tip_site
+        plant = self.lab.plant
+        self.qadr, self.dadr, self.act = plant.qadr, plant.dadr, plant.act
+        self.site = self.lab.plant.tip_site
         self.end_dof = self.rope.vert_dof[-1]
         self.drag_every = max(1, round(DRAG_HOLD_S / self.dt))
         self.epoch_s = float(epoch_s)
@@ -221,7 +222,7 @@ class LabScene:
 
     def _loop(self) -> None:
         m, d, rope, dt = self.m, self.d, self.rope, self.dt
-        drag, bend = self.lab._drag, self.lab._bend
+        drag, bend = self.lab.plant.drag, self.lab.plant.bend
         adr, nv = rope.vert_adr, rope.n_vert
         while self._run.is_set():
             now = time.perf_counter()
