@@ -141,6 +141,11 @@ class InverseModelWeights:
         for f in fields(self):
             check_nonnegative(f.name, getattr(self, f.name))
 
+    def critical_diagonal(self, n_rows: int) -> np.ndarray:
+        """Diagonal of Q = diag(w_crit_pos I, w_crit_vel I), (n_rows,): positions first."""
+        half = n_rows // 2
+        return np.concatenate([np.full(half, self.w_crit_pos), np.full(half, self.w_crit_vel)])
+
     def follow_weights(self, is_tc: bool) -> np.ndarray:
         """Diagonal of W(t), (9,): ``(w_p I3, w_R I3, w_v I3)`` at t_c or after it."""
         if is_tc:
@@ -359,10 +364,7 @@ def build_inverse_qp(
     g = np.zeros(N_VARS)
     const = 0.0
     for M, err, scale in terms:
-        half = M.shape[0] // 2
-        Qd = scale * np.concatenate(
-            [np.full(half, weights.w_crit_pos), np.full(half, weights.w_crit_vel)]
-        )
+        Qd = scale * weights.critical_diagonal(M.shape[0])
         H += M.T @ (Qd[:, None] * M)
         g -= M.T @ (Qd * err)
         const += float(err @ (Qd * err))

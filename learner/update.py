@@ -236,8 +236,7 @@ def _timed(timings: dict[str, float], key: str) -> Iterator[None]:
 
 def _q_weights(weights: InverseModelWeights) -> np.ndarray:
     """Diagonal of Q = diag(w_crit_pos I_33, w_crit_vel I_33), (66,)."""
-    half = STATE_DIM // 2
-    return np.concatenate([np.full(half, weights.w_crit_pos), np.full(half, weights.w_crit_vel)])
+    return weights.critical_diagonal(STATE_DIM)
 
 
 def _project_base(dk: np.ndarray, base_update: str) -> np.ndarray:

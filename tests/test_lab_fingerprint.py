@@ -3,7 +3,7 @@
 ``tests/data/lab_fingerprints.json`` holds SHA-256 digests of the records of a fixed set of
 trials (the robot demonstration's seed command on ropes 1 and 7, lab seed 3, two trials each,
 0.3 s settle): every array the record carries, the truth, the fault, the first contact and
-the verdict. A change of the lab's physics or variation changes them on purpose; then
+the verdict; and the exact critical-point costs of a short learning run on them. A change of the lab's physics or variation changes them on purpose; then
 regenerate the file with ``python tests/test_lab_fingerprint.py > tests/data/lab_fingerprints.json``
 and say why in the commit.
 """
@@ -47,9 +47,38 @@ def fingerprints() -> dict[str, list[str]]:
     return out
 
 
+def learning_costs() -> list[str]:
+    """The critical-point costs (exact, as hex) of 3 ILC trials on rope 1 from the robot
+    demonstration's seed command (the scenarios' learner settings, lab seed 3)."""
+    from flyknot_app.runner import prepare_target
+    from learner.ilc import ILCParams, learn
+    from learner.inverse_qp import InverseModelWeights
+    from learner.kinematics import RobotModel
+    from learner.rope_model import RopeModelParams
+
+    rope_model = RopeModelParams(stiffness=100.0, damping=0.5)
+    _, target = prepare_target("robot", rope_model.dt, (0.25, 0.0))
+    with np.load(ROOT / "assets" / "demos" / "seeds" / "robot_command.npz") as z:
+        knots0 = z["knots"]
+    params = ILCParams(
+        max_trials=3,
+        stop_at_success=False,
+        rope_model=rope_model,
+        gain=0.5,
+        weights=InverseModelWeights(w_control=5.0),
+    )
+    lab = SimLab(LabParams(rope=1, seed=3, settle_s=0.3))
+    res = learn(lab, target, knots0, RobotModel.from_mjcf(), params)
+    return [None if c is None else float(c).hex() for c in res.costs]
+
+
 def test_the_fixed_trials_are_bit_identical():
-    assert fingerprints() == json.loads(STORED.read_text())
+    assert fingerprints() == json.loads(STORED.read_text())["records"]
+
+
+def test_a_learning_runs_costs_are_bit_identical():
+    assert learning_costs() == json.loads(STORED.read_text())["learning_costs"]
 
 
 if __name__ == "__main__":
-    print(json.dumps(fingerprints(), indent=1))
+    print(json.dumps({"records": fingerprints(), "learning_costs": learning_costs()}, indent=1))
