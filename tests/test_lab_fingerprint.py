@@ -1,11 +1,12 @@
-"""The simulated lab's records, bit for bit: a refactor must not change a trial.
+"""The simulated lab's records and a learning run's costs, bit for bit.
 
 ``tests/data/lab_fingerprints.json`` holds SHA-256 digests of the records of a fixed set of
 trials (the robot demonstration's seed command on ropes 1 and 7, lab seed 3, two trials each,
-0.3 s settle): every array the record carries, the truth, the fault, the first contact and
-the verdict; and the exact critical-point costs of a short learning run on them. A change of the lab's physics or variation changes them on purpose; then
-regenerate the file with ``python tests/test_lab_fingerprint.py > tests/data/lab_fingerprints.json``
-and say why in the commit.
+0.3 s settle: every array the record carries, the truth, the fault, the first contact and
+the verdict) and the exact critical-point costs of a short learning run. A refactor must not
+change them; a change of the lab's physics or variation does, on purpose: then regenerate
+the file (``python tests/test_lab_fingerprint.py > tests/data/lab_fingerprints.json``) and
+say why in the commit.
 """
 
 from __future__ import annotations
