@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -283,7 +283,7 @@ def learn(
             summary, update = _assess(
                 record, command, target, robot, params, limits, k, attempt, judge=judge
             )
-            summary = TrialSummary(**{**asdict(summary), "wall_s": time.perf_counter() - t0})
+            summary = replace(summary, wall_s=time.perf_counter() - t0)
             last = (
                 not summary.tracking_lost
                 or summary.success
@@ -295,12 +295,10 @@ def learn(
                 back = guard.observe(summary, update, knots)
                 position = conf.observe(summary.success)
                 if position is not None:
-                    summary = TrialSummary(
-                        **{
-                            **asdict(summary),
-                            "confirm": position,
-                            "action": f"confirm {position}/{params.confirm[1]}: " + summary.action,
-                        }
+                    summary = replace(
+                        summary,
+                        confirm=position,
+                        action=f"confirm {position}/{params.confirm[1]}: " + summary.action,
                     )
                 if params.confirm is None and summary.success and params.stop_at_success:
                     stop = "success"
@@ -311,12 +309,9 @@ def learn(
                 elif back is not None:
                     conf.reset_if_failed()
                     group.clear()
-                    summary = TrialSummary(
-                        **{
-                            **asdict(summary),
-                            "action": "cost rose: back to the best command, step x0.5^"
-                            f"{guard.rejects}",
-                        }
+                    summary = replace(
+                        summary,
+                        action=f"cost rose: back to the best command, step x0.5^{guard.rejects}",
                     )
                     new = _safe_step(back[0], params.gain * back[1], target.T, robot, limits)
                 elif (
@@ -327,12 +322,10 @@ def learn(
                 ):
                     conf.reset_if_failed()
                     group.append(record)
-                    summary = TrialSummary(
-                        **{
-                            **asdict(summary),
-                            "average": len(group),
-                            "action": f"play {len(group)}/{params.average} of the command",
-                        }
+                    summary = replace(
+                        summary,
+                        average=len(group),
+                        action=f"play {len(group)}/{params.average} of the command",
                     )
                     new = knots  # the same command again, to average its error
                 else:
@@ -351,13 +344,11 @@ def learn(
                             extra_records=tuple(group),
                             judge=judge,
                         )
-                        summary = TrialSummary(
-                            **{
-                                **asdict(summary),
-                                "average": n_plays,
-                                "update_solved": update["solved"] if update else None,
-                                "action": f"update on the mean error of {n_plays} plays",
-                            }
+                        summary = replace(
+                            summary,
+                            average=n_plays,
+                            update_solved=update["solved"] if update else None,
+                            action=f"update on the mean error of {n_plays} plays",
                         )
                     group.clear()
                     new, stop = _next_knots(
