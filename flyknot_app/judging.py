@@ -235,12 +235,14 @@ def verdict_picture(record: TrialRecord, verdict: Verdict, out: Path, *, arm: bo
     with the verdict. Written as ``out`` (.png)."""
     import imageio.v2 as imageio
 
-    from flyknot_app.render import RenderParams, TrialRenderer, trial_end
+    from flyknot_app.render import RenderParams, TrialRenderer, rope_radius_of, trial_end
 
-    views = [RenderParams(close_up=True, show_arm=arm)]
+    radius = rope_radius_of(record) or RenderParams().rope_radius  # drawn at its true size
+    views = [RenderParams(close_up=True, show_arm=arm, rope_radius=radius)]
     if verdict.core is not None:
         first, last = verdict.core
-        views.append(RenderParams(show_arm=arm, focus=(max(first - 2, 0), last + 2)))
+        focus = (max(first - 2, 0), last + 2)
+        views.append(RenderParams(show_arm=arm, focus=focus, rope_radius=radius))
     images = []
     for k, params in enumerate(views):
         caption = verdict.describe() if k == 0 else "the knot's core"

@@ -86,6 +86,25 @@ def _gl_context(width: int, height: int):
     return GLContext(width, height)
 
 
+def rope_radius_of(record: TrialRecord) -> float | None:
+    """The rope's radius [m] from the record's metadata (a paper rope's id, or a custom
+    rope's parameters), or None when the record does not say."""
+    meta = record.metadata
+    custom = meta.get("rope_params")
+    if isinstance(custom, dict) and isinstance(custom.get("diameter"), (int, float)):
+        return 0.5 * float(custom["diameter"])
+    rope = meta.get("rope")
+    if isinstance(rope, int) and not isinstance(rope, bool):
+        from flyknot.errors import ConfigError as _Unknown
+        from flyknot_sim.rope_table import get_rope
+
+        try:
+            return 0.5 * get_rope(rope).diameter
+        except _Unknown:
+            return None
+    return None
+
+
 def check_output(out: str | Path) -> str:
     """The output type of ``out`` (``".png"`` or ``".mp4"``).
 
@@ -339,5 +358,6 @@ __all__ = [
     "check_output",
     "frame_times",
     "render_trial",
+    "rope_radius_of",
     "trial_end",
 ]

@@ -188,3 +188,15 @@ def test_a_learned_command_replays_from_its_run(tmp_path):
     np.testing.assert_array_equal(got.q, BezierCommand(knots, 0.9).joint_command().q)
     np.savez(tmp_path / "k.npz", knots=knots, T=0.9)
     np.testing.assert_array_equal(load_command(tmp_path / "k.npz").q, got.q)
+
+
+def test_pictures_draw_the_rope_at_its_true_size():
+    from flyknot_app.render import rope_radius_of
+
+    rec = _record("knot_rope1_repeat", "trefoil")
+    assert rope_radius_of(rec) == pytest.approx(0.0045)  # rope 1: 9 mm
+    custom = dataclasses.replace(
+        rec, metadata={"rope": "my cord", "rope_params": {"diameter": 0.006}}
+    )
+    assert rope_radius_of(custom) == pytest.approx(0.003)
+    assert rope_radius_of(dataclasses.replace(rec, metadata={})) is None
