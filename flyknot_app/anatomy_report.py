@@ -26,7 +26,12 @@ from flyknot_app.anatomy import (
     Diagnosis,
     diagnose,
 )
-from flyknot_app.anatomy_trials import TrialEvidence, TrialFile, find_trials, load_evidence
+from flyknot_app.anatomy_trials import (
+    TrialEvidence,
+    TrialFile,
+    load_evidence,
+    require_trials,
+)
 
 
 @dataclass(frozen=True)
@@ -130,13 +135,7 @@ def explain_directory(
     if t_c is not None:
         check_nonnegative("t_c", t_c)
     check_int("workers", workers, 1)
-    files = find_trials(directory)
-    if not files:
-        raise ConfigError(
-            "directory",
-            f"{str(directory)!r} holds no trial records (<stem>.json with <stem>.npz) "
-            "and no replay files (replay_*.npz)",
-        )
+    files = require_trials(directory)
     jobs = [(f, t_c, params, Path(directory).name) for f in files]
     if workers > 1 and len(files) > 1:
         from concurrent.futures import ProcessPoolExecutor

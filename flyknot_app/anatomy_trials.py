@@ -303,6 +303,22 @@ def find_trials(directory: str | Path) -> tuple[TrialFile, ...]:
     return tuple(sorted(found, key=lambda f: str(f.path)))
 
 
+def require_trials(directory: str | Path) -> tuple[TrialFile, ...]:
+    """:func:`find_trials`, refusing a directory that holds none.
+
+    Raises:
+        ConfigError: ``directory`` is missing, not a directory, or holds no trials.
+    """
+    files = find_trials(directory)
+    if not files:
+        raise ConfigError(
+            "directory",
+            f"{str(directory)!r} holds no trial records (<stem>.json with <stem>.npz) "
+            "and no replay files (replay_*.npz)",
+        )
+    return files
+
+
 def load_evidence(f: TrialFile) -> TrialEvidence:
     """The evidence of a trial found by :func:`find_trials` (named by its path).
 

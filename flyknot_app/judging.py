@@ -21,11 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from flyknot.errors import ConfigError, FlyknotError, RecordError
+from flyknot.errors import FlyknotError, RecordError
 from flyknot.judge import MarkerJudge
 from flyknot.record import TrialRecord
 from flyknot.verdict import KNOT, JudgeParams, Verdict, judge_centreline, tube_axis_of
-from flyknot_app.anatomy_trials import TrialFile, find_trials, load_replay
+from flyknot_app.anatomy_trials import TrialFile, find_trials, load_replay, require_trials
 
 FAULT = "fault"
 """The class column of a faulted trial (no verdict)."""
@@ -141,13 +141,7 @@ def rejudge_directory(
         ConfigError: ``directory`` is missing, not a directory, or holds no trials.
         RecordError: A trial file is malformed (the message names it).
     """
-    files = find_trials(directory)
-    if not files:
-        raise ConfigError(
-            "directory",
-            f"{str(directory)!r} holds no trial records (<stem>.json with <stem>.npz) "
-            "and no replay files (replay_*.npz)",
-        )
+    files = require_trials(directory)
     it = files if progress is None else progress(files)
     return [rejudge(f, keep_stored=keep_stored) for f in it]
 
