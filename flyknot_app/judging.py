@@ -235,6 +235,8 @@ def verdict_picture(record: TrialRecord, verdict: Verdict, out: Path, *, arm: bo
     views = [RenderParams(close_up=True, show_arm=arm, rope_radius=radius)]
     if verdict.core is not None:
         first, last = verdict.core
+        if "centreline" not in record.truth:  # the markers' polyline starts at the fingertip
+            first, last = first - 1, last - 1
         focus = (max(first - 2, 0), last + 2)
         views.append(RenderParams(show_arm=arm, focus=focus, rope_radius=radius))
     images = []

@@ -200,3 +200,17 @@ def test_pictures_draw_the_rope_at_its_true_size():
     )
     assert rope_radius_of(custom) == pytest.approx(0.003)
     assert rope_radius_of(dataclasses.replace(rec, metadata={})) is None
+
+
+def test_a_record_without_truth_is_judged_and_pictured_from_its_markers(tmp_path, capsys):
+    """A real lab's record: no simulator truth, the markers' last fully tracked frame."""
+    learning = tmp_path / "run" / "runs" / "rope1" / "learning"
+    rec = _record("knot_rope1_repeat", "trefoil")
+    dataclasses.replace(rec, truth={}, metadata={"cell": "xarm", "rope": 1}).save(
+        learning / "trial_0000_a0"
+    )
+    assert main(["judge", str(tmp_path / "run"), "--json", "--pictures"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    (trial,) = data["trials"]
+    assert trial["new"]["source"] == "markers"
+    assert len(data["pictures"]) == 1 and Path(data["pictures"][0]).is_file()
