@@ -145,7 +145,7 @@ def test_params_validation():
 
 def test_safe_step_halves_a_step_that_would_break_a_limit(robot):
     from flyknot.limits import JointLimits
-    from learner.ilc import _safe_step
+    from learner.ilc_step import safe_step as _safe_step
     from learner.limit_rows import sampled_violation
 
     knots = _knots(np.zeros(7))

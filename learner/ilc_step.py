@@ -1,0 +1,371 @@
+"""One step of the ILC loop: assess a trial, then decide what the loop does next.
+
+:func:`assess` turns a trial's record into its ledger line and the update (the critical-point
+error, the inverse-model QP: :func:`learner.update.ilc_update`). :func:`decide` takes that
+and the loop's state and returns the :class:`Step`: the line as written, the next command or
+why the loop stops. The stop rules' memory (:class:`Confirmation`, :class:`Safeguard`, the
+plays being averaged) lives in :class:`LoopState`; a resumed run rebuilds it by replaying its
+ledger through the same rules (:mod:`learner.ilc`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from flyknot.errors import RecordError
+from flyknot.judge import KnotJudge
+from flyknot.limits import JointLimits
+from flyknot.record import TrialRecord
+from learner.bezier import BezierCommand
+from learner.ilc_params import ILCParams
+from learner.inverse_qp import InverseModelWeights
+from learner.kinematics import RobotModel
+from learner.limit_rows import sampled_violation
+from learner.run_directory import TrialSummary
+from learner.target import DemoTarget
+from learner.update import ilc_update
+
+
+def critical_cost(err: np.ndarray, weights: InverseModelWeights) -> float:
+    """||err||_Q^2 with Q = diag(w_crit_pos I_33, w_crit_vel I_33); err (66,) [m, m/s]."""
+    err = np.asarray(err, dtype=float)
+    half = err.size // 2
+    return float(
+        weights.w_crit_pos * err[:half] @ err[:half] + weights.w_crit_vel * err[half:] @ err[half:]
+    )
+
+
+class Safeguard:
+    """The safeguarded update's state: the best measured trial and the rejections since."""
+
+    def __init__(self, on: bool):
+        self.on = on
+        self.best: tuple[float, np.ndarray, np.ndarray] | None = None
+        self.rejects = 0
+
+    def observe(
+        self, summary: TrialSummary, update: dict[str, Any] | None, knots: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Take a counted trial; return (best knots, shrunk best dkappa) when its cost rose
+        above the best's, else None (and it may be the new best)."""
+        if not self.on or summary.cost is None or not summary.update_solved or update is None:
+            return None
+        if self.best is None or summary.cost <= self.best[0]:
+            self.best = (summary.cost, np.array(knots, dtype=float), np.asarray(update["dkappa"]))
+            self.rejects = 0
+            return None
+        self.rejects += 1
+        _, best_knots, best_dk = self.best
+        return best_knots, best_dk * 0.5**self.rejects
+
+
+class Confirmation:
+    """The confirmed-success rule's state: the outcomes of the current command's repeats."""
+
+    def __init__(self, rule: tuple[int, int] | None):
+        self.rule = rule
+        self.streak: list[bool] = []
+
+    @property
+    def active(self) -> bool:
+        """A confirmation is under way (started, not yet decided)."""
+        return bool(self.streak) and self.outcome is None
+
+    @property
+    def outcome(self) -> str | None:
+        """``"confirmed"``, ``"failed"`` (k can no longer be reached, or n ran short) or None."""
+        if not self.streak or self.rule is None:
+            return None
+        k, n = self.rule
+        ties = sum(self.streak)
+        if ties >= k:
+            return "confirmed"
+        if ties + (n - len(self.streak)) < k:
+            return "failed"
+        return None
+
+    def observe(self, success: bool) -> int | None:
+        """Take a counted trial; return its position in the confirmation (None: not in one)."""
+        if self.rule is None:
+            return None
+        if self.active:
+            self.streak.append(bool(success))
+            return len(self.streak)
+        if success:
+            self.streak = [True]
+            return 1
+        return None
+
+    def reset_if_failed(self) -> None:
+        """Forget a confirmation that can no longer succeed."""
+        if self.outcome == "failed":
+            self.streak = []
+
+
+@dataclass
+class LoopState:
+    """Algorithm 1's state between trials.
+
+    Attributes:
+        k: The trial being played (0-based, counted trials).
+        knots: kappa_k, the command of trial k, (10, 8).
+        prev_knots: kappa_{k-1}, or None before the first update.
+        trials: Every attempt's ledger line so far.
+        conf: The confirmed-success rule's memory.
+        guard: The safeguard's memory.
+        group: Earlier plays of the current command (averaging).
+        stop: Why the loop stops, once it does.
+    """
+
+    k: int
+    knots: np.ndarray
+    prev_knots: np.ndarray | None
+    trials: list[TrialSummary]
+    conf: Confirmation
+    guard: Safeguard
+    group: list[TrialRecord] = field(default_factory=list)
+    stop: str | None = None
+
+    @classmethod
+    def initial(cls, knots0: np.ndarray, params: ILCParams) -> LoopState:
+        """Before the first trial: kappa_0 and empty memories."""
+        knots = np.asarray(knots0, dtype=float)
+        return cls(0, knots, None, [], Confirmation(params.confirm), Safeguard(params.safeguard))
+
+    def attempts(self, params: ILCParams) -> list[int]:
+        """The attempts of trial k still to play (a resumed run skips the ledger's)."""
+        done = {s.attempt for s in self.trials if s.trial == self.k}
+        return [a for a in range(params.tracking_retries + 1) if a not in done]
+
+    def advance(self, step: Step) -> None:
+        """After trial k's last attempt: stop, or kappa_{k+1} = the step's command."""
+        if step.stop is not None:
+            self.stop = step.stop
+        else:
+            self.prev_knots, self.knots = self.knots, step.new
+            self.k += 1
+
+
+@dataclass(frozen=True)
+class Step:
+    """What the loop does after one attempt.
+
+    Attributes:
+        summary: The attempt's ledger line, as written.
+        update: The update computed from it (None: none), as written.
+        new: The next trial's command (None: none yet, or the loop stops).
+        stop: Why the loop stops now, or None.
+        last: Whether this was the trial's last attempt.
+    """
+
+    summary: TrialSummary
+    update: dict[str, Any] | None
+    new: np.ndarray | None
+    stop: str | None
+    last: bool
+
+
+@dataclass(frozen=True)
+class Context:
+    """What every step is decided against: the target, the learner's models and settings."""
+
+    target: DemoTarget
+    robot: RobotModel
+    params: ILCParams
+    limits: JointLimits
+    judge: KnotJudge
+
+
+def decide(
+    state: LoopState,
+    summary: TrialSummary,
+    update: dict[str, Any] | None,
+    record: TrialRecord,
+    command: BezierCommand,
+    ctx: Context,
+) -> Step:
+    """The loop's next move after one attempt of trial ``state.k`` (module docstring).
+
+    In order: a tracking loss with retries left repeats the trial; a knot stops the paper's
+    loop; a confirmation in progress replays the command; a safeguard rejection returns to
+    the best command with a shrunk step; an averaging group still filling replays the
+    command; otherwise the update (on the group's mean error when averaging) gives
+    kappa_{k+1} (:func:`next_knots`). Updates the stop rules' memory in ``state``.
+    """
+    params = ctx.params
+    last = (
+        not summary.tracking_lost
+        or summary.success
+        or summary.fault is not None
+        or summary.attempt == params.tracking_retries
+    )
+    if not last:
+        return Step(summary, update, None, None, False)
+    conf, guard, group, knots = state.conf, state.guard, state.group, state.knots
+    back = guard.observe(summary, update, knots)
+    position = conf.observe(summary.success)
+    if position is not None:
+        action = f"confirm {position}/{params.confirm[1]}: " + summary.action
+        summary = replace(summary, confirm=position, action=action)
+    if params.confirm is None and summary.success and params.stop_at_success:
+        return Step(summary, update, None, "success", True)
+    if conf.outcome == "confirmed":
+        return Step(summary, update, None, "confirmed", True)
+    if conf.active:
+        return Step(summary, update, knots, None, True)  # the same command, to confirm it
+    conf.reset_if_failed()
+    if back is not None:
+        group.clear()
+        action = f"cost rose: back to the best command, step x0.5^{guard.rejects}"
+        new = safe_step(back[0], params.gain * back[1], ctx.target.T, ctx.robot, ctx.limits)
+        return Step(replace(summary, action=action), update, new, None, True)
+    measured = summary.fault is None and not summary.tracking_lost
+    if params.average > 1 and len(group) + 1 < params.average and measured:
+        group.append(record)
+        action = f"play {len(group)}/{params.average} of the command"
+        return Step(replace(summary, average=len(group), action=action), update, knots, None, True)
+    if group and measured:  # the update on the mean error of the group's plays
+        n_plays = len(group) + 1
+        _, update = assess(record, command, ctx, state.k, summary.attempt, tuple(group))
+        summary = replace(
+            summary,
+            average=n_plays,
+            update_solved=update["solved"] if update else None,
+            action=f"update on the mean error of {n_plays} plays",
+        )
+    group.clear()
+    new, stop = next_knots(summary, update, knots, state.prev_knots, ctx)
+    return Step(summary, update, new, stop, True)
+
+
+def next_knots(
+    summary: TrialSummary,
+    update: dict | None,
+    knots: np.ndarray,
+    prev_knots: np.ndarray | None,
+    ctx: Context,
+) -> tuple[np.ndarray | None, str | None]:
+    """The next trial's knots after ``summary``, or (None, why the loop stops).
+
+    A fault or lost tracking halves the step back toward the previous command (stops if there
+    is none); a solved update takes kappa - gain dkappa (limit-safe); a failed QP keeps the
+    command.
+    """
+    if summary.fault is not None or summary.tracking_lost:
+        if prev_knots is None:
+            why = "initial command faults" if summary.fault else "tracking lost before t_c"
+            return None, why
+        return prev_knots + 0.5 * (knots - prev_knots), None
+    if summary.update_solved:
+        dk = ctx.params.gain * np.asarray(update["dkappa"])
+        return safe_step(knots, dk, ctx.target.T, ctx.robot, ctx.limits), None
+    return knots, None  # failed QP: command unchanged (reported in the ledger)
+
+
+MAX_HALVINGS = 4
+
+
+def safe_step(
+    knots: np.ndarray, dkappa: np.ndarray, T: float, robot: RobotModel, limits: JointLimits
+) -> np.ndarray:
+    """kappa - alpha dkappa with the largest alpha in 1, 1/2, ..., 1/16 whose command keeps
+    every limit on its 250 Hz samples (torque by the robot model's inverse dynamics).
+
+    The QP holds the limits only to first order (torque is linearised); a step that breaks a
+    limit would fault the robot and teach nothing. If even 1/16 breaks one, that step is
+    taken anyway and the lab's controller decides.
+    """
+    t = BezierCommand(knots, T).sample_times()
+    alpha = 1.0
+    for _ in range(MAX_HALVINGS + 1):
+        new = knots - alpha * dkappa
+        if sampled_violation(new, T, t, robot, limits) <= 1e-9:
+            return new
+        alpha *= 0.5
+    return knots - 2 * alpha * dkappa
+
+
+def assess(
+    record: TrialRecord,
+    command: BezierCommand,
+    ctx: Context,
+    k: int,
+    attempt: int,
+    extra_records: tuple[TrialRecord, ...] = (),
+) -> tuple[TrialSummary, dict[str, Any] | None]:
+    """Trial ``k``'s ledger line and update: the judge's verdict, then (no fault) the
+    critical-point error and the inverse-model QP (on the mean error with ``extra_records``,
+    earlier plays of the same command); lost tracking gives no update."""
+    target, robot, params, limits = ctx.target, ctx.robot, ctx.params, ctx.limits
+    verdict = ctx.judge(record)
+    base = dict(
+        trial=k,
+        attempt=attempt,
+        fault=record.fault,
+        knot=None if verdict is None else verdict.knot,
+        verdict=None if verdict is None else verdict.to_json(),
+        wall_s=0.0,
+    )
+    if record.fault is not None:
+        return TrialSummary(
+            **base,
+            tracking_lost=False,
+            cost=None,
+            update_solved=None,
+            update_status=None,
+            predicted_cost_after=None,
+            action="fault: step halfway back",
+        ), None
+    try:
+        res = ilc_update(
+            record,
+            command,
+            target,
+            robot,
+            params.rope_model,
+            params.update_settings(limits),
+            extra_records=extra_records,
+        )
+    except RecordError as e:
+        return TrialSummary(
+            **base,
+            tracking_lost=True,
+            cost=None,
+            update_solved=None,
+            update_status=f"no error: {e}",
+            predicted_cost_after=None,
+            action="repeat (tracking lost before t_c)",
+        ), None
+    update = {
+        "trial": k,
+        "solved": res.solved,
+        "status": res.qp_status,
+        "cost_before": res.cost_before,
+        "predicted_cost_after": res.predicted_cost_after,
+        "err": res.err.tolist(),
+        "dkappa": res.dkappa.tolist(),
+        "new_knots": res.new_knots.tolist(),
+        "timings": dict(res.timings),
+        "limit_rounds": res.limit_rounds,
+        "t_eff": res.t_eff,
+        "sampled_violation": res.sampled_violation,
+    }
+    cost = critical_cost(res.err, params.weights) if np.all(np.isfinite(res.err)) else None
+    return TrialSummary(
+        **base,
+        tracking_lost=False,
+        cost=cost,
+        update_solved=res.solved,
+        update_status=res.qp_status,
+        predicted_cost_after=res.predicted_cost_after if res.solved else None,
+        t_eff=res.t_eff,
+        action=("update" if res.solved else "QP failed: command unchanged")
+        + (
+            ""
+            if abs(res.t_eff - target.t_c) < 1e-9
+            else f" (critical point at {res.t_eff:.3f} s: tracking lost before t_c)"
+        ),
+    ), update
