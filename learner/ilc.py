@@ -175,7 +175,9 @@ def _restore(rd: RunDirectory, state: LoopState, params: ILCParams) -> LoopState
             state.group.clear()
         state.conf.observe(s.success)
         if params.safeguard:
-            state.guard.observe(s, rd.load_update(s.trial), rd.load_knots(s.trial))
+            saved = rd.load_update(s.trial)
+            dkappa = None if saved is None else np.asarray(saved["dkappa"])
+            state.guard.observe(s, dkappa, rd.load_knots(s.trial))
         if state.conf.outcome != "confirmed":
             state.conf.reset_if_failed()
     if not done:

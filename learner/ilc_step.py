@@ -11,7 +11,6 @@ ledger through the same rules (:mod:`learner.ilc`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any
 
 import numpy as np
 
@@ -26,7 +25,7 @@ from learner.kinematics import RobotModel
 from learner.limit_rows import sampled_violation
 from learner.run_directory import TrialSummary
 from learner.target import DemoTarget
-from learner.update import ilc_update
+from learner.update import UpdateResult, ilc_update
 
 
 def critical_cost(err: np.ndarray, weights: InverseModelWeights) -> float:
@@ -47,14 +46,14 @@ class Safeguard:
         self.rejects = 0
 
     def observe(
-        self, summary: TrialSummary, update: dict[str, Any] | None, knots: np.ndarray
+        self, summary: TrialSummary, dkappa: np.ndarray | None, knots: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray] | None:
         """Take a counted trial; return (best knots, shrunk best dkappa) when its cost rose
         above the best's, else None (and it may be the new best)."""
-        if not self.on or summary.cost is None or not summary.update_solved or update is None:
+        if not self.on or summary.cost is None or not summary.update_solved or dkappa is None:
             return None
         if self.best is None or summary.cost <= self.best[0]:
-            self.best = (summary.cost, np.array(knots, dtype=float), np.asarray(update["dkappa"]))
+            self.best = (summary.cost, np.array(knots, dtype=float), np.asarray(dkappa))
             self.rejects = 0
             return None
         self.rejects += 1
@@ -162,7 +161,7 @@ class Step:
     """
 
     summary: TrialSummary
-    update: dict[str, Any] | None
+    update: UpdateResult | None
     new: np.ndarray | None
     stop: str | None
     last: bool
@@ -182,7 +181,7 @@ class Context:
 def decide(
     state: LoopState,
     summary: TrialSummary,
-    update: dict[str, Any] | None,
+    update: UpdateResult | None,
     record: TrialRecord,
     command: BezierCommand,
     ctx: Context,
@@ -205,7 +204,7 @@ def decide(
     if not last:
         return Step(summary, update, None, None, False)
     conf, guard, group, knots = state.conf, state.guard, state.group, state.knots
-    back = guard.observe(summary, update, knots)
+    back = guard.observe(summary, None if update is None else update.dkappa, knots)
     position = conf.observe(summary.success)
     if position is not None:
         action = f"confirm {position}/{params.confirm[1]}: " + summary.action
@@ -233,7 +232,7 @@ def decide(
         summary = replace(
             summary,
             average=n_plays,
-            update_solved=update["solved"] if update else None,
+            update_solved=update.solved if update else None,
             action=f"update on the mean error of {n_plays} plays",
         )
     group.clear()
@@ -243,7 +242,7 @@ def decide(
 
 def next_knots(
     summary: TrialSummary,
-    update: dict | None,
+    update: UpdateResult | None,
     knots: np.ndarray,
     prev_knots: np.ndarray | None,
     ctx: Context,
@@ -260,7 +259,7 @@ def next_knots(
             return None, why
         return prev_knots + 0.5 * (knots - prev_knots), None
     if summary.update_solved:
-        dk = ctx.params.gain * np.asarray(update["dkappa"])
+        dk = ctx.params.gain * np.asarray(update.dkappa)
         return safe_step(knots, dk, ctx.target.T, ctx.robot, ctx.limits), None
     return knots, None  # failed QP: command unchanged (reported in the ledger)
 
@@ -295,7 +294,7 @@ def assess(
     k: int,
     attempt: int,
     extra_records: tuple[TrialRecord, ...] = (),
-) -> tuple[TrialSummary, dict[str, Any] | None]:
+) -> tuple[TrialSummary, UpdateResult | None]:
     """Trial ``k``'s ledger line and update: the judge's verdict, then (no fault) the
     critical-point error and the inverse-model QP (on the mean error with ``extra_records``,
     earlier plays of the same command); lost tracking gives no update."""
@@ -339,20 +338,6 @@ def assess(
             predicted_cost_after=None,
             action="repeat (tracking lost before t_c)",
         ), None
-    update = {
-        "trial": k,
-        "solved": res.solved,
-        "status": res.qp_status,
-        "cost_before": res.cost_before,
-        "predicted_cost_after": res.predicted_cost_after,
-        "err": res.err.tolist(),
-        "dkappa": res.dkappa.tolist(),
-        "new_knots": res.new_knots.tolist(),
-        "timings": dict(res.timings),
-        "limit_rounds": res.limit_rounds,
-        "t_eff": res.t_eff,
-        "sampled_violation": res.sampled_violation,
-    }
     cost = critical_cost(res.err, params.weights) if np.all(np.isfinite(res.err)) else None
     return TrialSummary(
         **base,
@@ -368,4 +353,4 @@ def assess(
             if abs(res.t_eff - target.t_c) < 1e-9
             else f" (critical point at {res.t_eff:.3f} s: tracking lost before t_c)"
         ),
-    ), update
+    ), res

@@ -10,12 +10,15 @@ import json
 import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from flyknot.errors import RecordError
 from flyknot.record import TrialRecord, atomic_write_text
+
+if TYPE_CHECKING:
+    from learner.update import UpdateResult
 
 
 @dataclass(frozen=True)
@@ -122,8 +125,23 @@ class RunDirectory:
                 raise RecordError(f"{str(p)!r} line {n} is not a ledger line ({e})") from e
         return out
 
-    def save_update(self, k: int, info: dict[str, Any]) -> None:
-        """Save the update computed after trial ``k`` (atomically)."""
+    def save_update(self, k: int, update: UpdateResult) -> None:
+        """Save the update computed after trial ``k`` (atomically): the one place an update
+        becomes plain data (``update_0000.json``: docs/run-directory.md)."""
+        info = {
+            "trial": k,
+            "solved": update.solved,
+            "status": update.qp_status,
+            "cost_before": update.cost_before,
+            "predicted_cost_after": update.predicted_cost_after,
+            "err": update.err.tolist(),
+            "dkappa": update.dkappa.tolist(),
+            "new_knots": update.new_knots.tolist(),
+            "timings": dict(update.timings),
+            "limit_rounds": update.limit_rounds,
+            "t_eff": update.t_eff,
+            "sampled_violation": update.sampled_violation,
+        }
         atomic_write_text(self.path / f"update_{k:04d}.json", json.dumps(info, indent=2))
 
     def load_update(self, k: int) -> dict[str, Any] | None:
