@@ -333,9 +333,11 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="A-B",
         help="run every run once per lab seed (A-B or A,B,...); runs are named NAME-seedS",
     )
+    from flyknot_app.runner import EXECUTORS
+
     r.add_argument(
         "--executor",
-        choices=["process", "ray"],
+        choices=EXECUTORS,
         default="process",
         help="process pool (default) or Ray tasks (pip install -e '.[ray]')",
     )

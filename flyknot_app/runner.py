@@ -140,9 +140,7 @@ def initial_knots(
 
 
 def _rope_model(spec: RunSpec):
-    from learner.rope_model import RopeModelParams
-
-    return RopeModelParams(**spec.rope_model)
+    return spec.ilc_params().rope_model
 
 
 def execute_run(
@@ -177,8 +175,7 @@ def _execute_on(
     from tqdm import tqdm
 
     from learner.bezier import BezierCommand
-    from learner.ilc import ILCParams, learn
-    from learner.inverse_qp import InverseModelWeights
+    from learner.ilc import learn
     from learner.kinematics import RobotModel
 
     run_dir = out_dir / "runs" / spec.name
@@ -193,19 +190,7 @@ def _execute_on(
         knots0, ig_info = initial_knots(
             spec.demo, out_dir, robot, rope_model.dt, float(lab.base_pose[2]), spec.window
         )
-    params = ILCParams(
-        max_trials=max(1, spec.max_trials),
-        stop_at_success=spec.stop_at_success,
-        objective=spec.objective,
-        backend=spec.backend,
-        rope_model=rope_model,
-        gain=spec.gain,
-        weights=InverseModelWeights(**spec.weights),
-        trust_region=spec.trust_region,
-        confirm=spec.confirm,
-        safeguard=spec.safeguard,
-        average=spec.average,
-    )
+    params = spec.ilc_params()
     bar = tqdm(
         total=params.max_trials,
         desc=spec.name,

@@ -40,25 +40,17 @@ from pathlib import Path
 from typing import Any
 
 from flyknot.constants import FOLLOW_THROUGH_S, PATH_FRAC, SCENARIOS_DIR
-from flyknot.errors import ConfigError, check_choice, check_nonnegative, check_positive
+from flyknot.errors import ConfigError, check_choice, check_nonnegative
 from flyknot_app.cells import cell_kind, cell_spec
-from learner.ilc import parse_confirm
-from learner.update import OBJECTIVES
+from learner.ilc import ILCParams
+from learner.inverse_qp import InverseModelWeights
+from learner.rope_model import RopeModelParams
 
 KINDS = ("learn", "track", "transfer", "sensitivity", "objectives", "demos", "smoke")
-ROPE_MODEL_KEYS = ("stiffness", "damping", "link_mass", "end_mass", "link_length", "n_links", "dt")
-WEIGHT_KEYS = (
-    "w_control",
-    "w_crit_pos",
-    "w_crit_vel",
-    "w_pc",
-    "w_vc",
-    "w_rc",
-    "w_pft",
-    "w_vft",
-    "w_rft",
-    "w_ft_velocity",
-)
+ROPE_MODEL_KEYS = tuple(f.name for f in fields(RopeModelParams))
+"""The learner's rope model fields a run may set (``rope_model.<key>``)."""
+WEIGHT_KEYS = tuple(f.name for f in fields(InverseModelWeights))
+"""The inverse-model weights a run may set (``weights.<key>``)."""
 
 
 @dataclass(frozen=True)
@@ -148,34 +140,35 @@ class RunSpec:
             v = getattr(self, f)
             if not isinstance(v, int) or isinstance(v, bool) or v < 0:
                 raise ConfigError(f, f"must be an integer >= 0, got {v!r}")
-        check_choice("objective", self.objective, OBJECTIVES)
-        check_choice("backend", self.backend, ("clarabel", "osqp"))
-        if not isinstance(self.stop_at_success, bool):
-            raise ConfigError(
-                "stop_at_success", f"must be true or false, got {self.stop_at_success!r}"
-            )
         if self.settle_s is not None:
             check_nonnegative("settle_s", self.settle_s)
-        rm = dict(self.rope_model)
-        for k in rm:
-            check_choice("rope_model key", k, ROPE_MODEL_KEYS)
-        object.__setattr__(self, "rope_model", rm)
-        w = dict(self.weights)
-        for k in w:
-            check_choice("weights key", k, WEIGHT_KEYS)
-        object.__setattr__(self, "weights", w)
-        if not (isinstance(self.gain, (int, float)) and 0 < self.gain <= 1):
-            raise ConfigError("gain", f"must lie in (0, 1], got {self.gain!r}")
-        if self.trust_region is not None:
-            check_positive("trust_region", self.trust_region)
-        object.__setattr__(self, "confirm", parse_confirm(self.confirm, self.stop_at_success))
-        if isinstance(self.average, bool) or not isinstance(self.average, int) or self.average < 1:
-            raise ConfigError("average", f"must be an integer >= 1, got {self.average!r}")
-        if not isinstance(self.safeguard, bool):
-            raise ConfigError("safeguard", f"must be true or false, got {self.safeguard!r}")
+        for key, choices in (("rope_model", ROPE_MODEL_KEYS), ("weights", WEIGHT_KEYS)):
+            values = dict(getattr(self, key))
+            for k in values:
+                check_choice(f"{key} key", k, choices)
+            object.__setattr__(self, key, values)
+        # The learner's options are validated where they live (ILCParams).
+        object.__setattr__(self, "confirm", self.ilc_params().confirm)
         check_nonnegative("follow_through_s", self.follow_through_s)
         if not (isinstance(self.path_frac, (int, float)) and 0.0 <= self.path_frac < 1.0):
             raise ConfigError("path_frac", f"must lie in [0, 1), got {self.path_frac!r}")
+
+    def ilc_params(self) -> ILCParams:
+        """The learning loop's options of this run (:class:`learner.ilc.ILCParams`), which
+        validates them; ``max_trials`` 0 (the initial command alone) plays one trial."""
+        return ILCParams(
+            max_trials=max(1, self.max_trials),
+            stop_at_success=self.stop_at_success,
+            objective=self.objective,
+            backend=self.backend,
+            rope_model=RopeModelParams(**self.rope_model),
+            gain=self.gain,
+            weights=InverseModelWeights(**self.weights),
+            trust_region=self.trust_region,
+            confirm=self.confirm,
+            safeguard=self.safeguard,
+            average=self.average,
+        )
 
     def cell_spec(self) -> Any:
         """The validated spec of the run's cell (:func:`flyknot_app.cells.cell_spec`)."""

@@ -99,7 +99,7 @@ def test_limit_runs_keeps_dependencies():
         (
             {"run": [{"name": "a", "rope_model": {"stiff": 1.0}}]},
             "rope_model key: unknown value 'stiff' (valid choices: stiffness, damping, link_mass, "
-            "end_mass, link_length, n_links, dt)",
+            "end_mass, link_length, n_links, dt, gravity)",
         ),
         (
             {"runs": []},
@@ -318,3 +318,26 @@ def test_the_smoke_line_says_whether_the_pipeline_worked():
     )
     bad = {**ok, "costs": [None], "faults": ["joint 4 torque limit"], "verdicts": [None]}
     assert outcome_line("smoke", [bad]).startswith("Smoke run: the pipeline FAILED: 1 trials")
+
+
+def test_a_runs_learner_options_are_the_loops():
+    """RunSpec hands its learner options to ILCParams, which validates them: same names,
+    same defaults, and a run's parameters are the loop's."""
+    from dataclasses import fields
+
+    from flyknot_app.scenario import RunSpec
+    from learner.ilc import ILCParams
+
+    run = {f.name: f.default for f in fields(RunSpec)}
+    loop = {f.name: f.default for f in fields(ILCParams)}
+    shared = sorted(set(run) & set(loop) - {"max_trials", "rope_model", "weights"})
+    assert shared == [
+        "average", "backend", "confirm", "gain", "objective", "safeguard", "stop_at_success",
+        "trust_region",
+    ]  # fmt: skip
+    assert all(run[k] == loop[k] for k in shared)
+    spec = RunSpec(name="a", gain=0.5, weights={"w_control": 5.0}, rope_model={"damping": 0.5})
+    params = spec.ilc_params()
+    assert (params.gain, params.weights.w_control, params.rope_model.damping) == (0.5, 5.0, 0.5)
+    with pytest.raises(ConfigError, match=r"^gain: must lie in \(0, 1\], got 2$"):
+        RunSpec(name="a", gain=2)
