@@ -94,8 +94,10 @@ class JudgeParams:
             axis [m]; the arm's scale (about 1 m), several times the rope's knots.
         core_directions: Closure directions of each trimmed-arc test of :func:`knot_core`.
         wrap_radius_m: A rope point behind the tube's tip (on the arm's side) and within this
-            distance of the tube's axis lies round the tube [m]: the fingertip tube's radius
-            plus a rope's diameter or two (a 0.05 m bound covers the paper's ropes, 7-25 mm).
+            distance of the tube's axis lies round the tube [m]. A rope lying on the tube has
+            its centreline at the tube's radius (10 mm, ``assets/xarm7/xarm7.xml``) plus its
+            own (3.5-12.5 mm for the paper's ropes): 14-23 mm; 0.05 m also takes a loose turn
+            of about twice that.
     """
 
     n_directions: int = DEFAULT_DIRECTIONS
