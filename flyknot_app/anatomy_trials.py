@@ -327,8 +327,12 @@ def load_evidence(f: TrialFile) -> TrialEvidence:
     """
     if f.kind == "replay":
         return replace(load_replay(f.path), name=f.name)
+    return TrialEvidence.from_record(load_record(f.path), f.name)
+
+
+def load_record(path: Path) -> TrialRecord:
+    """A trial record with its truth; a malformed one raises :class:`RecordError` naming it."""
     try:
-        record = TrialRecord.load(f.path, with_truth=True)
+        return TrialRecord.load(path, with_truth=True)
     except (OSError, ValueError, KeyError, TypeError) as exc:  # partial or foreign JSON
-        raise RecordError(f"trial record {str(f.path)!r} is not readable: {exc}") from exc
-    return TrialEvidence.from_record(record, f.name)
+        raise RecordError(f"trial record {str(path)!r} is not readable: {exc}") from exc

@@ -21,11 +21,17 @@ from typing import Any
 
 import numpy as np
 
-from flyknot.errors import FlyknotError, RecordError
+from flyknot.errors import FlyknotError
 from flyknot.judge import MarkerJudge
 from flyknot.record import TrialRecord
 from flyknot.verdict import KNOT, JudgeParams, Verdict, judge_centreline, tube_axis_of
-from flyknot_app.anatomy_trials import TrialFile, find_trials, load_replay, require_trials
+from flyknot_app.anatomy_trials import (
+    TrialFile,
+    find_trials,
+    load_record,
+    load_replay,
+    require_trials,
+)
 
 FAULT = "fault"
 """The class column of a faulted trial (no verdict)."""
@@ -81,19 +87,12 @@ class Rejudged:
         }
 
 
-def _final_frame(centreline: np.ndarray) -> np.ndarray | None:
+def final_frame(centreline: np.ndarray) -> np.ndarray | None:
     """The last frame of a centreline history with every point finite."""
     for frame in np.asarray(centreline, dtype=float)[::-1]:
         if np.all(np.isfinite(frame)):
             return frame
     return None
-
-
-def _load_record(path: Path) -> TrialRecord:
-    try:
-        return TrialRecord.load(path, with_truth=True)
-    except (OSError, ValueError, KeyError, TypeError) as exc:  # partial or foreign JSON
-        raise RecordError(f"trial record {str(path)!r} is not readable: {exc}") from exc
 
 
 def rejudge(f: TrialFile, *, keep_stored: bool = False) -> Rejudged:
@@ -107,18 +106,18 @@ def rejudge(f: TrialFile, *, keep_stored: bool = False) -> Rejudged:
     if f.kind == "replay":
         ev = load_replay(f.path)
         old = ev.verdict
-        frame = None if ev.centreline is None else _final_frame(ev.centreline)
+        frame = None if ev.centreline is None else final_frame(ev.centreline)
         new = None if frame is None else judge_centreline(frame)
         new = old if keep_stored and old is not None else new
         return Rejudged(
             f.name, f.path, f.kind, None, ev.knot, None if old is None else old.klass, new
         )
-    rec = _load_record(f.path)
+    rec = load_record(f.path)
     new = None
     if rec.fault is None and keep_stored and rec.verdict is not None:
         new = rec.verdict
     elif rec.fault is None:
-        frame = _final_frame(rec.truth["centreline"]) if "centreline" in rec.truth else None
+        frame = final_frame(rec.truth["centreline"]) if "centreline" in rec.truth else None
         if frame is not None:
             new = judge_centreline(frame, tube_axis_of(rec.fingertip_quat[-1]))
         else:
@@ -259,7 +258,7 @@ def write_pictures(rows: Sequence[Rejudged], out: str | Path) -> list[Path]:
     written = []
     for r in picture_rows(rows):
         replay = r.kind == "replay"
-        record = _replay_record(r.path) if replay else _load_record(r.path)
+        record = _replay_record(r.path) if replay else load_record(r.path)
         written.append(verdict_picture(record, r.new, out / picture_name(r), arm=not replay))
     return written
 
@@ -320,6 +319,7 @@ __all__ = [
     "FAULT",
     "FlyknotError",
     "Rejudged",
+    "final_frame",
     "format_rejudged",
     "judge_command",
     "picture_rows",

@@ -25,7 +25,8 @@ import numpy as np
 
 from flyknot.knot import DEFAULT_DIRECTIONS, closure_votes
 from flyknot.verdict import JudgeParams, judge_centreline, with_tube
-from flyknot_app.judging import rejudge_directory
+from flyknot_app.anatomy_trials import load_record
+from flyknot_app.judging import final_frame, rejudge_directory
 
 BINS = ((0, 12), (13, 18), (19, 20), (21, 24), (25, 28), (29, 30), (31, 31))
 """Bins of the top knot type's vote count (of 31) in the table."""
@@ -72,13 +73,8 @@ def _final_points(row) -> np.ndarray:
     """The rope at the end of a re-judged trial (its truth centreline's last finite frame)."""
     if row.kind == "replay":
         with np.load(row.path, allow_pickle=False) as z:
-            frames = z["centreline"]
-    else:
-        from flyknot.record import TrialRecord
-
-        frames = TrialRecord.load(row.path, with_truth=True).truth["centreline"]
-    ok = np.all(np.isfinite(frames), axis=(1, 2))
-    return frames[np.flatnonzero(ok)[-1]]
+            return final_frame(z["centreline"])
+    return final_frame(load_record(row.path).truth["centreline"])
 
 
 def format_study(result: dict[str, Any]) -> str:
