@@ -122,22 +122,23 @@ _TINY = 1e-24  # floor of |e|^2 [m^2] (a zero-length segment carries no couple)
 
 @dataclass(frozen=True)
 class BendFrictionParams:
-    """Frictional (hysteretic) bending couple of the rope.
+    """Frictional (hysteretic) bending couple of the rope, as a lab switch.
 
     Attributes:
-        moment: Grosberg's frictional couple M_0 = HB [N m]; 0 = off (the default: no value is
-            published for cords; see the module docstring).
+        moment: Grosberg's frictional couple M_0 = HB [N m], or None (the default): the rope's
+            own, ``RopeParams.frictional_couple`` (its material's ``bend_hysteresis`` times
+            its EI, ``assets/ropes.toml``); 0 turns the couple off.
     """
 
-    moment: float = 0.0
+    moment: float | None = None
 
     def __post_init__(self) -> None:
-        check_nonnegative("moment", self.moment)
+        if self.moment is not None:
+            check_nonnegative("moment", self.moment)
 
-    @property
-    def enabled(self) -> bool:
-        """The couple is on (M_0 > 0)."""
-        return self.moment > 0
+    def moment_for(self, rope) -> float:
+        """M_0 [N m] for ``rope`` (a :class:`flyknot_sim.rope_table.RopeParams`)."""
+        return rope.frictional_couple if self.moment is None else float(self.moment)
 
 
 def bend_rates(x: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -337,12 +338,24 @@ class RopeBendFriction:
         return self._inv_mass
 
     def forces(self, data) -> np.ndarray:
-        """The couples' forces for ``data``'s current state, shape (n + 1, 3) [N]."""
+        """The couples' forces for ``data``'s current state, shape (n + 1, 3) [N]: those of
+        :func:`rope_bend_friction_forces` at the model's step, computed by the compiled
+        :func:`flyknot_sim.bend_kernel.bend_friction_forces`."""
         r, model = self.rope, data.model
         x = data.qpos[r.vert_qpos] + r.body_pos0
         v = data.qvel[r.vert_dof]
-        return rope_bend_friction_forces(
-            x, v, self.moment, self.rate0, self.inv_mass(model), float(model.opt.timestep)
+        from flyknot_sim.bend_kernel import bend_friction_forces  # numba: compiled on demand
+
+        return bend_friction_forces(
+            np.ascontiguousarray(x, dtype=float),
+            np.ascontiguousarray(v, dtype=float),
+            self.moment,
+            self.rate0,
+            self.inv_mass(model),
+            float(model.opt.timestep),
+            SPAN_REGULARISATION,
+            IMPLICIT_ITERATIONS,
+            _TINY,
         )
 
     def apply(self, data) -> None:

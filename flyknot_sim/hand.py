@@ -254,7 +254,9 @@ class HandLab:
         if cd is not None:  # the rope's own drag coefficient
             aero = dataclasses.replace(aero, cd=cd)
         self._drag = RopeDrag(self.scene.rope, aero)
-        self._bend = RopeBendFriction(self.scene.rope, self.params.bend_friction.moment)
+        self._bend = RopeBendFriction(
+            self.scene.rope, self.params.bend_friction.moment_for(self.params.rope_params)
+        )
 
     @staticmethod
     def nominal_variation() -> dict[str, Any]:

@@ -85,8 +85,8 @@ class HandParams:
             at rest, capped, as in the robot lab.
         settle_s: A fixed wait instead [s]; None: ``settle``.
         aero: Air drag on the rope.
-        bend_friction: Hysteretic bending friction of the rope (off by default), as in the
-            robot lab.
+        bend_friction: Hysteretic bending friction of the rope (by default the rope's own), as
+            in the robot lab.
         twist: Build the rope with a twist hinge per edge, as in the robot lab.
         judge_rate_hz: Rate of the frames judged for ``knot_any`` and the settling
             fraction [Hz].

@@ -97,8 +97,8 @@ class LabParams:
             (:class:`flyknot.rest.SettleParams`).
         settle_s: A fixed wait instead [s] (judged then, at rest or not); None: ``settle``.
         aero: Air drag on the rope.
-        bend_friction: Hysteretic bending friction of the rope (Grosberg's frictional couple;
-            off by default: no published value for cords, see ``docs/rope-model.md``).
+        bend_friction: Hysteretic bending friction of the rope (Grosberg's frictional couple);
+            by default the rope's own (``assets/ropes.toml``, ``docs/rope-model.md``).
         twist: Build the rope with a twist hinge per edge (rod torsion; ``add_rope(twist=)``).
         brake_s: After a fault, how long the arm is simulated braking [s].
         truth_rate_hz: Rate of the ground-truth centreline stored in ``truth`` [Hz].
@@ -199,7 +199,7 @@ class SimLab:
             tip_site=m.site(ROBOT_PREFIX + robot.FINGERTIP_SITE).id,
             torque_model=robot.load_robot_model(),
             drag=RopeDrag(bound, aero),
-            bend=RopeBendFriction(bound, params.bend_friction.moment),
+            bend=RopeBendFriction(bound, params.bend_friction.moment_for(self.rope_params)),
         )
         """The model, data and handles a trial drives (:class:`flyknot_sim.session.Plant`)."""
 

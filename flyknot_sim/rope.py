@@ -67,8 +67,8 @@ def configure_options(
     """Set the spec's simulation options for these ropes.
 
     The timestep is the smallest of the ropes' validated timesteps; integrator, solver,
-    iterations, line-search iterations and tolerance come from ``settings`` (default: the
-    ``[simulation]`` table of ``assets/ropes.toml``). Noslip stays off (flex rejects it).
+    iterations, line-search iterations, tolerance, friction cone and impratio come from
+    ``settings`` (default: the ``[simulation]`` table of ``assets/ropes.toml``). Noslip stays off (flex rejects it).
 
     Raises:
         ConfigError: ``ropes`` is empty.
@@ -85,6 +85,8 @@ def configure_options(
     opt.ls_iterations = s.ls_iterations
     opt.tolerance = s.tolerance
     opt.noslip_iterations = 0
+    opt.cone = getattr(mujoco.mjtCone, f"mjCONE_{s.cone.upper()}")
+    opt.impratio = s.impratio
     if s.refsafe:
         opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_REFSAFE)
     else:

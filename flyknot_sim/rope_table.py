@@ -22,6 +22,7 @@ from flyknot.errors import ConfigError, check_choice, check_nonnegative, check_p
 
 __all__ = [
     "CLEARANCE_EXTRA",
+    "CONES",
     "INTEGRATORS",
     "MATERIALS",
     "SELFCOLLIDE_MODES",
@@ -47,6 +48,7 @@ CLEARANCE_EXTRA = 1e-3
 SELFCOLLIDE_MODES = ("auto", "sap", "bvh", "narrow")
 INTEGRATORS = ("discrete",)
 SOLVERS = ("Newton", "CG")
+CONES = ("pyramidal", "elliptic")
 
 
 # ----------------------------------------------------------------------------------------
@@ -82,6 +84,9 @@ class RopeParams:
             (2/3) friction r, the moment of uniform pressure over a contact disc of radius a
             = r (K. L. Johnson, "Contact Mechanics", 1985, sec. 7.4; a soft cord flattens to
             a patch about its radius wide -- an upper bound, no measured value found).
+        bend_hysteresis: Kawabata's HB / B [1/m]: the frictional couple of bending (Grosberg's
+            M_0 = HB, :mod:`flyknot_sim.bend_friction`) over the elastic stiffness B = EI, i.e.
+            the curvature at which the two moments are equal; 0: purely elastic bending.
     """
 
     id: int | str
@@ -100,6 +105,7 @@ class RopeParams:
     cd: float | None = None
     condim: int = 3
     torsional_friction: float | None = None
+    bend_hysteresis: float = 0.0
 
     def __post_init__(self) -> None:
         if isinstance(self.id, str):
@@ -114,7 +120,7 @@ class RopeParams:
         check_choice("material", self.material, MATERIALS)
         for f in ("diameter", "density", "length", "friction", "timestep"):
             check_positive(f, getattr(self, f))
-        for f in ("end_mass", "bend_modulus", "shear_modulus", "damping"):
+        for f in ("end_mass", "bend_modulus", "shear_modulus", "damping", "bend_hysteresis"):
             check_nonnegative(f, getattr(self, f))
         if isinstance(self.segments, bool) or not isinstance(self.segments, int):
             raise ConfigError("segments", f"must be an integer, got {self.segments!r}")
@@ -153,7 +159,12 @@ class RopeParams:
         """The parameters as plain data (``cd`` only when set, so that the paper's ropes read
         as before it existed)."""
         d = {f.name: getattr(self, f.name) for f in fields(self)}
-        for k, default in (("cd", None), ("condim", 3), ("torsional_friction", None)):
+        for k, default in (
+            ("cd", None),
+            ("condim", 3),
+            ("torsional_friction", None),
+            ("bend_hysteresis", 0.0),
+        ):
             if d[k] == default:
                 del d[k]
         return d
@@ -184,6 +195,11 @@ class RopeParams:
         return self.bend_modulus * math.pi * self.radius**4 / 4
 
     @property
+    def frictional_couple(self) -> float:
+        """Grosberg's frictional couple of bending M_0 = (HB / B) EI [N m]."""
+        return self.bend_hysteresis * self.bending_stiffness
+
+    @property
     def torsional_stiffness(self) -> float:
         """GJ = G pi r^4 / 2 [N m^2] (G = E / 2 when ``shear_modulus`` is 0)."""
         g = self.shear_modulus if self.shear_modulus > 0 else self.bend_modulus / 2
@@ -205,8 +221,8 @@ class RopeParams:
 
 
 _ROPE_FIELDS = tuple(f.name for f in fields(RopeParams))
-_OPTIONAL_ROPE_FIELDS = ("cd", "condim", "torsional_friction")
-_MATERIAL_FIELDS = ("bend_modulus", "shear_modulus", "damping", "friction")
+_OPTIONAL_ROPE_FIELDS = ("cd", "condim", "torsional_friction", "bend_hysteresis")
+_MATERIAL_FIELDS = ("bend_modulus", "shear_modulus", "damping", "friction", "bend_hysteresis")
 
 
 @dataclass(frozen=True)
@@ -228,6 +244,8 @@ class SimSettings:
             the step can resolve (time constant < timestep) by the stiffest resolvable one.
         selfcollide: Flex self-collision midphase, one of ``auto``, ``sap``, ``bvh``,
             ``narrow``.
+        cone: MuJoCo's friction cone, ``pyramidal`` or ``elliptic``.
+        impratio: MuJoCo's ratio of frictional to normal constraint impedance [-] (> 0).
     """
 
     integrator: str = "discrete"
@@ -241,9 +259,13 @@ class SimSettings:
     contact_solimp: tuple[float, float, float] = (0.9, 0.95, 0.001)
     refsafe: bool = True
     selfcollide: str = "auto"
+    cone: str = "pyramidal"
+    impratio: float = 1.0
 
     def __post_init__(self) -> None:
         check_choice("integrator", self.integrator, INTEGRATORS)
+        check_choice("cone", self.cone, CONES)
+        check_positive("impratio", self.impratio)
         check_choice("solver", self.solver, SOLVERS)
         check_choice("selfcollide", self.selfcollide, SELFCOLLIDE_MODES)
         for f in ("iterations", "ls_iterations"):

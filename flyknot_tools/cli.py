@@ -219,6 +219,35 @@ def _cmd_lab_study(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_rope_validate(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from flyknot.progress import bar_disable
+    from flyknot_sim.rope_custom import resolve_rope
+    from flyknot_tools.rope_validate.suite import (
+        model_with,
+        results_json,
+        run_many,
+        table_markdown,
+    )
+
+    check_int("--workers", args.workers, 1)
+    changes = {}
+    for item in args.set or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ConfigError("--set", f"must be FIELD=VALUE, got {item!r}")
+        changes[key] = value
+    ropes = [resolve_rope(r, args.ropes_file) for r in args.ropes]
+    models = [model_with(p, changes) for p in ropes]
+    suite = "quick" if args.quick else "full"
+    bar = tqdm(total=len(models), desc="rope-validate", unit="rope", disable=bar_disable(True))
+    results = run_many(models, suite, args.workers, on_done=lambda _r: bar.update(1))
+    bar.close()
+    print(results_json(results) if args.json else table_markdown(results))
+    return 0 if all(r.passed for r in results) else 1
+
+
 def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add ``demo synthesize|robot|record`` to a ``flyknot-tools`` subparser set.
 
@@ -370,6 +399,25 @@ def build_parser() -> argparse.ArgumentParser:
     ls.add_argument("--workers", type=int, default=1, help="worker processes")
     ls.add_argument("--out", default=None, help="directory for lab_study.json / .md")
     ls.set_defaults(func=_cmd_lab_study)
+    rv = sub.add_parser(
+        "rope-validate",
+        help="what every real rope of its kind does, measured on the lab's ropes (exit 1 on a "
+        "failed case)",
+    )
+    rv.add_argument(
+        "--ropes", nargs="+", default=["1", "2", "3", "4", "5", "6", "7"], help="rope ids or names"
+    )
+    rv.add_argument("--ropes-file", default=None, help="a ropes file with your own ropes")
+    rv.add_argument("--quick", action="store_true", help="one short run of each case")
+    rv.add_argument(
+        "--set",
+        action="append",
+        metavar="FIELD=VALUE",
+        help="change a rope field or a [simulation] setting (e.g. bend_hysteresis=0)",
+    )
+    rv.add_argument("--workers", type=int, default=1, help="worker processes")
+    rv.add_argument("--json", action="store_true", help="print the results as JSON")
+    rv.set_defaults(func=_cmd_rope_validate)
     cs = sub.add_parser(
         "closure-study",
         help="the held end closed by free rays vs the tube, over recorded trials (docs/judge.md)",

@@ -247,7 +247,10 @@ def resample_equal_chords(curve: np.ndarray, chord: float, n: int) -> np.ndarray
 
 
 def overhand_knot_vertices(
-    params: RopeParams, knot_length: float = 0.7, centre: Sequence[float] = (0.0, 0.0, 1.0)
+    params: RopeParams,
+    knot_length: float = 0.7,
+    centre: Sequence[float] = (0.0, 0.0, 1.0),
+    tail_below: float | None = None,
 ) -> np.ndarray:
     """Vertices of a loose overhand knot with straight tails, held end up, equal edges.
 
@@ -293,7 +296,9 @@ def overhand_knot_vertices(
     # start the rope so that the knot sits in the middle: drop the excess of the upper tail
     arc = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(curve, axis=0), axis=1))])
     i_knot = len(upper) - 1
-    excess = arc[i_knot] - (params.length - knot_length) / 2
+    below = (params.length - knot_length) / 2 if tail_below is None else tail_below
+    upper_len = params.length - knot_length - below
+    excess = arc[i_knot] - upper_len
     start = int(np.searchsorted(arc, excess))
     x = resample_equal_chords(curve[start:], params.segment_length, params.segments)
     return x + np.asarray(centre, dtype=float)

@@ -245,6 +245,8 @@ def build_harness(
     free_end_at: Sequence[float] | None = None,
     holder_mass: float = 0.5,
     twist: bool = False,
+    rod: tuple[Sequence[float], float, float] | None = None,
+    gravity: bool = True,
 ) -> Harness:
     """Compile a holder + rope scene for the measurements.
 
@@ -261,6 +263,10 @@ def build_harness(
         free_end_at: If given, a connect equality pins the free end to this world point [m].
         holder_mass: Mass of the holder [kg] (gravity-compensated); servo gains scale with it.
         twist: Flex with per-edge twist joints (``flexcomp``), see :func:`add_rope`.
+        rod: A fixed horizontal rod along world y: (centre [m], radius [m], friction [-]);
+            the rope's contact with it has the larger of the two friction coefficients
+            (MuJoCo's default mixing).
+        gravity: False: no gravity (the rope floats).
     """
     if kind not in MODEL_KINDS:
         raise ConfigError("kind", f"unknown value {kind!r}", MODEL_KINDS)
@@ -271,11 +277,27 @@ def build_harness(
     opt.integrator = getattr(mujoco.mjtIntegrator, f"mjINT_{integrator.upper()}")
     opt.solver = getattr(mujoco.mjtSolver, f"mjSOL_{s.solver.upper()}")
     opt.iterations, opt.ls_iterations, opt.tolerance = s.iterations, s.ls_iterations, s.tolerance
+    opt.cone = getattr(mujoco.mjtCone, f"mjCONE_{s.cone.upper()}")
+    opt.impratio = s.impratio
     if not s.refsafe:
         opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_REFSAFE)
     spec.worldbody.add_geom(
         name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3, 3, 0.1], contype=1, conaffinity=1
     )
+    if not gravity:
+        opt.gravity = [0.0, 0.0, 0.0]
+    if rod is not None:
+        centre, radius, mu = rod
+        spec.worldbody.add_geom(
+            name="rod",
+            type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+            pos=np.asarray(centre, dtype=float),
+            quat=[math.sqrt(0.5), math.sqrt(0.5), 0.0, 0.0],  # its z axis along world y
+            size=[radius, 0.1, 0],
+            friction=[mu, 0.005, 0.0001],
+            contype=1,
+            conaffinity=1,
+        )
     home = np.asarray(home, dtype=float)
     h = spec.worldbody.add_body(name=HOLDER, pos=home, gravcomp=1.0)
     h.add_geom(

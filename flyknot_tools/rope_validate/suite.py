@@ -1,0 +1,153 @@
+"""The suite: every case on a rope model, full or quick, in parallel over ropes and variants."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import fields, replace
+
+from flyknot.errors import ConfigError
+from flyknot_sim.rope_table import RopeParams, SimSettings, load_sim_settings
+from flyknot_tools.rope_validate.bench import RopeModel
+from flyknot_tools.rope_validate.cases import (
+    CaseResult,
+    Swing,
+    cantilever,
+    capstan,
+    knot_hold,
+    loop_spring_back,
+    rest_shape,
+    static_hold,
+    swing_decay,
+)
+
+__all__ = ["SUITES", "model_with", "run_suite", "run_many", "table_markdown"]
+
+FULL_TAILS = (0.1, 0.2, 0.3)
+FULL_SWINGS = (Swing(0.0), Swing(0.15, 0.7), Swing(0.3, 0.5))
+
+
+def _full(m: RopeModel) -> list[CaseResult]:
+    out = [rest_shape(m), cantilever(m), loop_spring_back(m), swing_decay(m), capstan(m)]
+    out.append(static_hold(m, seconds=60.0))
+    out += [knot_hold(m, t, s) for t in FULL_TAILS for s in FULL_SWINGS]
+    return out
+
+
+def _quick(m: RopeModel) -> list[CaseResult]:
+    return [
+        rest_shape(m, seconds=3.0),
+        cantilever(m, seconds=4.0),
+        loop_spring_back(m),
+        capstan(m, seconds=2.0),
+        static_hold(m, seconds=5.0),
+        knot_hold(m, 0.1, Swing(0.3, 0.5)),
+    ]
+
+
+SUITES: dict[str, Callable[[RopeModel], list[CaseResult]]] = {"full": _full, "quick": _quick}
+"""``full``: every case, the static hold over 60 s, the knot hold over tails 0.1/0.2/0.3 m x
+no swing, +-0.15 m at 0.7 Hz, +-0.3 m at 0.5 Hz. ``quick``: one of each (shorter), the knot
+hold with a 0.1 m tail swung +-0.3 m at 0.5 Hz."""
+
+
+def _coerce(name: str, text: str, current: object) -> object:
+    if isinstance(current, bool):
+        if text not in ("true", "false"):
+            raise ConfigError(name, f"must be true or false, got {text!r}")
+        return text == "true"
+    if isinstance(current, (int, float)) or current is None:
+        try:
+            value = float(text)
+        except ValueError:
+            raise ConfigError(name, f"must be a number, got {text!r}") from None
+        return int(value) if isinstance(current, int) and value.is_integer() else value
+    return text
+
+
+def model_with(
+    params: RopeParams, changes: Mapping[str, str], label: str | None = None
+) -> RopeModel:
+    """A :class:`RopeModel` of ``params`` with rope fields and ``[simulation]`` settings
+    changed (``changes``: field name -> text, e.g. ``{"bend_hysteresis": "38", "cone":
+    "elliptic"}``); rope fields win where a name is both.
+
+    Raises:
+        ConfigError: Unknown field (the valid names listed) or a bad value.
+    """
+    rope_names = [f.name for f in fields(RopeParams) if f.name not in ("id", "name")]
+    sim_names = [f.name for f in fields(SimSettings)]
+    rope_kw, sim_kw = {}, {}
+    settings = load_sim_settings()
+    for key, text in changes.items():
+        if key in rope_names:
+            rope_kw[key] = _coerce(key, text, getattr(params, key))
+        elif key in sim_names:
+            sim_kw[key] = _coerce(key, text, getattr(settings, key))
+        else:
+            raise ConfigError("--set", f"unknown field {key!r}", sorted(rope_names + sim_names))
+    p = replace(params, **rope_kw)
+    s = replace(settings, **sim_kw) if sim_kw else None
+    text = ", ".join(f"{k}={v}" for k, v in changes.items())
+    return RopeModel(p, settings=s, label=label or (text or "default"))
+
+
+def run_suite(model: RopeModel, suite: str = "full") -> list[CaseResult]:
+    """Every case of ``suite`` on ``model``."""
+    if suite not in SUITES:
+        raise ConfigError("suite", f"unknown suite {suite!r}", list(SUITES))
+    return SUITES[suite](model)
+
+
+def _job(args: tuple[RopeModel, str]) -> list[CaseResult]:
+    return run_suite(*args)
+
+
+def run_many(
+    models: Sequence[RopeModel],
+    suite: str = "full",
+    workers: int = 1,
+    on_done: Callable[[list[CaseResult]], None] | None = None,
+) -> list[CaseResult]:
+    """:func:`run_suite` on every model (``workers`` processes), results in model order."""
+    jobs = [(m, suite) for m in models]
+    if workers <= 1:
+        results = []
+        for job in jobs:
+            results.append(_job(job))
+            if on_done:
+                on_done(results[-1])
+    else:
+        with ProcessPoolExecutor(workers) as pool:
+            futures = [pool.submit(_job, j) for j in jobs]
+            results = []
+            for f in futures:
+                results.append(f.result())
+                if on_done:
+                    on_done(results[-1])
+    return [r for rs in results for r in rs]
+
+
+def table_markdown(results: Iterable[CaseResult]) -> str:
+    """One markdown table per rope and variant: case, expected, measured, pass; a count."""
+    groups: dict[tuple, list[CaseResult]] = {}
+    for r in results:
+        groups.setdefault((r.rope, r.variant), []).append(r)
+    out = []
+    for (rope, variant), rs in groups.items():
+        passed = sum(r.passed for r in rs)
+        out.append(f"### rope {rope} ({variant}): {passed}/{len(rs)} passed\n")
+        out.append("| case | expected | measured | result |")
+        out.append("|---|---|---|---|")
+        for r in rs:
+            out.append(
+                f"| {r.case} | {r.expected} | {r.detail} | {'pass' if r.passed else 'FAIL'} |"
+            )
+        out.append("")
+    return "\n".join(out)
+
+
+def results_json(results: Iterable[CaseResult]) -> str:
+    """The results as a JSON list."""
+    return json.dumps([r.to_json() for r in results], indent=1, default=float)
