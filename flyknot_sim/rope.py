@@ -68,7 +68,8 @@ def configure_options(
 
     The timestep is the smallest of the ropes' validated timesteps; integrator, solver,
     iterations, line-search iterations, tolerance, friction cone and impratio come from
-    ``settings`` (default: the ``[simulation]`` table of ``assets/ropes.toml``). Noslip stays off (flex rejects it).
+    ``settings`` (default: the ``[simulation]`` table of ``assets/ropes.toml``). Noslip stays
+    off (MuJoCo refuses it with flex under the ``discrete`` integrator).
 
     Raises:
         ConfigError: ``ropes`` is empty.

@@ -53,6 +53,7 @@ CUSTOM_OPTIONAL = (
     "cd",
     "condim",
     "torsional_friction",
+    "bend_hysteresis",
     "segments",
     "timestep",
 )
@@ -138,6 +139,7 @@ def _custom_rope(entry: Mapping[str, Any], where: str, paper: Mapping[str, int])
         "cd": None,
         "condim": 3,
         "torsional_friction": None,
+        "bend_hysteresis": mat.get("bend_hysteresis", 0.0),
         "segments": min(DEFAULT_SEGMENTS, n_max),
         "timestep": DEFAULT_TIMESTEP,
     }
@@ -165,7 +167,15 @@ def _custom_rope(entry: Mapping[str, Any], where: str, paper: Mapping[str, int])
     except ConfigError as e:  # name the rope's field (RopeParams' own names but end_mass)
         field_name = "end_weight" if e.field == "end_mass" else e.field
         raise ConfigError(f"{where}.{field_name}", e.problem, e.choices) from None
-    floats = ("density", "end_mass", "bend_modulus", "shear_modulus", "damping", "friction")
+    floats = (
+        "density",
+        "end_mass",
+        "bend_modulus",
+        "shear_modulus",
+        "damping",
+        "friction",
+        "bend_hysteresis",
+    )
     as_float = {k: float(getattr(p, k)) for k in (*floats, "timestep")}
     if p.cd is not None:
         as_float["cd"] = float(p.cd)
@@ -178,8 +188,9 @@ def parse_custom_ropes(doc: Mapping[str, Any]) -> dict[str, RopeParams]:
     The document holds ``[[rope]]`` tables with the keys :data:`CUSTOM_REQUIRED` (``name``,
     ``material`` of :data:`MATERIALS`, ``diameter`` [m], ``density`` [kg/m], ``length`` [m],
     ``end_weight`` [kg]) and optionally :data:`CUSTOM_OPTIONAL` (``bend_modulus``,
-    ``shear_modulus`` [Pa], ``damping`` [s], ``friction`` [-], ``cd`` [-], ``segments``,
-    ``timestep`` [s]). Missing optional values: the material's in ``assets/ropes.toml`` (E and
+    ``shear_modulus`` [Pa], ``damping`` [s], ``friction`` [-], ``cd`` [-], ``bend_hysteresis``
+    [1/m], ``segments``, ``timestep`` [s]). Missing optional values: the material's in
+    ``assets/ropes.toml`` (E and
     G of cotton scaled by (9 mm / D)^2, see :data:`REFERENCE_DIAMETER`), ``cd`` None (the
     Re-dependent curve), ``segments`` 30 capped so that length / segments > D, ``timestep``
     1 ms. Each rope's id is its name.

@@ -242,7 +242,9 @@ def _cmd_rope_validate(args: argparse.Namespace) -> int:
     models = [model_with(p, changes) for p in ropes]
     suite = "quick" if args.quick else "full"
     bar = tqdm(total=len(models), desc="rope-validate", unit="rope", disable=bar_disable(True))
-    results = run_many(models, suite, args.workers, on_done=lambda _r: bar.update(1))
+    results = run_many(
+        models, suite, args.workers, on_done=lambda _r: bar.update(1), cases=args.cases
+    )
     bar.close()
     print(results_json(results) if args.json else table_markdown(results))
     return 0 if all(r.passed for r in results) else 1
@@ -409,6 +411,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     rv.add_argument("--ropes-file", default=None, help="a ropes file with your own ropes")
     rv.add_argument("--quick", action="store_true", help="one short run of each case")
+    rv.add_argument("--cases", nargs="+", metavar="CASE", help="only these cases")
     rv.add_argument(
         "--set",
         action="append",

@@ -13,12 +13,15 @@ from hypothesis import strategies as st
 from flyknot.errors import ConfigError
 from flyknot_sim.aero import AeroParams, RopeDrag
 from flyknot_sim.bend_friction import (
+    IMPLICIT_ITERATIONS,
     RATE0,
+    SPAN_REGULARISATION,
     BendFrictionParams,
     RopeBendFriction,
     bend_rates,
     rope_bend_friction_forces,
 )
+from flyknot_sim.bend_kernel import bend_friction_forces
 from flyknot_sim.rope import add_rope, configure_options
 from flyknot_sim.rope_table import get_rope
 
@@ -48,6 +51,32 @@ def test_forces_sum_to_zero_and_never_add_power(mode, jitter, vel):
     assert np.all(np.isfinite(f))
     np.testing.assert_allclose(f.sum(axis=0), 0.0, atol=1e-12 * max(1.0, np.abs(f).max()))
     assert np.sum(f * v) <= 1e-12
+
+
+@given(
+    jitter=coords,
+    vel=speeds,
+    moment=st.sampled_from([1e-4, 2e-3, 0.02]),
+    dt=st.sampled_from([1e-3, 2e-3]),
+)
+@settings(max_examples=60, deadline=None)
+def test_compiled_kernel_equals_the_numpy_equations(jitter, vel, moment, dt):
+    x, v = _bent(jitter), np.asarray(vel).reshape(N + 1, 3)
+    ref = rope_bend_friction_forces(x, v, moment, RATE0, INV_MASS, dt)
+    fast = bend_friction_forces(
+        x, v, moment, RATE0, INV_MASS, dt, SPAN_REGULARISATION, IMPLICIT_ITERATIONS, 1e-24
+    )
+    np.testing.assert_allclose(fast, ref, rtol=1e-9, atol=1e-12 * max(1.0, np.abs(ref).max()))
+
+
+def test_applier_uses_the_compiled_kernel_on_a_rope():
+    model, data, bound = _hanging_rope()
+    bound.set_hanging(model, data, sway_angle=0.3, sway_rate=1.0)
+    applier = RopeBendFriction(bound, M0)
+    x = data.qpos[bound.vert_qpos] + bound.body_pos0
+    v = data.qvel[bound.vert_dof]
+    ref = rope_bend_friction_forces(x, v, M0, RATE0, applier.inv_mass(model), 1e-3)
+    np.testing.assert_allclose(applier.forces(data), ref, rtol=1e-9, atol=1e-12)
 
 
 @pytest.mark.parametrize("mode", MODES)
@@ -123,9 +152,12 @@ def test_end_of_step_couple_stops_but_never_reverses():
 
 
 def test_params():
-    assert BendFrictionParams().moment == 0.0
-    assert not BendFrictionParams().enabled
-    assert BendFrictionParams(moment=0.01).enabled
+    rope = get_rope(1)
+    assert BendFrictionParams().moment is None  # the rope's own
+    assert BendFrictionParams().moment_for(rope) == rope.frictional_couple > 0
+    assert rope.frictional_couple == pytest.approx(rope.bend_hysteresis * rope.bending_stiffness)
+    assert BendFrictionParams(moment=0.0).moment_for(rope) == 0.0
+    assert BendFrictionParams(moment=0.01).moment_for(rope) == 0.01
     for bad, shown in [(-0.1, "-0.1"), (float("nan"), "nan"), (True, "True")]:
         with pytest.raises(ConfigError) as e:
             BendFrictionParams(moment=bad)

@@ -19,7 +19,7 @@ from flyknot_sim.bend_friction import RopeBendFriction
 from flyknot_sim.rope_table import RopeParams, SimSettings
 from flyknot_tools.rope_study.harness import Harness, build_harness, place_vertices
 
-__all__ = ["Bench", "RopeModel", "HolderPath"]
+__all__ = ["Bench", "HolderPath", "RopeModel"]
 
 HolderPath = Callable[[float], tuple[np.ndarray, np.ndarray]]
 """t [s] -> (holder slide offsets (3,) [m], their rates (3,) [m/s]); hinges stay at zero."""
@@ -63,9 +63,7 @@ class Bench:
         """Build the scene (``kw``: :func:`flyknot_tools.rope_study.harness.build_harness`'s
         ``rod``, ``gravity``, ``free_end_at``, ``timestep``)."""
         p = rope.params
-        self.harness: Harness = build_harness(
-            p, home=home, axis=axis, settings=rope.settings, **kw
-        )
+        self.harness: Harness = build_harness(p, home=home, axis=axis, settings=rope.settings, **kw)
         bound = self.harness.rope
         self._drag = RopeDrag(bound, rope.drag)
         self._bend = RopeBendFriction(bound, p.frictional_couple)
@@ -74,10 +72,12 @@ class Bench:
 
     @property
     def model(self) -> mujoco.MjModel:
+        """The compiled model."""
         return self.harness.model
 
     @property
     def data(self) -> mujoco.MjData:
+        """The simulation state."""
         return self.harness.data
 
     @property
@@ -87,6 +87,7 @@ class Bench:
 
     @property
     def t(self) -> float:
+        """Simulated time since the bench was built [s]."""
         return self._j * self.dt
 
     def place(self, x: np.ndarray) -> None:

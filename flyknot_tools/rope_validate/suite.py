@@ -22,34 +22,52 @@ from flyknot_tools.rope_validate.cases import (
     swing_decay,
 )
 
-__all__ = ["SUITES", "model_with", "run_suite", "run_many", "table_markdown"]
+__all__ = ["CASE_NAMES", "SUITES", "model_with", "run_many", "run_suite", "table_markdown"]
 
 FULL_TAILS = (0.1, 0.2, 0.3)
 FULL_SWINGS = (Swing(0.0), Swing(0.15, 0.7), Swing(0.3, 0.5))
 
 
-def _full(m: RopeModel) -> list[CaseResult]:
-    out = [rest_shape(m), cantilever(m), loop_spring_back(m), swing_decay(m), capstan(m)]
-    out.append(static_hold(m, seconds=60.0))
-    out += [knot_hold(m, t, s) for t in FULL_TAILS for s in FULL_SWINGS]
+def _full(m: RopeModel) -> list[tuple[str, Callable[[], CaseResult]]]:
+    out = [
+        ("rest_shape", lambda: rest_shape(m)),
+        ("cantilever", lambda: cantilever(m)),
+        ("spring_back", lambda: loop_spring_back(m)),
+        ("swing_decay", lambda: swing_decay(m)),
+        ("capstan", lambda: capstan(m)),
+        ("static_hold", lambda: static_hold(m, seconds=60.0)),
+    ]
+    for t in FULL_TAILS:
+        for s in FULL_SWINGS:
+            out.append(("knot_hold", lambda t=t, s=s: knot_hold(m, t, s)))
     return out
 
 
-def _quick(m: RopeModel) -> list[CaseResult]:
+def _quick(m: RopeModel) -> list[tuple[str, Callable[[], CaseResult]]]:
     return [
-        rest_shape(m, seconds=3.0),
-        cantilever(m, seconds=4.0),
-        loop_spring_back(m),
-        capstan(m, seconds=2.0),
-        static_hold(m, seconds=5.0),
-        knot_hold(m, 0.1, Swing(0.3, 0.5)),
+        ("rest_shape", lambda: rest_shape(m, seconds=3.0)),
+        ("cantilever", lambda: cantilever(m, seconds=4.0)),
+        ("spring_back", lambda: loop_spring_back(m)),
+        ("capstan", lambda: capstan(m, seconds=2.0)),
+        ("static_hold", lambda: static_hold(m, seconds=5.0)),
+        ("knot_hold", lambda: knot_hold(m, 0.1, Swing(0.3, 0.5))),
     ]
 
 
-SUITES: dict[str, Callable[[RopeModel], list[CaseResult]]] = {"full": _full, "quick": _quick}
+SUITES = {"full": _full, "quick": _quick}
 """``full``: every case, the static hold over 60 s, the knot hold over tails 0.1/0.2/0.3 m x
 no swing, +-0.15 m at 0.7 Hz, +-0.3 m at 0.5 Hz. ``quick``: one of each (shorter), the knot
 hold with a 0.1 m tail swung +-0.3 m at 0.5 Hz."""
+
+CASE_NAMES = (
+    "knot_hold",
+    "static_hold",
+    "capstan",
+    "cantilever",
+    "spring_back",
+    "swing_decay",
+    "rest_shape",
+)
 
 
 def _coerce(name: str, text: str, current: object) -> object:
@@ -93,14 +111,19 @@ def model_with(
     return RopeModel(p, settings=s, label=label or (text or "default"))
 
 
-def run_suite(model: RopeModel, suite: str = "full") -> list[CaseResult]:
-    """Every case of ``suite`` on ``model``."""
+def run_suite(
+    model: RopeModel, suite: str = "full", cases: Sequence[str] | None = None
+) -> list[CaseResult]:
+    """Every case of ``suite`` on ``model`` (only those named in ``cases``, if given)."""
     if suite not in SUITES:
         raise ConfigError("suite", f"unknown suite {suite!r}", list(SUITES))
-    return SUITES[suite](model)
+    for c in cases or ():
+        if c not in CASE_NAMES:
+            raise ConfigError("--cases", f"unknown case {c!r}", CASE_NAMES)
+    return [run() for name, run in SUITES[suite](model) if not cases or name in cases]
 
 
-def _job(args: tuple[RopeModel, str]) -> list[CaseResult]:
+def _job(args: tuple[RopeModel, str, Sequence[str] | None]) -> list[CaseResult]:
     return run_suite(*args)
 
 
@@ -109,9 +132,13 @@ def run_many(
     suite: str = "full",
     workers: int = 1,
     on_done: Callable[[list[CaseResult]], None] | None = None,
+    cases: Sequence[str] | None = None,
 ) -> list[CaseResult]:
     """:func:`run_suite` on every model (``workers`` processes), results in model order."""
-    jobs = [(m, suite) for m in models]
+    for c in cases or ():
+        if c not in CASE_NAMES:
+            raise ConfigError("--cases", f"unknown case {c!r}", CASE_NAMES)
+    jobs = [(m, suite, cases) for m in models]
     if workers <= 1:
         results = []
         for job in jobs:

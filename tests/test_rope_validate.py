@@ -1,0 +1,148 @@
+"""The rope validation suite (flyknot_tools.rope_validate): its formulas, and its fast cases on
+the lab's ropes, each shown to fail on a rope model that lacks the behaviour."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from flyknot.errors import ConfigError
+from flyknot_sim.rope_table import get_rope
+from flyknot_tools.cli import main as tools_main
+from flyknot_tools.rope_validate.cases import (
+    Swing,
+    cantilever,
+    capstan,
+    catenary_sag,
+    drag_decay_theory,
+    knot_hold,
+    loop_spring_back,
+    peirce_bending_length,
+    rest_shape,
+    static_hold,
+)
+from flyknot_tools.rope_validate.suite import model_with
+
+ELASTIC = {"bend_hysteresis": "0"}
+"""Rope 1 as the lab had it before the frictional couple: elastic only, E = 1e6 Pa."""
+OLD = {"bend_hysteresis": "0", "bend_modulus": "1e6"}
+
+
+def _rope(rope=1, **changes):
+    return model_with(get_rope(rope), {k: str(v) for k, v in changes.items()})
+
+
+def test_peirce_bending_length():
+    # c = l / 2 at a chord angle of 43 degrees (Szablewski & Kobza, Fibres & Textiles in
+    # Eastern Europe, on Peirce's cantilever; the standard test's 41.5 degrees gives 0.509 l)
+    assert peirce_bending_length(0.2, math.radians(43.0)) == pytest.approx(0.1, rel=0.002)
+    assert peirce_bending_length(0.2, math.radians(41.5)) == pytest.approx(0.1019, rel=0.002)
+    assert peirce_bending_length(0.2, math.radians(10)) > peirce_bending_length(0.2, 0.5)
+
+
+def test_catenary_sag():
+    sag, slope = catenary_sag(1.0, 0.7)
+    a = 0.7 / 2 / math.asinh(math.tan(slope))
+    assert 2 * a * math.sinh(0.35 / a) == pytest.approx(1.0, rel=1e-9)
+    assert sag == pytest.approx(a * (math.cosh(0.35 / a) - 1), rel=1e-9)
+    assert catenary_sag(1.0, 0.999)[0] < 0.03 < sag
+
+
+def test_drag_decay_theory():
+    p = get_rope(1)
+    assert drag_decay_theory(p, 0.2, 0.0) == pytest.approx(0.2)
+    assert drag_decay_theory(p, 0.2, 4) < drag_decay_theory(p, 0.2, 2) < 0.2
+    # the heavy chain loses less amplitude per cycle than the light cord
+    assert drag_decay_theory(get_rope(6), 0.2, 4) > drag_decay_theory(p, 0.2, 4)
+
+
+def test_knot_hold_at_defaults_and_lost_by_the_old_elastic_rope():
+    swing = Swing(0.3, 0.5, seconds=4.0)
+    held = knot_hold(_rope(), 0.1, swing, hold_s=1.5)
+    assert held.passed, held.detail
+    assert held.measured["crossings"] == 0
+    lost = knot_hold(_rope(**OLD), 0.1, swing, hold_s=1.5)
+    assert not lost.passed and lost.measured["final"] != "knot", lost.detail
+
+
+def test_static_hold_at_defaults():
+    r = static_hold(_rope(), seconds=4.0)
+    assert r.passed and r.measured["slip_m"] <= get_rope(1).diameter, r.detail
+
+
+def test_cotton_keeps_a_loop_latex_springs_back():
+    cotton = loop_spring_back(_rope())
+    assert cotton.passed and cotton.measured["kept"] >= 0.5, cotton.detail
+    elastic = loop_spring_back(_rope(**ELASTIC))
+    assert not elastic.passed and elastic.measured["kept"] < 0.5, elastic.detail
+    latex = loop_spring_back(_rope(7))
+    assert latex.passed and latex.measured["kept"] <= 0.2, latex.detail
+
+
+def test_cantilever_hysteresis_of_cotton_only():
+    cotton = cantilever(_rope(), seconds=4.0)
+    assert cotton.passed and cotton.measured["spread"] >= 0.1, cotton.detail
+    elastic = cantilever(_rope(**ELASTIC), seconds=4.0)
+    assert abs(elastic.measured["spread"]) < 0.1 and not elastic.passed
+    chain = cantilever(_rope(6), seconds=2.0)
+    assert chain.passed, chain.detail
+
+
+def test_capstan_needs_the_elliptic_cone():
+    r = capstan(_rope(), seconds=2.0)
+    assert r.passed, r.detail
+    pyramid = capstan(_rope(cone="pyramidal", impratio=1), seconds=2.0)
+    assert not pyramid.passed and pyramid.measured["ratio"] < r.measured["ratio"], pyramid.detail
+
+
+@pytest.mark.parametrize("rope", [1, 6])
+def test_rest_shape_is_a_catenary(rope):
+    r = rest_shape(_rope(rope), seconds=3.0)
+    assert r.passed, r.detail
+
+
+def test_model_with_names_the_bad_field():
+    with pytest.raises(ConfigError) as e:
+        model_with(get_rope(1), {"stiffness": "1"})
+    assert str(e.value).startswith("--set: unknown field 'stiffness' (valid choices: ")
+    assert "bend_hysteresis" in str(e.value) and "impratio" in str(e.value)
+    with pytest.raises(ConfigError) as e:
+        model_with(get_rope(1), {"bend_hysteresis": "-3"})
+    assert str(e.value) == "bend_hysteresis: must be a finite number >= 0, got -3.0"
+    with pytest.raises(ConfigError) as e:
+        model_with(get_rope(1), {"cone": "round"})
+    assert str(e.value) == "cone: unknown value 'round' (valid choices: pyramidal, elliptic)"
+
+
+def test_cli_runs_the_quick_suite_and_reports_json(capsys):
+    code = tools_main(["rope-validate", "--ropes", "6", "--quick", "--json"])
+    rows = json.loads(capsys.readouterr().out)
+    assert {r["case"] for r in rows} == {
+        "rest_shape",
+        "cantilever",
+        "spring_back",
+        "capstan",
+        "static_hold",
+        "knot_hold",
+    }
+    assert all(r["rope"] == 6 and r["source"] and r["expected"] for r in rows)
+    assert code == (0 if all(r["passed"] for r in rows) else 1)
+
+
+def test_cli_bad_input_is_one_line_and_exit_2(capsys, tmp_path):
+    assert tools_main(["rope-validate", "--set", "stiffness=1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("flyknot-tools: error: --set: unknown field 'stiffness'")
+    assert err.count("\n") == 1
+    bad = tmp_path / "ropes.toml"
+    bad.write_text(
+        '[[rope]]\nname = "c"\nmaterial = "cotton"\ndiameter = 0.006\ndensity = 0.02\n'
+        'length = 1.1\nend_weight = 0.01\nbend_hysteresis = "soft"\n'
+    )
+    assert tools_main(["rope-validate", "--ropes", "c", "--ropes-file", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert err == (
+        "flyknot-tools: error: rope[0].bend_hysteresis: must be a finite number >= 0, got 'soft'\n"
+    )
