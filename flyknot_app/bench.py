@@ -10,28 +10,49 @@ from flyknot.errors import ConfigError
 from flyknot.progress import bar_disable
 
 
-def _lab_variants():
-    """A lab with a fixed 1.5 s settle, no air drag and 1 deg sway, and the lab as it is."""
+def elastic_rope(rope_id: int):
+    """The rope model the lab had before the validation suite, as (rope, settings): cotton
+    purely elastic with E = 1e6 (9 mm / D)^2 Pa (no frictional couple), MuJoCo's pyramidal
+    friction cone with impratio 1. Other materials as they are."""
+    from dataclasses import replace
+
+    from flyknot_sim.rope_table import get_rope, load_sim_settings
+
+    p = get_rope(rope_id)
+    if p.material == "cotton":
+        e = 1e6 * (0.009 / p.diameter) ** 2
+        p = replace(p, bend_modulus=e, shear_modulus=e / 3, bend_hysteresis=0.0)
+    return p, replace(load_sim_settings(), cone="pyramidal", impratio=1.0)
+
+
+def _lab_variants(rope_id: int):
+    """Three labs: ``before`` (a fixed 1.5 s settle, no air drag, 1 deg sway), ``elastic``
+    (today's lab with the elastic rope model, :func:`elastic_rope`) and ``now``."""
     from flyknot_sim.aero import AeroParams
     from flyknot_sim.lab import LabParams, VariationParams
 
     before = {
+        "rope": rope_id,
         "settle_s": 1.5,
         "aero": AeroParams(enabled=False),
         "variation": VariationParams(sway_deg=1.0, rest_start=False),
     }
-    return {"before": before, "now": {}}, LabParams
+    rope, settings = elastic_rope(rope_id)
+    elastic = {"rope": rope, "settings": settings}
+    return {"before": before, "elastic": elastic, "now": {"rope": rope_id}}, LabParams
 
 
 def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bool = True) -> dict:
     """Wall seconds per simulated second, and simulated seconds per trial, of a fast trial.
 
     The trial is the showcase swing (0.8 s, joint speeds up to 2.7 rad/s) and the settle,
-    run by :class:`flyknot_sim.lab.SimLab` exactly as a learning trial is, in two labs measured
-    in the same run: ``before`` (the fixed 1.5 s settle, no drag) and ``now`` (the lab's
-    defaults: air drag, settle until the rope is at rest, capped). Each is timed ``repeats``
-    times per rope (trials 0, 1, ... of seed 0); the best wall time per simulated second is
-    kept (least disturbed by other load), the simulated seconds are averaged.
+    run by :class:`flyknot_sim.lab.SimLab` exactly as a learning trial is, in three labs
+    measured in the same run: ``before`` (the fixed 1.5 s settle, no drag), ``elastic`` (the
+    lab's defaults with the elastic rope model of :func:`elastic_rope`) and ``now`` (the lab's
+    defaults: air drag, frictional bending, settle until the rope is at rest, capped). Each
+    is timed ``repeats`` times per rope (trials 0, 1, ... of seed 0); the best wall time per
+    simulated second is kept (least disturbed by other load), the simulated seconds are
+    averaged.
     """
     from tqdm import tqdm
 
@@ -45,12 +66,12 @@ def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bo
         if r not in table:
             raise ConfigError("rope", f"unknown rope id {r}", sorted(table))
     command = swing_command()
-    variants, lab_params = _lab_variants()
     out = []
     for r in tqdm(ropes, desc="bench sim", disable=bar_disable(progress), unit="rope"):
         row: dict = {"rope": r, "segments": table[r].n_segments}
+        variants, lab_params = _lab_variants(r)
         for name, kw in variants.items():
-            lab = SimLab(lab_params(rope=r, **kw))
+            lab = SimLab(lab_params(**kw))
             best = float("inf")
             sims = []
             for _ in range(repeats):
@@ -117,12 +138,14 @@ def main(what: str, *, as_json: bool = False, ropes=None, repeats: int = 1) -> i
                 f"{'sim s / trial':>14}"
             )
             for row in res["ropes"]:
-                for name in ("before", "now"):
+                for name in ("before", "elastic", "now"):
                     v = row[name]
                     print(
                         f"{row['rope']:>4} {name:>7} {v['wall_per_sim_s']:>15.3f} "
                         f"{v['realtime_factor']:>12.1f} {v['sim_s_per_trial']:>14.2f}"
                     )
+                ratio = row["now"]["wall_per_sim_s"] / row["elastic"]["wall_per_sim_s"]
+                print(f"{row['rope']:>4} now / elastic wall s per sim s: {ratio:.2f}")
         return 0
     if what == "learner":
         from flyknot_app.bench_learner import bench_learner, format_learner

@@ -46,7 +46,7 @@ from flyknot_sim.bend_friction import BendFrictionParams, RopeBendFriction
 from flyknot_sim.faults import check_sample
 from flyknot_sim.rope import add_rope, configure_options
 from flyknot_sim.rope_custom import resolve_rope
-from flyknot_sim.rope_table import RopeParams
+from flyknot_sim.rope_table import RopeParams, SimSettings
 from flyknot_sim.scene import ROBOT_PREFIX, SceneParams, robot_base_pose, scene_spec
 from flyknot_sim.session import Plant, TrialSession, TrialStart
 
@@ -107,6 +107,8 @@ class LabParams:
         scene: Geometry of the lab.
         ropes: A user's ropes file (``assets/ropes_example.toml``) whose ropes ``rope`` may
             name, or None; kept as an absolute path.
+        settings: Rope simulation settings (default: the ``[simulation]`` table of
+            ``assets/ropes.toml``), as in the hand lab.
     """
 
     rope: int | str | RopeParams = 1
@@ -122,6 +124,7 @@ class LabParams:
     mocap: mocap.MocapParams = field(default_factory=mocap.MocapParams)
     scene: SceneParams = field(default_factory=SceneParams)
     ropes: str | None = None
+    settings: SimSettings | None = None
 
     def __post_init__(self) -> None:
         if self.ropes is not None:
@@ -171,9 +174,10 @@ class SimLab:
             anchor_pos=tip_pos,
             axis=tip_axis,
             prefix="rope",
+            settings=params.settings,
             twist=params.twist,
         )
-        configure_options(spec, [self.rope_params])
+        configure_options(spec, [self.rope_params], params.settings)
         self.model = spec.compile()
         self.data = mujoco.MjData(self.model)
         self.rope = self.rope.bind(self.model) if hasattr(self.rope, "bind") else self.rope

@@ -1,4 +1,4 @@
-"""What holds a knot in the simulated lab: each physics switch alone and in combination.
+"""The rope model's sensitivity: the demonstrations over the brackets of its unmeasured values.
 
 ``flyknot-tools lab-study`` plays, for every candidate lab (a row: the lab's defaults with
 one or more physics switches changed) and every start (the settled start, or an extra
@@ -15,7 +15,7 @@ reached (at rest, contact-free, at the cap), the mean simulated seconds per tria
 seconds per simulated second. The switches are the lab's own (``LabParams`` / ``HandParams``
 fields) and the rope table's (:class:`flyknot_sim.rope_table.RopeParams` fields); no value
 here is new physics: each comes with its source in ``assets/ropes.toml`` or
-``docs/rope-model.md``. The table of ``docs/rope-model.md`` ("step 3") is this tool's output.
+``docs/rope-model.md``. The sensitivity table of ``docs/rope-model.md`` is this tool's output.
 """
 
 from __future__ import annotations
@@ -43,32 +43,47 @@ class Candidate:
 
     Attributes:
         name: Row label (what differs from the lab's defaults).
-        rope: Rope-table fields replaced (``friction``, ``condim``, ``segments``, ``cd``).
+        rope: Rope-table fields replaced (``bend_modulus``, ``bend_hysteresis``,
+            ``friction``, ...), values for rope 1 (the demonstrations' rope).
         lab: Lab fields replaced in both labs (``twist``, ``bend_friction`` moment [N m]).
+        sim: ``[simulation]`` settings replaced in both labs (``cone``, ``impratio``).
     """
 
     name: str
     rope: tuple[tuple[str, Any], ...] = ()
     lab: tuple[tuple[str, Any], ...] = ()
+    sim: tuple[tuple[str, Any], ...] = ()
 
 
 CANDIDATES: dict[str, Candidate] = {
     c.name: c
     for c in (
         Candidate("default"),
+        # the cotton's unmeasured values across their brackets (assets/ropes.toml)
+        Candidate("E 2.25e4 Pa (yarn, per tex)", rope=(("bend_modulus", 2.25e4),)),
+        Candidate("E 1e5 Pa", rope=(("bend_modulus", 1.0e5),)),
+        Candidate("E 1e6 Pa (feasibility study)", rope=(("bend_modulus", 1.0e6),)),
+        Candidate("HB/B 0 (elastic)", rope=(("bend_hysteresis", 0.0),)),
+        Candidate("HB/B 23 1/m", rope=(("bend_hysteresis", 23.0),)),
+        Candidate("HB/B 54 1/m", rope=(("bend_hysteresis", 54.0),)),
         Candidate("friction 0.3", rope=(("friction", 0.3),)),
+        Candidate("friction 0.6", rope=(("friction", 0.6),)),
+        # MuJoCo's friction settings
+        Candidate("pyramidal cone, impratio 1", sim=(("cone", "pyramidal"), ("impratio", 1.0))),
+        # the elastic model the suite replaced
+        Candidate(
+            "elastic model (E 1e6 Pa, HB/B 0, pyramidal)",
+            rope=(("bend_modulus", 1.0e6), ("shear_modulus", 3.3e5), ("bend_hysteresis", 0.0)),
+            sim=(("cone", "pyramidal"), ("impratio", 1.0)),
+        ),
+        # switches of the lab
         Candidate("condim 4", rope=(("condim", 4),)),
-        Candidate("twist dofs", lab=(("twist", True),)),
         Candidate("40 segments", rope=(("segments", 40),)),
         Candidate("C_D 1.2", rope=(("cd", 1.2),)),
-        Candidate("bending friction 0.003", lab=(("bend_friction", 0.003),)),
-        Candidate(
-            "friction 0.3 + condim 4 + C_D 1.2",
-            rope=(("friction", 0.3), ("condim", 4), ("cd", 1.2)),
-        ),
     )
 }
-"""The rows, by name (the session-3 table's switches plus one combination)."""
+"""The rows, by name: every unmeasured value of the rope model at the ends of its bracket
+(``assets/ropes.toml``), MuJoCo's friction settings, the elastic model, and three switches."""
 
 
 def _labs(candidate: Candidate, rope_id: int, sway_deg: float):
@@ -77,12 +92,14 @@ def _labs(candidate: Candidate, rope_id: int, sway_deg: float):
     from flyknot_sim.bend_friction import BendFrictionParams
     from flyknot_sim.hand_replay import hand_from_demo
     from flyknot_sim.lab import LabParams, VariationParams
-    from flyknot_sim.rope_table import get_rope
+    from flyknot_sim.rope_table import get_rope, load_sim_settings
 
     rope = replace(get_rope(rope_id), **dict(candidate.rope))
     lab_kw: dict[str, Any] = {}
     for key, value in candidate.lab:
         lab_kw[key] = BendFrictionParams(moment=value) if key == "bend_friction" else value
+    if candidate.sim:
+        lab_kw["settings"] = replace(load_sim_settings(), **dict(candidate.sim))
     arm = LabParams(rope=rope, variation=VariationParams(sway_deg=sway_deg), **lab_kw)
     swipe = Demonstration.load(DEMOS / "swipe.npz")
     hand = hand_from_demo(swipe, rope_id, vary=True)

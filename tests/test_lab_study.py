@@ -60,10 +60,12 @@ def test_one_robot_trial_of_a_row_is_diagnosed_in_the_rows_lab():
     from flyknot_app.anatomy import LABELS
     from flyknot_tools.lab_study import _labs, _robot_trials
 
-    arm, hand = _labs(CANDIDATES["friction 0.3 + condim 4 + C_D 1.2"], 1, 1.0)
-    assert (arm.rope_params.friction, arm.rope_params.condim, arm.rope_params.cd) == (0.3, 4, 1.2)
+    arm, hand = _labs(CANDIDATES["C_D 1.2"], 1, 1.0)
+    assert arm.rope_params.cd == 1.2 and hand.rope_params.cd == 1.2
     assert arm.variation.sway_deg == 1.0 and hand.variation.sway_deg == 1.0
-    assert hand.rope_params.cd == 1.2
+    elastic, elastic_hand = _labs(CANDIDATES["elastic model (E 1e6 Pa, HB/B 0, pyramidal)"], 1, 0)
+    assert elastic.rope_params.frictional_couple == 0.0 and elastic.settings.cone == "pyramidal"
+    assert elastic_hand.settings.impratio == 1.0 and elastic_hand.rope_params.bend_modulus == 1e6
     (row,) = _robot_trials(arm, 1)
     assert row["label"] in LABELS and row["settle"] in ("rest", "contact_free", "cap")
     assert row["sim_s"] > 1.0 and row["wall_s"] > 0

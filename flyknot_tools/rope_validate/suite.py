@@ -163,14 +163,14 @@ def table_markdown(results: Iterable[CaseResult]) -> str:
         groups.setdefault((r.rope, r.variant), []).append(r)
     out = []
     for (rope, variant), rs in groups.items():
-        passed = sum(r.passed for r in rs)
-        out.append(f"### rope {rope} ({variant}): {passed}/{len(rs)} passed\n")
+        judged = [r for r in rs if r.applies]
+        passed = sum(r.passed for r in judged)
+        out.append(f"### rope {rope} ({variant}): {passed}/{len(judged)} passed\n")
         out.append("| case | expected | measured | result |")
         out.append("|---|---|---|---|")
         for r in rs:
-            out.append(
-                f"| {r.case} | {r.expected} | {r.detail} | {'pass' if r.passed else 'FAIL'} |"
-            )
+            verdict = ("pass" if r.passed else "FAIL") if r.applies else "reported"
+            out.append(f"| {r.case} | {r.expected} | {r.detail} | {verdict} |")
         out.append("")
     return "\n".join(out)
 
