@@ -61,6 +61,7 @@ CANDIDATES: dict[str, Candidate] = {
         Candidate("default"),
         # the cotton's unmeasured values across their brackets (assets/ropes.toml)
         Candidate("E 2.25e4 Pa (yarn, per tex)", rope=(("bend_modulus", 2.25e4),)),
+        Candidate("E 5e4 Pa", rope=(("bend_modulus", 5.0e4),)),
         Candidate("E 1e5 Pa", rope=(("bend_modulus", 1.0e5),)),
         Candidate("E 1e6 Pa (feasibility study)", rope=(("bend_modulus", 1.0e6),)),
         Candidate("HB/B 0 (elastic)", rope=(("bend_hysteresis", 0.0),)),

@@ -68,7 +68,7 @@ def test_knot_hold_at_defaults_and_lost_by_the_old_elastic_rope():
 
 
 def test_static_hold_at_defaults():
-    r = static_hold(_rope(), seconds=4.0)
+    r = static_hold(_rope(), seconds=4.0, tighten_s=4.0)
     assert r.passed and r.measured["slip_m"] <= get_rope(1).diameter, r.detail
 
 
@@ -83,9 +83,9 @@ def test_cotton_keeps_a_loop_latex_springs_back():
 
 def test_cantilever_hysteresis_of_cotton_only():
     cotton = cantilever(_rope(), seconds=4.0)
-    assert cotton.passed and cotton.measured["spread"] >= 0.1, cotton.detail
+    assert cotton.passed and cotton.measured["spread"] >= 0.05, cotton.detail
     elastic = cantilever(_rope(**ELASTIC), seconds=4.0)
-    assert abs(elastic.measured["spread"]) < 0.1 and not elastic.passed
+    assert abs(elastic.measured["spread"]) < 0.05 and not elastic.passed
     chain = cantilever(_rope(6), seconds=2.0)
     assert chain.passed, chain.detail
 
@@ -94,7 +94,8 @@ def test_capstan_needs_the_elliptic_cone():
     r = capstan(_rope(), seconds=2.0)
     assert r.passed, r.detail
     pyramid = capstan(_rope(cone="pyramidal", impratio=1), seconds=2.0)
-    assert not pyramid.passed and pyramid.measured["ratio"] < r.measured["ratio"], pyramid.detail
+    low = pyramid.measured["pull_over_capstan_law"]
+    assert not pyramid.passed and low < r.measured["pull_over_capstan_law"], pyramid.detail
 
 
 @pytest.mark.parametrize("rope", [1, 6])
@@ -127,6 +128,7 @@ def test_cli_runs_the_quick_suite_and_reports_json(capsys):
         "static_hold",
         "knot_hold",
     }
+    assert sum(r["case"] == "knot_hold" for r in rows) == 2
     assert all(r["rope"] == 6 and r["source"] and r["expected"] for r in rows)
     assert code == (0 if all(r["passed"] for r in rows if r["applies"]) else 1)
 

@@ -222,24 +222,27 @@ def knot_hold(
 # static hold: a tightened knot under the end weight
 # ----------------------------------------------------------------------------------------
 def static_hold(
-    rope: RopeModel, seconds: float = 60.0, tail: float = 0.2, tighten_s: float = 3.0
+    rope: RopeModel, seconds: float = 60.0, tail: float = 0.2, tighten_s: float = 20.0
 ) -> CaseResult:
-    """A loose knot hangs ``tighten_s`` (the end weight pulls it in), then ``seconds`` more.
-    Rope slipping through the knot lowers the free end, so the slip is the change of the free
-    end's height (averaged over 0.5 s at both ends of the interval: the rope sways a little);
-    it must stay within one rope diameter and the knot must stay."""
+    """A loose knot hangs ``tighten_s`` (the end weight pulls it in: the heavier ends take
+    ~20 s to tighten it), then ``seconds`` more. Rope slipping through the knot lowers the
+    free end, so the slip is the change of the free end's height (averaged over 2 s, about a
+    swing period, at both ends of the interval: a chain keeps swinging); it must stay within
+    one rope diameter and the knot must stay."""
     p = rope.params
     b = _hung(rope, _loose_knot(p, tail))
 
+    window = 2.0
+
     def end_height(bench: Bench) -> float:
         zs: list[float] = []
-        bench.run(0.5, every=0.01, probe=lambda bb: zs.append(float(bb.vertices()[-1, 2])))
+        bench.run(window, every=0.01, probe=lambda bb: zs.append(float(bb.vertices()[-1, 2])))
         return float(np.mean(zs))
 
-    b.run(max(tighten_s - 0.5, 0.0))
+    b.run(max(tighten_s - window, 0.0))
     z0 = end_height(b)
     v0 = judge_centreline(b.vertices(), DOWN)
-    b.run(max(seconds - 0.5, 0.0))
+    b.run(max(seconds - window, 0.0))
     z1 = end_height(b)
     v1 = judge_centreline(b.vertices(), DOWN)
     both = v0.klass == KNOT and v1.klass == KNOT
@@ -267,18 +270,21 @@ def capstan(
     rod_radius: float = 0.05,
     speed: float = 0.02,
     seconds: float = 3.0,
-    load: float = 0.2,
+    load: float | None = None,
 ) -> CaseResult:
     """The rope over a fixed horizontal rod (wrap angle pi, the rod's friction = the rope's):
     the holder pulls the rope down on one side at ``speed``, lifting the other side's hanging
     length and end weight. At steady sliding the tensions where the rope leaves the rod obey
-    the capstan law T_pull / T_load = exp(mu theta) (Euler-Eytelwein). The end carries a
-    ``load`` [kg] instead of the rope's end weight, so that the rope's bending (extra pull
-    ~2 M_0 / R to bend it on and off the rod) is small beside the tensions. Passes within 25 %
+    the capstan law T_pull / T_load = exp(mu theta) (Euler-Eytelwein), with the frictional
+    couple's resistance to being bent on and off the rod (a rope over a sheave: each change of
+    curvature 1/R costs a pull M_0 / R, R the radius of the centreline):
+    T_pull = (T_load + M_0 / R) exp(mu theta) + M_0 / R. ``load`` [kg]: the end's mass
+    (None: the rope's end weight, the tension of the lab's knots). Passes within 25 %
     (a polygon of 36.7 mm elements touches a 5 cm rod at a few points: MuJoCo issue #454
     reports capsule ropes under-delivering the capstan effect)."""
-    p = replace(rope.params, end_mass=load)
+    p = rope.params if load is None else replace(rope.params, end_mass=load)
     mu, theta = p.friction, math.pi
+    bend = p.frictional_couple / (rod_radius + p.radius)  # [N]
     centre = np.array([0.0, 0.0, 1.2])
     x = _draped(p, centre, rod_radius)
     home = x[0] - DOWN * p.clearance
@@ -301,21 +307,29 @@ def capstan(
         right = max(0.0, centre[2] - float(xs[load_side, 2].min()))
         t_pull = f_hold + p.density * G * left
         t_load = p.end_mass * G + p.density * G * right
-        ratios.append(t_pull / t_load)
+        ratios.append(t_pull / ((t_load + bend) * math.exp(mu * theta) + bend))
 
     b.run(seconds, pull, 0.01, probe)
     measured = float(np.median(ratios)) if ratios else float("nan")
-    expected = math.exp(mu * theta)
-    ok = abs(measured / expected - 1) <= 0.25
+    ok = abs(measured - 1) <= 0.25
     return _result(
         "capstan",
         rope,
         ok,
-        f"tension ratio exp(mu pi) = {expected:.2f} while sliding over a rod (mu = {mu:g})",
+        f"pull = capstan law with exp(mu pi) = {math.exp(mu * theta):.2f} (mu = {mu:g}) within "
+        "25 %",
         "the capstan equation T2 / T1 = exp(mu theta) (Euler 1762; every rope on a round "
-        "post); 25 % tolerance for the polygonal wrap",
-        {"ratio": measured, "exp_mu_theta": expected, "mu": mu, "rod_radius_m": rod_radius},
-        f"T_pull / T_load = {measured:.2f} vs exp(mu pi) = {expected:.2f}",
+        "post) plus the bending resistance of a rope over a sheave; 25 %: the polygonal wrap",
+        {
+            "pull_over_capstan_law": measured,
+            "exp_mu_theta": math.exp(mu * theta),
+            "bend_pull_n": bend,
+            "mu": mu,
+            "load_kg": p.end_mass,
+            "rod_radius_m": rod_radius,
+        },
+        f"pull {measured:.2f} x the capstan law (exp(mu pi) = {math.exp(mu * theta):.2f}, "
+        f"load {p.end_mass * 1e3:g} g, bending {bend:.3f} N)",
     )
 
 
@@ -341,6 +355,10 @@ def _draped(p: RopeParams, centre: np.ndarray, radius: float) -> np.ndarray:
 # ----------------------------------------------------------------------------------------
 # cantilever: bending length from above and from below (hysteresis)
 # ----------------------------------------------------------------------------------------
+HYSTERESIS_SEEN = 0.05
+"""Smallest relative difference of two cantilever bending lengths the test tells apart."""
+
+
 def peirce_bending_length(overhang: float, angle: float) -> float:
     """Peirce's cantilever: c = l (cos(theta / 2) / (8 tan theta))^(1/3) [m] for an overhang
     ``overhang`` [m] whose chord to the tip makes ``angle`` [rad] with the horizontal
@@ -366,10 +384,11 @@ def cantilever(rope: RopeModel, seconds: float = 8.0) -> CaseResult:
     bending length c for each. The overhang is the smallest whole number of elements
     >= 2.5 c_elastic (c_elastic = (EI / w)^(1/3)), so the chord angle is 30-60 degrees.
 
-    Expected: cotton c_up > c_down by >= 10 % (fibres stick: a textile keeps part of
+    Expected: cotton c_up > c_down by >= 5 % (fibres stick: a textile keeps part of
     whichever bend it is given: Grosberg, Text. Res. J. 36 (1966) 205; Kawabata's
-    hysteresis 2HB); latex within 10 % (rubber is nearly elastic: tan delta ~ 0.1,
-    Ferry 1980); a chain has no bending stiffness (it hangs straight down from the clamp)."""
+    hysteresis 2HB); latex within 5 % (rubber is nearly elastic: tan delta ~ 0.1,
+    Ferry 1980); a chain has no bending stiffness (it hangs down from the clamp). 5 %: what
+    the cantilever test can tell apart (its readings repeat to a few per cent)."""
     p = rope.params
     if p.material == "steel":
         return _chain_cantilever(rope, seconds)
@@ -395,11 +414,11 @@ def cantilever(rope: RopeModel, seconds: float = 8.0) -> CaseResult:
     c_up, c_down = results["up"][0], results["down"][0]
     spread = (c_up - c_down) / (0.5 * (c_up + c_down))
     if p.material == "cotton":
-        ok = spread >= 0.10
-        expected = "bending length from above exceeds that from below by >= 10 %"
+        ok = spread >= HYSTERESIS_SEEN
+        expected = "bending length from above exceeds that from below by >= 5 %"
     else:
-        ok = abs(spread) <= 0.10
-        expected = "bending lengths from above and below agree within 10 %"
+        ok = abs(spread) <= HYSTERESIS_SEEN
+        expected = "bending lengths from above and below agree within 5 %"
     return _result(
         "cantilever",
         rope,
