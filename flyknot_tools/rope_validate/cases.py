@@ -3,263 +3,42 @@
 Each case returns a :class:`CaseResult`: the measured numbers, the expectation for the rope's
 material, and the source or physical reason of that expectation. Expectations per material:
 ``cotton`` (a textile cord: fibres that stick and slip), ``latex`` (an elastic tube), ``steel``
-(a link chain). Where a behaviour does not apply to a material, the case says so and passes
-with the reason (e.g. a chain has no bending stiffness to measure).
+(a link chain). Where a behaviour does not apply to a material, the case says so (e.g. a chain
+has no bending stiffness to measure; a latex tube's knots are reported, not judged). The knot
+cases are in :mod:`flyknot_tools.rope_validate.knots`; this module has the others and the
+table of all of them, :data:`CASES`.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import numpy as np
 from scipy.optimize import brentq
 
-from flyknot.verdict import KNOT, TREFOIL, judge_centreline, tube_knot
 from flyknot_sim.aero import cylinder_cd, sphere_cd
 from flyknot_sim.rope_table import RopeParams
-from flyknot_tools.rope_study.crossings import count_crossings, overhand_knot_vertices
+from flyknot_tools.rope_study.crossings import resample_equal_chords
 from flyknot_tools.rope_validate.bench import Bench, RopeModel
+from flyknot_tools.rope_validate.common import DOWN, HOME, UP, CaseResult, G, hung, result
+from flyknot_tools.rope_validate.knots import Swing, knot_hold, static_hold
 
-__all__ = ["CASES", "CaseResult", "Swing"]
-
-G = 9.81
-UP = np.array([0.0, 0.0, 1.0])
-DOWN = -UP
-HOME = np.array([0.0, 0.0, 1.5])
-
-
-@dataclass(frozen=True)
-class CaseResult:
-    """One case on one rope.
-
-    Attributes:
-        case: Case name.
-        rope: Rope id.
-        variant: The rope model's label.
-        passed: Whether the measured behaviour is the expected one.
-        expected: The expectation for this material, in words.
-        source: Why a real rope of this kind behaves so (publication or physical reason).
-        measured: The numbers measured (name -> value).
-        detail: One line with the numbers that decided.
-        applies: False when no expectation holds for this material (then ``passed`` only
-            says whether the generic expectation was met; the result is reported, not judged).
-    """
-
-    case: str
-    rope: int | str
-    variant: str
-    passed: bool
-    expected: str
-    source: str
-    measured: dict = field(default_factory=dict)
-    detail: str = ""
-    applies: bool = True
-
-    def to_json(self) -> dict:
-        """The result as plain data."""
-        return {
-            "case": self.case,
-            "rope": self.rope,
-            "variant": self.variant,
-            "passed": self.passed,
-            "expected": self.expected,
-            "source": self.source,
-            "measured": self.measured,
-            "detail": self.detail,
-            "applies": self.applies,
-        }
-
-
-KNOT_MATERIALS = ("cotton", "steel")
-"""Materials whose knots are expected to hold: cords (friction between fibres) and chains
-(links jam). For latex tubing no behaviour of a knot under a small load was found: its knot
-cases are reported, not judged."""
-
-
-def _result(
-    case, rope: RopeModel, passed, expected, source, measured, detail, applies=True
-) -> CaseResult:
-    return CaseResult(
-        case,
-        rope.params.id,
-        rope.label,
-        bool(passed),
-        expected,
-        source,
-        measured,
-        detail,
-        bool(applies),
-    )
-
-
-def _still(_t: float) -> tuple[np.ndarray, np.ndarray]:
-    return np.zeros(3), np.zeros(3)
-
-
-def _hung(rope: RopeModel, x: np.ndarray, **kw) -> Bench:
-    """A bench whose holder sits where ``x[0]`` is held from above (tube pointing down)."""
-    home = x[0] + UP * rope.params.clearance
-    b = Bench(rope, home=home, axis=DOWN, **kw)
-    b.place(x)
-    return b
-
-
-# ----------------------------------------------------------------------------------------
-# knot hold in a hung and swung rope
-# ----------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Swing:
-    """A sideways swing of the holder: x(t) = amplitude sin(2 pi f t) for whole cycles.
-
-    Attributes:
-        amplitude: [m] (0: the holder stays still).
-        frequency: [Hz].
-        seconds: Longest swing [s]; the swing runs floor(seconds f) whole cycles.
-    """
-
-    amplitude: float = 0.3
-    frequency: float = 0.5
-    seconds: float = 8.0
-
-    @property
-    def duration(self) -> float:
-        """The swing's length: whole cycles within ``seconds`` [s]."""
-        if self.amplitude == 0:
-            return self.seconds
-        return math.floor(self.seconds * self.frequency + 1e-9) / self.frequency
-
-    def path(self, start: float):
-        """The holder path of this swing starting at time ``start`` [s]."""
-        w = 2 * math.pi * self.frequency
-        end = start + self.duration
-
-        def at(t: float) -> tuple[np.ndarray, np.ndarray]:
-            if self.amplitude == 0 or t < start or t >= end:
-                return np.zeros(3), np.zeros(3)
-            s = t - start
-            return (
-                np.array([self.amplitude * math.sin(w * s), 0.0, 0.0]),
-                np.array([self.amplitude * w * math.cos(w * s), 0.0, 0.0]),
-            )
-
-        return at
-
-    def label(self) -> str:
-        """The swing in words."""
-        if self.amplitude == 0:
-            return "no swing"
-        return f"+-{self.amplitude:g} m at {self.frequency:g} Hz"
-
-
-def _loose_knot(p: RopeParams, tail: float, knot_length: float = 0.7) -> np.ndarray:
-    return overhand_knot_vertices(p, knot_length, centre=(0.0, 0.0, 0.0), tail_below=tail) + HOME
-
-
-def knot_hold(
-    rope: RopeModel,
-    tail: float = 0.1,
-    swing: Swing = Swing(),
-    hold_s: float = 2.0,
-    check_every: float = 0.05,
-) -> CaseResult:
-    """A loose overhand knot (0.7 m of rope in the knot, ``tail`` below it) hangs ``hold_s``,
-    the holder swings, then holds ``hold_s``; the knot is checked every ``check_every``.
-
-    Passes when the knot is there at every check after the first hold (the end weight has
-    pulled it in by then) and the rope never passed through itself (crossings between
-    consecutive steps)."""
-    p = rope.params
-    b = _hung(rope, _loose_knot(p, tail))
-    path = swing.path(hold_s)
-    types: list[str] = []
-    crossings = [0]
-    prev = [b.vertices()]
-    every = max(1, round(check_every / b.dt))
-    steps = [0]
-
-    def probe(bench: Bench) -> None:  # every step: crossings need straight-line motion
-        x = bench.vertices()
-        crossings[0] += count_crossings(prev[0], x)
-        prev[0] = x
-        steps[0] += 1
-        if steps[0] % every == 0:
-            types.append(tube_knot(x, DOWN))
-
-    b.run(hold_s, path, b.dt, probe)
-    settled = types[-1]
-    n_first = len(types)
-    b.run(swing.duration + hold_s, path, b.dt, probe)
-    after = types[n_first:]
-    kept = sum(t == TREFOIL for t in after)
-    final = judge_centreline(b.vertices(), DOWN)
-    held = settled == TREFOIL and kept == len(after) and final.klass == KNOT
-    return _result(
-        "knot_hold",
-        rope,
-        held and crossings[0] == 0,
-        "an overhand knot with the end weight below it holds when the rope is swung",
-        "the end weight pulls the knot in and friction between the strands holds it "
-        "(Bayman, Am. J. Phys. 45 (1977) 185: a knot whose friction inequality holds stays "
-        "tied; everyday experience of cords)",
-        {
-            "tail_m": tail,
-            "swing": swing.label(),
-            "after_hold": settled,
-            "checks_with_knot": kept,
-            "checks": len(after),
-            "final": final.klass,
-            "crossings": crossings[0],
-        },
-        f"tail {tail:g} m, {swing.label()}: knot at {kept}/{len(after)} checks, final "
-        f"{final.klass}, crossings {crossings[0]}",
-        applies=p.material in KNOT_MATERIALS,
-    )
-
-
-# ----------------------------------------------------------------------------------------
-# static hold: a tightened knot under the end weight
-# ----------------------------------------------------------------------------------------
-def static_hold(
-    rope: RopeModel, seconds: float = 60.0, tail: float = 0.2, tighten_s: float = 20.0
-) -> CaseResult:
-    """A loose knot hangs ``tighten_s`` (the end weight pulls it in: the heavier ends take
-    ~20 s to tighten it), then ``seconds`` more. Rope slipping through the knot lowers the
-    free end, so the slip is the change of the free end's height (averaged over 2 s, about a
-    swing period, at both ends of the interval: a chain keeps swinging); it must stay within
-    one rope diameter and the knot must stay."""
-    p = rope.params
-    b = _hung(rope, _loose_knot(p, tail))
-
-    window = 2.0
-
-    def end_height(bench: Bench) -> float:
-        zs: list[float] = []
-        bench.run(window, every=0.01, probe=lambda bb: zs.append(float(bb.vertices()[-1, 2])))
-        return float(np.mean(zs))
-
-    b.run(max(tighten_s - window, 0.0))
-    z0 = end_height(b)
-    v0 = judge_centreline(b.vertices(), DOWN)
-    b.run(max(seconds - window, 0.0))
-    z1 = end_height(b)
-    v1 = judge_centreline(b.vertices(), DOWN)
-    both = v0.klass == KNOT and v1.klass == KNOT
-    slip = z0 - z1
-    held = both and abs(slip) <= p.diameter
-    return _result(
-        "static_hold",
-        rope,
-        held,
-        f"a knot pulled in by the end weight does not slip over {seconds:g} s",
-        "static friction between the strands exceeds the end weight's pull on the knot "
-        "(capstan friction of the wraps; Maddocks & Keller, SIAM J. Appl. Math. 47 (1987))",
-        {"seconds": seconds, "start": v0.klass, "end": v1.klass, "slip_m": slip},
-        f"knot {v0.klass} -> {v1.klass}, free end lowered {slip * 1e3:.1f} mm in {seconds:g} s "
-        f"(limit one diameter, {p.diameter * 1e3:g} mm)",
-        applies=p.material in KNOT_MATERIALS,
-    )
+__all__ = [
+    "CASES",
+    "CaseResult",
+    "Swing",
+    "cantilever",
+    "capstan",
+    "catenary_sag",
+    "drag_decay_theory",
+    "knot_hold",
+    "loop_spring_back",
+    "peirce_bending_length",
+    "rest_shape",
+    "static_hold",
+    "swing_decay",
+]
 
 
 # ----------------------------------------------------------------------------------------
@@ -312,7 +91,7 @@ def capstan(
     b.run(seconds, pull, 0.01, probe)
     measured = float(np.median(ratios)) if ratios else float("nan")
     ok = abs(measured - 1) <= 0.25
-    return _result(
+    return result(
         "capstan",
         rope,
         ok,
@@ -347,8 +126,6 @@ def _draped(p: RopeParams, centre: np.ndarray, radius: float) -> np.ndarray:
             pts[i] = centre + np.array([r * math.cos(a), 0.0, r * math.sin(a)])
         else:  # down on the right
             pts[i] = centre + np.array([r, 0.0, -(si - half - math.pi * r)])
-    from flyknot_tools.rope_study.crossings import resample_equal_chords
-
     return resample_equal_chords(pts, p.segment_length, p.segments)
 
 
@@ -419,7 +196,7 @@ def cantilever(rope: RopeModel, seconds: float = 8.0) -> CaseResult:
     else:
         ok = abs(spread) <= HYSTERESIS_SEEN
         expected = "bending lengths from above and below agree within 5 %"
-    return _result(
+    return result(
         "cantilever",
         rope,
         ok,
@@ -451,7 +228,7 @@ def _chain_cantilever(rope: RopeModel, seconds: float) -> CaseResult:
     reach = float(np.mean(tips, axis=0)[0] - b.vertices()[1, 0])
     hang = (n - 1) * p.segment_length
     ok = abs(reach) <= 0.1 * hang
-    return _result(
+    return result(
         "cantilever",
         rope,
         ok,
@@ -495,7 +272,7 @@ def loop_spring_back(rope: RopeModel, radius: float = 0.05, seconds: float = 2.0
         "latex": "springs back: keeps <= 20 %",
         "steel": "keeps >= 90 % (no stiffness)",
     }[p.material]
-    return _result(
+    return result(
         "spring_back",
         rope,
         ok,
@@ -557,7 +334,7 @@ def swing_decay(rope: RopeModel, angle_deg: float = 15.0, seconds: float = 10.0)
     x0 = HOME + DOWN * p.clearance
     kink = x0 + DOWN * p.segment_length  # the held segment stays vertical
     x = np.array([x0] + [kink + direction * p.segment_length * k for k in range(p.segments)])
-    b = _hung(rope, x)
+    b = hung(rope, x)
     tip = []
     b.run(seconds, every=0.01, probe=lambda bench: tip.append(bench.vertices()[-1, 0]))
     xs = np.array(tip)
@@ -565,14 +342,14 @@ def swing_decay(rope: RopeModel, angle_deg: float = 15.0, seconds: float = 10.0)
     peaks = [i for i in range(1, len(xs) - 1) if mag[i] >= mag[i - 1] and mag[i] > mag[i + 1]]
     amps = np.abs(xs[peaks])
     if len(amps) < 3:
-        return _result("swing_decay", rope, False, "a swing", "", {}, "no swing measured")
+        return result("swing_decay", rope, False, "a swing", "", {}, "no swing measured")
     cycles = (len(amps) - 1) / 2
     a_start, a_end = float(amps[0]), float(amps[-1])
     theory_end = drag_decay_theory(p, a_start, cycles)
     lost, lost_theory = a_start - a_end, a_start - theory_end
     ratio = lost / lost_theory
     ok = ratio >= 0.7
-    return _result(
+    return result(
         "swing_decay",
         rope,
         ok,
@@ -619,8 +396,6 @@ def rest_shape(rope: RopeModel, span_fraction: float = 0.7, seconds: float = 6.0
     depth = math.sqrt(max(half**2 - (span / 2) ** 2, 0.0))
     bottom = start + np.array([span / 2, 0.0, -depth])
     pts = np.vstack([np.linspace(start, bottom, 500), np.linspace(bottom, end, 500)[1:]])
-    from flyknot_tools.rope_study.crossings import resample_equal_chords
-
     x = resample_equal_chords(pts, p.segment_length, p.segments)
     b = Bench(rope, home=HOME, axis=axis, free_end_at=end)
     b.place(x)
@@ -629,7 +404,7 @@ def rest_shape(rope: RopeModel, span_fraction: float = 0.7, seconds: float = 6.0
     b.run(1.0, every=0.01, probe=lambda bench: lows.append(bench.vertices()[:, 2].min()))
     measured = float(start[2] - np.mean(lows))
     err = measured / sag - 1
-    return _result(
+    return result(
         "rest_shape",
         rope,
         abs(err) <= 0.05,
@@ -650,12 +425,3 @@ CASES = {
     "rest_shape": rest_shape,
 }
 """The cases by name (each ``f(rope: RopeModel, ...) -> CaseResult``)."""
-
-
-def knot_hold_grid(
-    rope: RopeModel,
-    tails: Sequence[float] = (0.1, 0.2, 0.3),
-    swings: Sequence[Swing] = (Swing(0.0), Swing(0.15, 0.7), Swing(0.3, 0.5)),
-) -> list[CaseResult]:
-    """:func:`knot_hold` over tails x swings."""
-    return [knot_hold(rope, t, s) for t in tails for s in swings]
