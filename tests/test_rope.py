@@ -103,11 +103,18 @@ def test_table_matches_paper():
         assert get_rope(rid) == p
 
 
-def test_cotton_bending_follows_one_over_d_squared():
-    """Cotton ropes: E = 1e6 Pa (9 mm / D)^2 (free-slip scaling, see ropes.toml)."""
+def test_cotton_bending_follows_the_linear_density():
+    """Cotton ropes: EI = b tex, b = 5.64e-10 N m^2/tex (free-slip scaling, see ropes.toml):
+    every cotton rope has the same elastic bending length (EI / w)^(1/3), 3.9 cm, and the
+    same HB/B."""
     for p in load_rope_table().values():
         if p.material == "cotton":
-            assert p.bend_modulus == pytest.approx(1e6 * (0.009 / p.diameter) ** 2, rel=0.02)
+            tex = p.density * 1e6
+            assert p.bending_stiffness == pytest.approx(5.64e-10 * tex, rel=0.01)
+            c = (p.bending_stiffness / (p.density * 9.81)) ** (1 / 3)
+            assert c == pytest.approx(0.039, abs=0.001)
+            assert p.bend_hysteresis == 54.0
+            assert p.frictional_couple == pytest.approx(54.0 * p.bending_stiffness)
 
 
 def test_unknown_rope_id_message():
@@ -536,15 +543,21 @@ def test_twist_hinges_do_not_change_bending():
     assert np.abs(out[0] - out[1]).max() < 1e-4  # [m]; measured 6e-6 (solver coupling only)
 
 
-def test_rope_lands_on_the_floor():
-    _, handle, model, data = hand_scene(get_rope(1))
-    data.qpos[2] = -1.0  # hand at 0.5 m: the 1.1 m rope reaches the floor
-    data.ctrl[2] = -1.0
+@pytest.mark.parametrize("rope", [1, 4])
+def test_a_lowered_rope_lands_on_the_floor_with_the_lab_settings(rope):
+    """The hand lowers 1 m in 1 s, piling the rope on the floor: it stays on it.
+
+    MuJoCo's elliptic friction cone lets it sink 0.4-0.5 m into the floor and jams the hand
+    (``docs/rope-model.md``): the rope table must not choose it.
+    """
+    _, handle, model, data = hand_scene(get_rope(rope))
     mujoco.mj_kinematics(model, data)
     handle.set_hanging(model, data)
-    mujoco.mj_step(model, data, nstep=int(0.6 / model.opt.timestep))
-    x = handle.centreline(model, data)
-    floor = model.geom("floor").id
-    assert x[:, 2].min() > handle.params.radius - 0.003  # resting on, not sinking through
-    geoms = data.contact.geom[: data.ncon]
-    assert np.any(geoms == floor)
+    dt = model.opt.timestep
+    lowest = np.inf
+    for k in range(round(2.0 / dt)):
+        data.ctrl[2] = -min(1.0, k * dt)
+        mujoco.mj_step(model, data)
+        lowest = min(lowest, handle.centreline(model, data)[:, 2].min())
+    assert data.qpos[2] == pytest.approx(-1.0, abs=0.01)  # the hand got down
+    assert lowest > -0.005  # at most 5 mm into the floor at any time
