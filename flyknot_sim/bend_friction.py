@@ -300,6 +300,17 @@ def rope_bend_friction_forces(
     return f
 
 
+@functools.lru_cache(maxsize=1)
+def _warm_kernel() -> None:
+    """Compile (or load from numba's cache) the kernel now, once per process: not at the first
+    step of a trial, which may run against a clock (the real-time fake lab)."""
+    from flyknot_sim.bend_kernel import bend_friction_forces
+
+    x = np.column_stack([np.arange(4.0), np.zeros(4), np.zeros(4)])
+    bend_friction_forces(x, np.zeros((4, 3)), 1e-3, RATE0, np.ones(4), 1e-3,
+                         SPAN_REGULARISATION, IMPLICIT_ITERATIONS, _TINY)  # fmt: skip
+
+
 class RopeBendFriction:
     """Adds :func:`rope_bend_friction_forces` to a bound rope's ``qfrc_applied`` every step.
 
@@ -327,6 +338,8 @@ class RopeBendFriction:
         self._model_id: int | None = None
         self._added: np.ndarray | None = None
         self._after: np.ndarray | None = None
+        if self.moment > 0:
+            _warm_kernel()
 
     def inv_mass(self, model) -> np.ndarray:
         """Inverse vertex masses for ``model``, held vertices 0 and 1 at 0 [1/kg] (cached)."""
