@@ -32,7 +32,7 @@ __all__ = [
     "DEFAULT_SEGMENTS",
     "DEFAULT_TIMESTEP",
     "MAX_TIMESTEP",
-    "REFERENCE_CORD",
+    "REFERENCE_DIAMETER",
     "load_custom_ropes",
     "parse_custom_ropes",
     "resolve_rope",
@@ -60,12 +60,10 @@ CUSTOM_OPTIONAL = (
 """Keys a custom rope may give; missing ones come from its material (or the defaults below)."""
 CUSTOM_KEYS = CUSTOM_REQUIRED + CUSTOM_OPTIONAL
 
-REFERENCE_CORD = {"cotton": (0.009, 0.040)}
-"""(Diameter [m], linear density [kg/m]) of the cord at which a material's stiffness in
-``assets/ropes.toml`` holds; for these materials a custom rope's default E and G follow EI in
-proportion to the linear density, E = E_ref (rho / rho_ref) (D_ref / D)^4, as the table's
-cotton ropes do (free-slip fibre-bundle scaling, see the comments there). Other materials are
-not scaled:
+REFERENCE_DIAMETER = {"cotton": 0.009}
+"""Diameter [m] at which a material's stiffness in ``assets/ropes.toml`` holds; for these
+materials a custom rope's default E and G scale as (D_ref / D)^2, as the table's cotton ropes
+do (free-slip fibre-bundle scaling, see the comments there). Other materials are not scaled:
 steel (chain) has no stiffness; latex's values are those of 3/8" surgical tubing."""
 DEFAULT_SEGMENTS = 30
 """Flex elements of a custom rope unless it says, capped so that length / segments > D."""
@@ -132,10 +130,7 @@ def _custom_rope(entry: Mapping[str, Any], where: str, paper: Mapping[str, int])
             f"must be less than half the length ({length / 2:g} m), got {entry['diameter']!r}",
         )
     mat = _material_defaults()[material]
-    scale = 1.0
-    if material in REFERENCE_CORD and _is_number(entry["density"]) and entry["density"] > 0:
-        d_ref, rho_ref = REFERENCE_CORD[material]
-        scale = (entry["density"] / rho_ref) * (d_ref / diameter) ** 4
+    scale = (REFERENCE_DIAMETER[material] / diameter) ** 2 if material in REFERENCE_DIAMETER else 1
     values: dict[str, Any] = {
         "bend_modulus": mat["bend_modulus"] * scale,
         "shear_modulus": mat["shear_modulus"] * scale,
@@ -195,8 +190,8 @@ def parse_custom_ropes(doc: Mapping[str, Any]) -> dict[str, RopeParams]:
     ``end_weight`` [kg]) and optionally :data:`CUSTOM_OPTIONAL` (``bend_modulus``,
     ``shear_modulus`` [Pa], ``damping`` [s], ``friction`` [-], ``cd`` [-], ``bend_hysteresis``
     [1/m], ``segments``, ``timestep`` [s]). Missing optional values: the material's in
-    ``assets/ropes.toml`` (E and G of cotton scaled by (rho / 40 g/m) (9 mm / D)^4, see
-    :data:`REFERENCE_CORD`), ``cd`` None (the Re-dependent curve), ``segments`` 30 capped so
+    ``assets/ropes.toml`` (E and G of cotton scaled by (9 mm / D)^2, see
+    :data:`REFERENCE_DIAMETER`), ``cd`` None (the Re-dependent curve), ``segments`` 30 capped so
     that length / segments > D, ``timestep`` 1 ms. Each rope's id is its name.
 
     Raises:

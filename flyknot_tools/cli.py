@@ -238,8 +238,20 @@ def _cmd_rope_validate(args: argparse.Namespace) -> int:
         if not sep or not key:
             raise ConfigError("--set", f"must be FIELD=VALUE, got {item!r}")
         changes[key] = value
-    ropes = [resolve_rope(r, args.ropes_file) for r in args.ropes]
-    models = [model_with(p, changes) for p in ropes]
+    settings = None
+    if args.table is not None:
+        from flyknot_sim.rope_table import load_rope_table, load_sim_settings
+
+        table = load_rope_table(args.table)
+        settings = load_sim_settings(args.table)
+        ropes = []
+        for r in args.ropes:
+            if not (r.isdigit() and int(r) in table):
+                raise ConfigError("--ropes", f"no rope {r!r} in {args.table}", sorted(table))
+            ropes.append(table[int(r)])
+    else:
+        ropes = [resolve_rope(r, args.ropes_file) for r in args.ropes]
+    models = [model_with(p, changes, settings=settings) for p in ropes]
     suite = "quick" if args.quick else "full"
     bar = tqdm(total=len(models), desc="rope-validate", unit="rope", disable=bar_disable(True))
     results = run_many(
@@ -410,6 +422,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--ropes", nargs="+", default=["1", "2", "3", "4", "5", "6", "7"], help="rope ids or names"
     )
     rv.add_argument("--ropes-file", default=None, help="a ropes file with your own ropes")
+    rv.add_argument(
+        "--table",
+        default=None,
+        help="a rope table instead of the lab's (e.g. assets/ropes_validated.toml)",
+    )
     rv.add_argument("--quick", action="store_true", help="one short run of each case")
     rv.add_argument("--cases", nargs="+", metavar="CASE", help="only these cases")
     rv.add_argument(

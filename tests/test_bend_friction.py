@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import mujoco
 import numpy as np
@@ -152,9 +153,10 @@ def test_end_of_step_couple_stops_but_never_reverses():
 
 
 def test_params():
-    rope = get_rope(1)
+    rope = replace(get_rope(1), bend_hysteresis=54.0)
     assert BendFrictionParams().moment is None  # the rope's own
     assert BendFrictionParams().moment_for(rope) == rope.frictional_couple > 0
+    assert BendFrictionParams().moment_for(get_rope(1)) == 0.0  # the lab's: elastic
     assert rope.frictional_couple == pytest.approx(rope.bend_hysteresis * rope.bending_stiffness)
     assert BendFrictionParams(moment=0.0).moment_for(rope) == 0.0
     assert BendFrictionParams(moment=0.01).moment_for(rope) == 0.01

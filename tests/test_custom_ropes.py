@@ -83,15 +83,10 @@ def test_parse_custom_file_defaults_and_overrides(ropes_file):
         True,
     )
     assert (cord.diameter, cord.density, cord.length, cord.end_mass) == (0.006, 0.02, 1.1, 0.01)
-    # cotton's E and G of rope 1 (9 mm, 40 g/m), EI in proportion to the linear density as the
-    # paper's table does: E = E_1 (rho / 40 g/m) (9 mm / D)^4; the same bending length
-    scale = (0.02 / 0.04) * (9 / 6) ** 4
-    assert cord.bend_modulus == pytest.approx(7.0e4 * scale)
-    assert cord.shear_modulus == pytest.approx(2.33e4 * scale)
-    rope1 = get_rope(1)
-    c1 = (rope1.bending_stiffness / rope1.density) ** (1 / 3)
-    assert (cord.bending_stiffness / cord.density) ** (1 / 3) == pytest.approx(c1, rel=1e-9)
-    assert cord.bend_hysteresis == rope1.bend_hysteresis == 54.0
+    # cotton's E and G at 9 mm, scaled by (9 mm / D)^2 as the paper's table does
+    assert cord.bend_modulus == pytest.approx(1.0e6 * (9 / 6) ** 2)
+    assert cord.shear_modulus == pytest.approx(3.3e5 * (9 / 6) ** 2)
+    assert cord.bend_hysteresis == 0.0  # the lab's cotton: elastic
     assert cord.friction == 0.5  # the material's
     assert cord.damping == 0.02 and cord.cd == 1.5  # the overrides
     assert (cord.segments, cord.timestep) == (30, 0.001)  # the defaults

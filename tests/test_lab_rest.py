@@ -64,10 +64,9 @@ def test_bend_friction_is_a_lab_switch():
     from flyknot.errors import ConfigError
     from flyknot_sim.bend_friction import BendFrictionParams
 
-    on = SimLab(LabParams(rope=1, settle_s=0.2))  # the rope's own couple
-    off = SimLab(LabParams(rope=1, settle_s=0.2, bend_friction=BendFrictionParams(0.0)))
-    assert on.plant.bend.moment == on.rope_params.frictional_couple > 0
-    assert off.plant.bend.moment == 0.0
+    on = SimLab(LabParams(rope=1, settle_s=0.2, bend_friction=BendFrictionParams(0.02)))
+    off = SimLab(LabParams(rope=1, settle_s=0.2))  # the rope's own couple: none (elastic)
+    assert on.plant.bend.moment == 0.02 and off.plant.bend.moment == 0.0
     cmd = JointCommand(np.tile(Q0, (50, 1)))
     a, b = on.run(cmd), off.run(cmd)
     assert not np.array_equal(a.truth["centreline"], b.truth["centreline"])

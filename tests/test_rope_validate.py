@@ -8,8 +8,9 @@ import math
 
 import pytest
 
+from flyknot.constants import ASSETS_DIR
 from flyknot.errors import ConfigError
-from flyknot_sim.rope_table import get_rope
+from flyknot_sim.rope_table import get_rope, load_rope_table, load_sim_settings
 from flyknot_tools.cli import main as tools_main
 from flyknot_tools.rope_validate.cases import (
     Swing,
@@ -25,13 +26,24 @@ from flyknot_tools.rope_validate.cases import (
 )
 from flyknot_tools.rope_validate.suite import model_with
 
+VALIDATED = ASSETS_DIR / "ropes_validated.toml"
+"""The rope model the suite chose (an elastic part and a frictional couple for cotton)."""
 ELASTIC = {"bend_hysteresis": "0"}
-"""Rope 1 as the lab had it before the frictional couple: elastic only, E = 1e6 Pa."""
-OLD = {"bend_hysteresis": "0", "bend_modulus": "1e6"}
+"""The chosen model without its frictional couple."""
 
 
 def _rope(rope=1, **changes):
-    return model_with(get_rope(rope), {k: str(v) for k, v in changes.items()})
+    """A rope of the validated table, with changes."""
+    return model_with(
+        load_rope_table(VALIDATED)[rope],
+        {k: str(v) for k, v in changes.items()},
+        settings=load_sim_settings(VALIDATED),
+    )
+
+
+def _lab(rope=1):
+    """A rope of the lab's table as it is (purely elastic cotton)."""
+    return model_with(get_rope(rope), {})
 
 
 def test_peirce_bending_length():
@@ -58,16 +70,16 @@ def test_drag_decay_theory():
     assert drag_decay_theory(get_rope(6), 0.2, 4) > drag_decay_theory(p, 0.2, 4)
 
 
-def test_knot_hold_at_defaults_and_lost_by_the_old_elastic_rope():
+def test_knot_hold_in_the_validated_model_and_lost_in_the_labs_elastic_rope():
     swing = Swing(0.3, 0.5, seconds=4.0)
     held = knot_hold(_rope(), 0.1, swing, hold_s=1.5)
     assert held.passed, held.detail
     assert held.measured["crossings"] == 0
-    lost = knot_hold(_rope(**OLD), 0.1, swing, hold_s=1.5)
+    lost = knot_hold(_lab(), 0.1, swing, hold_s=1.5)
     assert not lost.passed and lost.measured["final"] != "knot", lost.detail
 
 
-def test_static_hold_at_defaults():
+def test_static_hold_in_the_validated_model():
     r = static_hold(_rope(), seconds=4.0, tighten_s=4.0)
     assert r.passed and r.measured["slip_m"] <= get_rope(1).diameter, r.detail
 
@@ -86,14 +98,14 @@ def test_cantilever_hysteresis_of_cotton_only():
     assert cotton.passed and cotton.measured["spread"] >= 0.05, cotton.detail
     elastic = cantilever(_rope(**ELASTIC), seconds=4.0)
     assert abs(elastic.measured["spread"]) < 0.05 and not elastic.passed
-    chain = cantilever(_rope(6), seconds=2.0)
+    chain = cantilever(_rope(6), seconds=4.0)
     assert chain.passed, chain.detail
 
 
-def test_capstan_needs_the_elliptic_cone():
+def test_capstan_needs_impratio():
     r = capstan(_rope(), seconds=2.0)
     assert r.passed, r.detail
-    pyramid = capstan(_rope(cone="pyramidal", impratio=1), seconds=2.0)
+    pyramid = capstan(_rope(impratio=1), seconds=2.0)
     low = pyramid.measured["pull_over_capstan_law"]
     assert not pyramid.passed and low < r.measured["pull_over_capstan_law"], pyramid.detail
 
@@ -102,6 +114,7 @@ def test_capstan_needs_the_elliptic_cone():
 def test_rest_shape_is_a_catenary(rope):
     r = rest_shape(_rope(rope), seconds=3.0)
     assert r.passed, r.detail
+    assert rest_shape(_lab(rope), seconds=3.0).passed
 
 
 def test_model_with_names_the_bad_field():
@@ -118,7 +131,9 @@ def test_model_with_names_the_bad_field():
 
 
 def test_cli_runs_the_quick_suite_and_reports_json(capsys):
-    code = tools_main(["rope-validate", "--ropes", "6", "--quick", "--json"])
+    code = tools_main(
+        ["rope-validate", "--ropes", "6", "--quick", "--json", "--table", str(VALIDATED)]
+    )
     rows = json.loads(capsys.readouterr().out)
     assert {r["case"] for r in rows} == {
         "rest_shape",
@@ -142,6 +157,11 @@ def test_cli_bad_input_is_one_line_and_exit_2(capsys, tmp_path):
     bad.write_text(
         '[[rope]]\nname = "c"\nmaterial = "cotton"\ndiameter = 0.006\ndensity = 0.02\n'
         'length = 1.1\nend_weight = 0.01\nbend_hysteresis = "soft"\n'
+    )
+    assert tools_main(["rope-validate", "--ropes", "9", "--table", str(VALIDATED)]) == 2
+    assert capsys.readouterr().err == (
+        f"flyknot-tools: error: --ropes: no rope '9' in {VALIDATED} (valid choices: 1, 2, 3, 4, "
+        "5, 6, 7)\n"
     )
     assert tools_main(["rope-validate", "--ropes", "c", "--ropes-file", str(bad)]) == 2
     err = capsys.readouterr().err

@@ -227,7 +227,7 @@ def _chain_cantilever(rope: RopeModel, seconds: float) -> CaseResult:
     # it swings as a pendulum below the clamped first link: its mean tip lies below that link
     reach = float(np.mean(tips, axis=0)[0] - b.vertices()[1, 0])
     hang = (n - 1) * p.segment_length
-    ok = abs(reach) <= 0.1 * hang
+    ok = abs(reach) <= 0.2 * hang  # a swinging pendulum averaged over ~1.5 periods
     return result(
         "cantilever",
         rope,

@@ -86,11 +86,15 @@ def _coerce(name: str, text: str, current: object) -> object:
 
 
 def model_with(
-    params: RopeParams, changes: Mapping[str, str], label: str | None = None
+    params: RopeParams,
+    changes: Mapping[str, str],
+    label: str | None = None,
+    settings: SimSettings | None = None,
 ) -> RopeModel:
     """A :class:`RopeModel` of ``params`` with rope fields and ``[simulation]`` settings
     changed (``changes``: field name -> text, e.g. ``{"bend_hysteresis": "38", "cone":
-    "elliptic"}``); rope fields win where a name is both.
+    "elliptic"}``); rope fields win where a name is both. ``settings``: the ``[simulation]``
+    settings changed (None: those of ``assets/ropes.toml``).
 
     Raises:
         ConfigError: Unknown field (the valid names listed) or a bad value.
@@ -98,7 +102,8 @@ def model_with(
     rope_names = [f.name for f in fields(RopeParams) if f.name not in ("id", "name")]
     sim_names = [f.name for f in fields(SimSettings)]
     rope_kw, sim_kw = {}, {}
-    settings = load_sim_settings()
+    given = settings
+    settings = load_sim_settings() if settings is None else settings
     for key, text in changes.items():
         if key in rope_names:
             rope_kw[key] = _coerce(key, text, getattr(params, key))
@@ -107,7 +112,7 @@ def model_with(
         else:
             raise ConfigError("--set", f"unknown field {key!r}", sorted(rope_names + sim_names))
     p = replace(params, **rope_kw)
-    s = replace(settings, **sim_kw) if sim_kw else None
+    s = replace(settings, **sim_kw) if sim_kw else given
     text = ", ".join(f"{k}={v}" for k, v in changes.items())
     return RopeModel(p, settings=s, label=label or (text or "default"))
 
