@@ -47,60 +47,59 @@ class Candidate:
             ``friction``, ...), values for rope 1 (the demonstrations' rope).
         lab: Lab fields replaced in both labs (``twist``, ``bend_friction`` moment [N m]).
         sim: ``[simulation]`` settings replaced in both labs (``cone``, ``impratio``).
+        table: ``validated`` (:data:`VALIDATED`) or ``lab`` (``assets/ropes.toml``): the rope
+            table the row starts from.
     """
 
     name: str
     rope: tuple[tuple[str, Any], ...] = ()
     lab: tuple[tuple[str, Any], ...] = ()
     sim: tuple[tuple[str, Any], ...] = ()
+    table: str = "validated"
 
+
+VALIDATED = "assets/ropes_validated.toml"
+"""The rope table the validation suite chose; every row but ``lab table`` starts from it."""
 
 CANDIDATES: dict[str, Candidate] = {
     c.name: c
     for c in (
-        Candidate("default"),
-        # the cotton's unmeasured values across their brackets (assets/ropes.toml)
+        Candidate("validated"),
+        # the cotton's unmeasured values across their brackets (assets/ropes_validated.toml)
         Candidate("E 2.25e4 Pa (yarn, per tex)", rope=(("bend_modulus", 2.25e4),)),
-        Candidate("E 5e4 Pa", rope=(("bend_modulus", 5.0e4),)),
-        Candidate("E 1e5 Pa", rope=(("bend_modulus", 1.0e5),)),
         Candidate("E 1e6 Pa (feasibility study)", rope=(("bend_modulus", 1.0e6),)),
         Candidate("HB/B 0 (elastic)", rope=(("bend_hysteresis", 0.0),)),
         Candidate("HB/B 23 1/m", rope=(("bend_hysteresis", 23.0),)),
-        Candidate("HB/B 54 1/m", rope=(("bend_hysteresis", 54.0),)),
         Candidate("friction 0.3", rope=(("friction", 0.3),)),
         Candidate("friction 0.6", rope=(("friction", 0.6),)),
         # MuJoCo's friction settings
-        Candidate("pyramidal cone, impratio 1", sim=(("cone", "pyramidal"), ("impratio", 1.0))),
-        # the elastic model the suite replaced
-        Candidate(
-            "elastic model (E 1e6 Pa, HB/B 0, pyramidal)",
-            rope=(("bend_modulus", 1.0e6), ("shear_modulus", 3.3e5), ("bend_hysteresis", 0.0)),
-            sim=(("cone", "pyramidal"), ("impratio", 1.0)),
-        ),
+        Candidate("impratio 1", sim=(("impratio", 1.0),)),
         # switches of the lab
         Candidate("condim 4", rope=(("condim", 4),)),
-        Candidate("40 segments", rope=(("segments", 40),)),
         Candidate("C_D 1.2", rope=(("cd", 1.2),)),
+        # the lab's table as it is (elastic cotton, impratio 1)
+        Candidate("lab table", table="lab"),
     )
 }
-"""The rows, by name: every unmeasured value of the rope model at the ends of its bracket
-(``assets/ropes.toml``), MuJoCo's friction settings, the elastic model, and three switches."""
+"""The rows, by name: the validated model, each unmeasured value at an end of its bracket, a
+MuJoCo setting, two switches, and the lab's own table."""
 
 
 def _labs(candidate: Candidate, rope_id: int, sway_deg: float):
     """The arm's :class:`LabParams` and the hand's :class:`HandParams` of one row."""
+    from flyknot.constants import ROPE_TABLE
     from flyknot.demo import Demonstration
     from flyknot_sim.bend_friction import BendFrictionParams
     from flyknot_sim.hand_replay import hand_from_demo
     from flyknot_sim.lab import LabParams, VariationParams
-    from flyknot_sim.rope_table import get_rope, load_sim_settings
+    from flyknot_sim.rope_table import load_rope_table, load_sim_settings
 
-    rope = replace(get_rope(rope_id), **dict(candidate.rope))
+    path = ROPE_TABLE if candidate.table == "lab" else DEMOS.parents[1] / VALIDATED
+    rope = replace(load_rope_table(path)[rope_id], **dict(candidate.rope))
     lab_kw: dict[str, Any] = {}
     for key, value in candidate.lab:
         lab_kw[key] = BendFrictionParams(moment=value) if key == "bend_friction" else value
-    if candidate.sim:
-        lab_kw["settings"] = replace(load_sim_settings(), **dict(candidate.sim))
+    lab_kw["settings"] = replace(load_sim_settings(path), **dict(candidate.sim))
     arm = LabParams(rope=rope, variation=VariationParams(sway_deg=sway_deg), **lab_kw)
     swipe = Demonstration.load(DEMOS / "swipe.npz")
     hand = hand_from_demo(swipe, rope_id, vary=True)

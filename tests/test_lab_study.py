@@ -53,7 +53,7 @@ def test_unknown_candidate_lists_the_valid_ones():
     for name in CANDIDATES:
         assert name in str(e.value)
     with pytest.raises(ConfigError, match="sway_deg"):
-        run_study(["default"], [-1.0], n=1)
+        run_study(["validated"], [-1.0], n=1)
 
 
 def test_one_robot_trial_of_a_row_is_diagnosed_in_the_rows_lab():
@@ -63,9 +63,10 @@ def test_one_robot_trial_of_a_row_is_diagnosed_in_the_rows_lab():
     arm, hand = _labs(CANDIDATES["C_D 1.2"], 1, 1.0)
     assert arm.rope_params.cd == 1.2 and hand.rope_params.cd == 1.2
     assert arm.variation.sway_deg == 1.0 and hand.variation.sway_deg == 1.0
-    elastic, elastic_hand = _labs(CANDIDATES["elastic model (E 1e6 Pa, HB/B 0, pyramidal)"], 1, 0)
-    assert elastic.rope_params.frictional_couple == 0.0 and elastic.settings.cone == "pyramidal"
-    assert elastic_hand.settings.impratio == 1.0 and elastic_hand.rope_params.bend_modulus == 1e6
+    assert arm.settings.impratio == 10.0 and arm.rope_params.bend_hysteresis == 54.0
+    lab, lab_hand = _labs(CANDIDATES["lab table"], 1, 0)
+    assert lab.rope_params.frictional_couple == 0.0 and lab.settings.impratio == 1.0
+    assert lab_hand.settings.impratio == 1.0 and lab_hand.rope_params.bend_modulus == 1e6
     (row,) = _robot_trials(arm, 1)
     assert row["label"] in LABELS and row["settle"] in ("rest", "contact_free", "cap")
     assert row["sim_s"] > 1.0 and row["wall_s"] > 0
