@@ -10,24 +10,20 @@ from flyknot.errors import ConfigError
 from flyknot.progress import bar_disable
 
 
-def elastic_rope(rope_id: int):
-    """The rope model the lab had before the validation suite, as (rope, settings): cotton
-    purely elastic with E = 1e6 (9 mm / D)^2 Pa (no frictional couple), MuJoCo's pyramidal
-    friction cone with impratio 1. Other materials as they are."""
-    from dataclasses import replace
+def validated_rope(rope_id: int):
+    """Rope ``rope_id`` of the validated table (``assets/ropes_validated.toml``: cotton with a
+    frictional bending couple) and that table's simulation settings."""
+    from flyknot.constants import ASSETS_DIR
+    from flyknot_sim.rope_table import load_rope_table, load_sim_settings
 
-    from flyknot_sim.rope_table import get_rope, load_sim_settings
-
-    p = get_rope(rope_id)
-    if p.material == "cotton":
-        e = 1e6 * (0.009 / p.diameter) ** 2
-        p = replace(p, bend_modulus=e, shear_modulus=e / 3, bend_hysteresis=0.0)
-    return p, replace(load_sim_settings(), cone="pyramidal", impratio=1.0)
+    path = ASSETS_DIR / "ropes_validated.toml"
+    return load_rope_table(path)[rope_id], load_sim_settings(path)
 
 
 def _lab_variants(rope_id: int):
-    """Three labs: ``before`` (a fixed 1.5 s settle, no air drag, 1 deg sway), ``elastic``
-    (today's lab with the elastic rope model, :func:`elastic_rope`) and ``now``."""
+    """Three labs: ``before`` (a fixed 1.5 s settle, no air drag, 1 deg sway), ``now`` (the
+    lab's defaults) and ``validated`` (the lab's defaults with the validated rope table,
+    :func:`validated_rope`)."""
     from flyknot_sim.aero import AeroParams
     from flyknot_sim.lab import LabParams, VariationParams
 
@@ -37,9 +33,9 @@ def _lab_variants(rope_id: int):
         "aero": AeroParams(enabled=False),
         "variation": VariationParams(sway_deg=1.0, rest_start=False),
     }
-    rope, settings = elastic_rope(rope_id)
-    elastic = {"rope": rope, "settings": settings}
-    return {"before": before, "elastic": elastic, "now": {"rope": rope_id}}, LabParams
+    rope, settings = validated_rope(rope_id)
+    validated = {"rope": rope, "settings": settings}
+    return {"before": before, "now": {"rope": rope_id}, "validated": validated}, LabParams
 
 
 def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bool = True) -> dict:
@@ -47,9 +43,9 @@ def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bo
 
     The trial is the showcase swing (0.8 s, joint speeds up to 2.7 rad/s) and the settle,
     run by :class:`flyknot_sim.lab.SimLab` exactly as a learning trial is, in three labs
-    measured in the same run: ``before`` (the fixed 1.5 s settle, no drag), ``elastic`` (the
-    lab's defaults with the elastic rope model of :func:`elastic_rope`) and ``now`` (the lab's
-    defaults: air drag, frictional bending, settle until the rope is at rest, capped). Each
+    measured in the same run: ``before`` (the fixed 1.5 s settle, no drag), ``now`` (the lab's
+    defaults: air drag, settle until the rope is at rest, capped) and ``validated`` (the same
+    with the validated rope table: the frictional bending couple, impratio 10). Each
     is timed ``repeats`` times per rope (trials 0, 1, ... of seed 0); the best wall time per
     simulated second is kept (least disturbed by other load), the simulated seconds are
     averaged.
@@ -134,18 +130,18 @@ def main(what: str, *, as_json: bool = False, ropes=None, repeats: int = 1) -> i
             print(json.dumps(res))
         else:
             print(
-                f"{'rope':>4} {'lab':>7} {'wall s / sim s':>15} {'x real time':>12} "
+                f"{'rope':>4} {'lab':>9} {'wall s / sim s':>15} {'x real time':>12} "
                 f"{'sim s / trial':>14}"
             )
             for row in res["ropes"]:
-                for name in ("before", "elastic", "now"):
+                for name in ("before", "now", "validated"):
                     v = row[name]
                     print(
-                        f"{row['rope']:>4} {name:>7} {v['wall_per_sim_s']:>15.3f} "
+                        f"{row['rope']:>4} {name:>9} {v['wall_per_sim_s']:>15.3f} "
                         f"{v['realtime_factor']:>12.1f} {v['sim_s_per_trial']:>14.2f}"
                     )
-                ratio = row["now"]["wall_per_sim_s"] / row["elastic"]["wall_per_sim_s"]
-                print(f"{row['rope']:>4} now / elastic wall s per sim s: {ratio:.2f}")
+                ratio = row["validated"]["wall_per_sim_s"] / row["now"]["wall_per_sim_s"]
+                print(f"{row['rope']:>4} validated / now, wall s per sim s: {ratio:.2f}")
         return 0
     if what == "learner":
         from flyknot_app.bench_learner import bench_learner, format_learner

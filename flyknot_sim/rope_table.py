@@ -285,6 +285,15 @@ class SimSettings:
         if not isinstance(self.refsafe, bool):
             raise ConfigError("refsafe", f"must be true or false, got {self.refsafe!r}")
 
+    def to_dict(self) -> dict[str, Any]:
+        """The settings as plain data (``cone`` and ``impratio`` only when not MuJoCo's
+        defaults, so that records of tables without them read as before they existed)."""
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        for k, default in (("cone", "pyramidal"), ("impratio", 1.0)):
+            if d[k] == default:
+                del d[k]
+        return d
+
 
 _SIM_FIELDS = tuple(f.name for f in fields(SimSettings))
 

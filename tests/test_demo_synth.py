@@ -622,6 +622,7 @@ def test_demo_commands_are_split_between_flyknot_and_flyknot_tools(capsys):
     assert _actions(_help(tools_cli.main, ["--help"], capsys)) == {
         "demo",
         "rope-study",
+        "rope-validate",
         "lab-study",
         "closure-study",
     }

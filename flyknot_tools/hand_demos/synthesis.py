@@ -45,7 +45,7 @@ def rope_metadata(rope_id: int | str | Any, ropes: str | None = None) -> dict[st
     from flyknot_sim.rope_table import load_sim_settings
 
     rope = resolve_rope(rope_id, ropes).to_dict()
-    data = {"rope": rope, "simulation": asdict(load_sim_settings())}
+    data = {"rope": rope, "simulation": load_sim_settings().to_dict()}
     return json.loads(json.dumps(data))  # as stored: tuples become lists
 
 
