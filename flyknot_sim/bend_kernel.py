@@ -24,7 +24,7 @@ _KL = 8  # lower half-bandwidth of the joint system (3 * 2 + 2)
 _KU = 16  # upper half-bandwidth after the row exchanges of partial pivoting (2 * _KL)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath=True)
 def _skew_into(e, s, out):
     """out = s [e]_x (so that out u = s (e x u))."""
     out[0, 0] = out[1, 1] = out[2, 2] = 0.0
@@ -36,7 +36,7 @@ def _skew_into(e, s, out):
     out[2, 1] = e[0] * s
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath=True)
 def _band_solve(ab, b):
     """Solve a y = b in place; ``ab[i, j - i + _KL]`` holds a[i, j] for j - i in
     [-_KL, _KU] (zero above the original upper band: room for the fill-in); returns y."""
@@ -70,7 +70,7 @@ def _band_solve(ab, b):
     return y
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath=True)
 def _proj_norm2(p, u, at):
     """|p u[at:at + 3]|^2 for a 3x3 p."""
     total = 0.0
@@ -80,7 +80,7 @@ def _proj_norm2(p, u, at):
     return total
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath=True)
 def _mul(a, b, out, scale):
     """out = scale a b for 3x3 a, b."""
     for i in range(3):
@@ -88,7 +88,7 @@ def _mul(a, b, out, scale):
             out[i, j] = scale * (a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j])
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath=True)
 def _mul_t(a, b, out, scale):
     """out = scale a^T b for 3x3 a, b."""
     for i in range(3):
@@ -96,7 +96,7 @@ def _mul_t(a, b, out, scale):
             out[i, j] = scale * (a[0, i] * b[0, j] + a[1, i] * b[1, j] + a[2, i] * b[2, j])
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath=True)
 def bend_friction_forces(x, v, moment, rate0, inv_mass, dt, span_reg, iterations, tiny):
     """Forces of the frictional bending couples taken at the end of the step, (n + 1, 3) [N].
 
@@ -170,12 +170,14 @@ def bend_friction_forces(x, v, moment, rate0, inv_mass, dt, span_reg, iterations
     y = np.zeros(size)
     stiff = np.empty((nj, 3, 3))
     blk = np.empty((3, 3))
+    ab = np.empty((size, _KL + _KU + 1))
+    rhs = np.empty(size)
     for it in range(iterations):
         for k in range(nj):
             for i in range(3):
                 for j in range(3):
                     stiff[k, i, j] = coef[k] * proj[k, i, j]
-        ab = np.zeros((size, _KL + _KU + 1))
+        ab[:] = 0.0
         for d in range(min(3, nj)):
             for k in range(nj - d):
                 _mul(amob[d, k], stiff[k + d], blk, dt)  # (A K)_{k, k+d}
@@ -191,7 +193,10 @@ def bend_friction_forces(x, v, moment, rate0, inv_mass, dt, span_reg, iterations
                             ab[row, col - row + _KL] += blk[i, j]
         for i in range(size):
             ab[i, _KL] += 1.0
-        y = _band_solve(ab, dw.ravel().copy())
+        for k in range(nj):
+            for i in range(3):
+                rhs[3 * k + i] = dw[k, i]
+        y = _band_solve(ab, rhs)
         if it + 1 < iterations:
             for k in range(nj):
                 coef[k] = moment / np.sqrt(_proj_norm2(proj[k], y, 3 * k) + rate0 * rate0)
