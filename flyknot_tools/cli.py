@@ -11,6 +11,10 @@
   nominal trial as a demonstration.
 * ``flyknot-tools rope-study [ARGS...]`` prints the rope-model comparison table of
   ``docs/rope-model.md`` (its own options: ``flyknot-tools rope-study --help``).
+* ``flyknot-tools rope-validate [--ropes ...] [--table FILE] [--quick]`` runs the rope
+  validation suite (:mod:`flyknot_tools.rope_validate`); exit 1 when a case fails.
+* ``flyknot-tools lab-study`` plays the robot command and Swipe over the rope model's brackets
+  (:mod:`flyknot_tools.lab_study`).
 
 Replaying a demonstration is part of the application: ``flyknot demo replay``. Errors print
 as ``flyknot``'s do (one line on stderr, exit status 2); this module also runs as
