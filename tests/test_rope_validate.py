@@ -117,6 +117,18 @@ def test_rest_shape_is_a_catenary(rope):
     assert rest_shape(_lab(rope), seconds=3.0).passed
 
 
+def test_swing_whole_cycles_and_bad_values():
+    assert Swing(0.3, 0.5).duration == 8.0 and Swing(0.15, 0.7).duration == pytest.approx(5 / 0.7)
+    assert Swing(0.0).duration == 8.0 and Swing(0.0).label() == "no swing"
+    x, v = Swing(0.3, 0.5).path(2.0)(2.5)
+    assert x[0] == pytest.approx(0.3 * math.sin(math.pi * 0.5)) and x[1] == x[2] == 0.0
+    assert v[0] == pytest.approx(0.3 * math.pi * math.cos(math.pi * 0.5))
+    assert not Swing(0.3, 0.5).path(2.0)(10.0)[0].any()  # still after the whole cycles
+    with pytest.raises(ConfigError) as e:
+        Swing(0.3, 0.0)
+    assert str(e.value) == "frequency: must be a finite number > 0, got 0.0"
+
+
 def test_model_with_names_the_bad_field():
     with pytest.raises(ConfigError) as e:
         model_with(get_rope(1), {"stiffness": "1"})

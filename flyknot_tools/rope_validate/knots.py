@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from flyknot.errors import check_nonnegative, check_positive
 from flyknot.verdict import KNOT, TREFOIL, judge_centreline, tube_knot
 from flyknot_sim.rope_table import RopeParams
 from flyknot_tools.rope_study.crossings import count_crossings, overhand_knot_vertices
@@ -33,6 +34,11 @@ class Swing:
     amplitude: float = 0.3
     frequency: float = 0.5
     seconds: float = 8.0
+
+    def __post_init__(self) -> None:
+        check_nonnegative("amplitude", self.amplitude)
+        check_positive("frequency", self.frequency)
+        check_positive("seconds", self.seconds)
 
     @property
     def duration(self) -> float:
