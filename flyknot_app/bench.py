@@ -10,32 +10,34 @@ from flyknot.errors import ConfigError
 from flyknot.progress import bar_disable
 
 
-def validated_rope(rope_id: int):
-    """Rope ``rope_id`` of the validated table (``assets/ropes_validated.toml``: cotton with a
-    frictional bending couple) and that table's simulation settings."""
+def elastic_rope(rope_id: int):
+    """Rope ``rope_id`` of the purely elastic table the lab used before the validation suite
+    (``assets/ropes_elastic.toml``: no frictional bending couple, impratio 1) and that table's
+    simulation settings."""
     from flyknot.constants import ASSETS_DIR
     from flyknot_sim.rope_table import load_rope_table, load_sim_settings
 
-    path = ASSETS_DIR / "ropes_validated.toml"
+    path = ASSETS_DIR / "ropes_elastic.toml"
     return load_rope_table(path)[rope_id], load_sim_settings(path)
 
 
 def _lab_variants(rope_id: int):
-    """Three labs: ``before`` (a fixed 1.5 s settle, no air drag, 1 deg sway), ``now`` (the
-    lab's defaults) and ``validated`` (the lab's defaults with the validated rope table,
-    :func:`validated_rope`)."""
+    """Three labs: ``before`` (a fixed 1.5 s settle, no air drag, 1 deg sway, the elastic
+    rope), ``elastic`` (the lab's defaults with the elastic rope table, :func:`elastic_rope`)
+    and ``now`` (the lab's defaults)."""
     from flyknot_sim.aero import AeroParams
     from flyknot_sim.lab import LabParams, VariationParams
 
+    rope, settings = elastic_rope(rope_id)
     before = {
-        "rope": rope_id,
+        "rope": rope,
+        "settings": settings,
         "settle_s": 1.5,
         "aero": AeroParams(enabled=False),
         "variation": VariationParams(sway_deg=1.0, rest_start=False),
     }
-    rope, settings = validated_rope(rope_id)
-    validated = {"rope": rope, "settings": settings}
-    return {"before": before, "now": {"rope": rope_id}, "validated": validated}, LabParams
+    elastic = {"rope": rope, "settings": settings}
+    return {"before": before, "elastic": elastic, "now": {"rope": rope_id}}, LabParams
 
 
 def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bool = True) -> dict:
@@ -43,9 +45,10 @@ def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bo
 
     The trial is the showcase swing (0.8 s, joint speeds up to 2.7 rad/s) and the settle,
     run by :class:`flyknot_sim.lab.SimLab` exactly as a learning trial is, in three labs
-    measured in the same run: ``before`` (the fixed 1.5 s settle, no drag), ``now`` (the lab's
-    defaults: air drag, settle until the rope is at rest, capped) and ``validated`` (the same
-    with the validated rope table: the frictional bending couple, impratio 10). Each
+    measured in the same run: ``before`` (the fixed 1.5 s settle, no drag, the elastic rope),
+    ``elastic`` (the lab's defaults with the elastic rope table of ``assets/ropes_elastic.toml``)
+    and ``now`` (the lab's defaults: air drag, settle until the rope is at rest, capped, the
+    frictional bending couple and impratio 10 of ``assets/ropes.toml``). Each
     is timed ``repeats`` times per rope (trials 0, 1, ... of seed 0); the best wall time per
     simulated second is kept (least disturbed by other load), the simulated seconds are
     averaged.
@@ -134,14 +137,14 @@ def main(what: str, *, as_json: bool = False, ropes=None, repeats: int = 1) -> i
                 f"{'sim s / trial':>14}"
             )
             for row in res["ropes"]:
-                for name in ("before", "now", "validated"):
+                for name in ("before", "elastic", "now"):
                     v = row[name]
                     print(
                         f"{row['rope']:>4} {name:>9} {v['wall_per_sim_s']:>15.3f} "
                         f"{v['realtime_factor']:>12.1f} {v['sim_s_per_trial']:>14.2f}"
                     )
-                ratio = row["validated"]["wall_per_sim_s"] / row["now"]["wall_per_sim_s"]
-                print(f"{row['rope']:>4} validated / now, wall s per sim s: {ratio:.2f}")
+                ratio = row["now"]["wall_per_sim_s"] / row["elastic"]["wall_per_sim_s"]
+                print(f"{row['rope']:>4} now / elastic, wall s per sim s: {ratio:.2f}")
         return 0
     if what == "learner":
         from flyknot_app.bench_learner import bench_learner, format_learner

@@ -32,7 +32,7 @@ __all__ = [
     "DEFAULT_SEGMENTS",
     "DEFAULT_TIMESTEP",
     "MAX_TIMESTEP",
-    "REFERENCE_DIAMETER",
+    "REFERENCE_CORD",
     "load_custom_ropes",
     "parse_custom_ropes",
     "resolve_rope",
@@ -60,11 +60,13 @@ CUSTOM_OPTIONAL = (
 """Keys a custom rope may give; missing ones come from its material (or the defaults below)."""
 CUSTOM_KEYS = CUSTOM_REQUIRED + CUSTOM_OPTIONAL
 
-REFERENCE_DIAMETER = {"cotton": 0.009}
-"""Diameter [m] at which a material's stiffness in ``assets/ropes.toml`` holds; for these
-materials a custom rope's default E and G scale as (D_ref / D)^2, as the table's cotton ropes
-do (free-slip fibre-bundle scaling, see the comments there). Other materials are not scaled:
-steel (chain) has no stiffness; latex's values are those of 3/8" surgical tubing."""
+REFERENCE_CORD = {"cotton": (0.009, 0.040)}
+"""Diameter [m] and linear density [kg/m] of the cord (rope 1) at which a material's stiffness in
+``assets/ropes.toml`` holds. For these materials a custom rope's default E and G scale as
+(rho / rho_ref) (D_ref / D)^4, so that EI grows with the linear density as the table's cotton
+ropes' does (EI = b tex, free-slip fibre-bundle scaling, see the comments there). Other
+materials are not scaled: steel (chain) has no stiffness; latex's values are those of 3/8"
+surgical tubing."""
 DEFAULT_SEGMENTS = 30
 """Flex elements of a custom rope unless it says, capped so that length / segments > D."""
 DEFAULT_TIMESTEP = 0.001
@@ -75,6 +77,14 @@ MAX_TIMESTEP = 0.004
 
 def _is_number(v: object) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _stiffness_scale(material: str, diameter: float, density: float) -> float:
+    """E / E_ref of a custom rope: (rho / rho_ref) (D_ref / D)^4 (:data:`REFERENCE_CORD`)."""
+    if material not in REFERENCE_CORD:
+        return 1.0
+    d_ref, rho_ref = REFERENCE_CORD[material]
+    return (density / rho_ref) * (d_ref / diameter) ** 4
 
 
 def _max_segments(length: float, diameter: float) -> int:
@@ -130,7 +140,7 @@ def _custom_rope(entry: Mapping[str, Any], where: str, paper: Mapping[str, int])
             f"must be less than half the length ({length / 2:g} m), got {entry['diameter']!r}",
         )
     mat = _material_defaults()[material]
-    scale = (REFERENCE_DIAMETER[material] / diameter) ** 2 if material in REFERENCE_DIAMETER else 1
+    scale = _stiffness_scale(material, diameter, float(entry["density"]))
     values: dict[str, Any] = {
         "bend_modulus": mat["bend_modulus"] * scale,
         "shear_modulus": mat["shear_modulus"] * scale,
@@ -190,8 +200,8 @@ def parse_custom_ropes(doc: Mapping[str, Any]) -> dict[str, RopeParams]:
     ``end_weight`` [kg]) and optionally :data:`CUSTOM_OPTIONAL` (``bend_modulus``,
     ``shear_modulus`` [Pa], ``damping`` [s], ``friction`` [-], ``cd`` [-], ``bend_hysteresis``
     [1/m], ``segments``, ``timestep`` [s]). Missing optional values: the material's in
-    ``assets/ropes.toml`` (E and G of cotton scaled by (9 mm / D)^2, see
-    :data:`REFERENCE_DIAMETER`), ``cd`` None (the Re-dependent curve), ``segments`` 30 capped so
+    ``assets/ropes.toml`` (E and G of cotton scaled by (rho / 40 g/m) (9 mm / D)^4, see
+    :data:`REFERENCE_CORD`), ``cd`` None (the Re-dependent curve), ``segments`` 30 capped so
     that length / segments > D, ``timestep`` 1 ms. Each rope's id is its name.
 
     Raises:

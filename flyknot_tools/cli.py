@@ -429,7 +429,7 @@ def build_parser() -> argparse.ArgumentParser:
     rv.add_argument(
         "--table",
         default=None,
-        help="a rope table instead of the lab's (e.g. assets/ropes_validated.toml)",
+        help="a rope table instead of the lab's (e.g. assets/ropes_elastic.toml)",
     )
     rv.add_argument("--quick", action="store_true", help="one short run of each case")
     rv.add_argument("--cases", nargs="+", metavar="CASE", help="only these cases")

@@ -47,7 +47,7 @@ class Candidate:
             ``friction``, ...), values for rope 1 (the demonstrations' rope).
         lab: Lab fields replaced in both labs (``twist``, ``bend_friction`` moment [N m]).
         sim: ``[simulation]`` settings replaced in both labs (``cone``, ``impratio``).
-        table: ``validated`` (:data:`VALIDATED`) or ``lab`` (``assets/ropes.toml``): the rope
+        table: ``lab`` (``assets/ropes.toml``) or ``elastic`` (:data:`ELASTIC`): the rope
             table the row starts from.
     """
 
@@ -55,17 +55,18 @@ class Candidate:
     rope: tuple[tuple[str, Any], ...] = ()
     lab: tuple[tuple[str, Any], ...] = ()
     sim: tuple[tuple[str, Any], ...] = ()
-    table: str = "validated"
+    table: str = "lab"
 
 
-VALIDATED = "assets/ropes_validated.toml"
-"""The rope table the validation suite chose; every row but ``lab table`` starts from it."""
+ELASTIC = "assets/ropes_elastic.toml"
+"""The purely elastic rope table the lab used before the validation suite; the ``elastic
+table`` row starts from it, every other row from the lab's table."""
 
 CANDIDATES: dict[str, Candidate] = {
     c.name: c
     for c in (
-        Candidate("validated"),
-        # the cotton's unmeasured values across their brackets (assets/ropes_validated.toml)
+        Candidate("lab"),
+        # the cotton's unmeasured values across their brackets (assets/ropes.toml)
         Candidate("E 2.25e4 Pa (yarn, per tex)", rope=(("bend_modulus", 2.25e4),)),
         Candidate("E 1e6 Pa (feasibility study)", rope=(("bend_modulus", 1.0e6),)),
         Candidate("HB/B 0 (elastic)", rope=(("bend_hysteresis", 0.0),)),
@@ -77,12 +78,12 @@ CANDIDATES: dict[str, Candidate] = {
         # switches of the lab
         Candidate("condim 4", rope=(("condim", 4),)),
         Candidate("C_D 1.2", rope=(("cd", 1.2),)),
-        # the lab's table as it is (elastic cotton, impratio 1)
-        Candidate("lab table", table="lab"),
+        # the purely elastic table the lab used before (elastic cotton, impratio 1)
+        Candidate("elastic table", table="elastic"),
     )
 }
-"""The rows, by name: the validated model, each unmeasured value at an end of its bracket, a
-MuJoCo setting, two switches, and the lab's own table."""
+"""The rows, by name: the lab's model, each unmeasured value at an end of its bracket, a
+MuJoCo setting, two switches, and the elastic table the lab used before."""
 
 
 def _labs(candidate: Candidate, rope_id: int, sway_deg: float):
@@ -94,7 +95,7 @@ def _labs(candidate: Candidate, rope_id: int, sway_deg: float):
     from flyknot_sim.lab import LabParams, VariationParams
     from flyknot_sim.rope_table import load_rope_table, load_sim_settings
 
-    path = ROPE_TABLE if candidate.table == "lab" else DEMOS.parents[1] / VALIDATED
+    path = ROPE_TABLE if candidate.table == "lab" else DEMOS.parents[1] / ELASTIC
     rope = replace(load_rope_table(path)[rope_id], **dict(candidate.rope))
     lab_kw: dict[str, Any] = {}
     for key, value in candidate.lab:

@@ -83,10 +83,15 @@ def test_parse_custom_file_defaults_and_overrides(ropes_file):
         True,
     )
     assert (cord.diameter, cord.density, cord.length, cord.end_mass) == (0.006, 0.02, 1.1, 0.01)
-    # cotton's E and G at 9 mm, scaled by (9 mm / D)^2 as the paper's table does
-    assert cord.bend_modulus == pytest.approx(1.0e6 * (9 / 6) ** 2)
-    assert cord.shear_modulus == pytest.approx(3.3e5 * (9 / 6) ** 2)
-    assert cord.bend_hysteresis == 0.0  # the lab's cotton: elastic
+    # cotton's E and G of rope 1 (9 mm, 40 g/m) scaled so that EI grows with the linear density,
+    # as the paper's table does: EI / tex the same as rope 1's
+    assert cord.bend_modulus == pytest.approx(7.0e4 * (0.02 / 0.04) * (9 / 6) ** 4)
+    assert cord.shear_modulus == pytest.approx(2.33e4 * (0.02 / 0.04) * (9 / 6) ** 4)
+    rope1 = get_rope(1)
+    assert cord.bending_stiffness / cord.density == pytest.approx(
+        rope1.bending_stiffness / rope1.density
+    )
+    assert cord.bend_hysteresis == 54.0  # the lab's cotton: the frictional couple
     assert cord.friction == 0.5  # the material's
     assert cord.damping == 0.02 and cord.cd == 1.5  # the overrides
     assert (cord.segments, cord.timestep) == (30, 0.001)  # the defaults

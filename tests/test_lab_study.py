@@ -53,7 +53,7 @@ def test_unknown_candidate_lists_the_valid_ones():
     for name in CANDIDATES:
         assert name in str(e.value)
     with pytest.raises(ConfigError, match="sway_deg"):
-        run_study(["validated"], [-1.0], n=1)
+        run_study(["lab"], [-1.0], n=1)
 
 
 def test_one_robot_trial_of_a_row_is_diagnosed_in_the_rows_lab():
@@ -64,7 +64,7 @@ def test_one_robot_trial_of_a_row_is_diagnosed_in_the_rows_lab():
     assert arm.rope_params.cd == 1.2 and hand.rope_params.cd == 1.2
     assert arm.variation.sway_deg == 1.0 and hand.variation.sway_deg == 1.0
     assert arm.settings.impratio == 10.0 and arm.rope_params.bend_hysteresis == 54.0
-    lab, lab_hand = _labs(CANDIDATES["lab table"], 1, 0)
+    lab, lab_hand = _labs(CANDIDATES["elastic table"], 1, 0)
     assert lab.rope_params.frictional_couple == 0.0 and lab.settings.impratio == 1.0
     assert lab_hand.settings.impratio == 1.0 and lab_hand.rope_params.bend_modulus == 1e6
     (row,) = _robot_trials(arm, 1)

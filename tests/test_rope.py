@@ -103,19 +103,11 @@ def test_table_matches_paper():
         assert get_rope(rid) == p
 
 
-def test_cotton_bending_follows_one_over_d_squared():
-    """The lab's cotton ropes: E = 1e6 Pa (9 mm / D)^2 (free-slip scaling, see ropes.toml)."""
+def test_cotton_bending_follows_the_linear_density():
+    """The lab's cotton: EI = b tex, b = 5.64e-10 N m^2/tex (free-slip scaling, see
+    ropes.toml): every cotton rope has the same elastic bending length (EI / w)^(1/3), 3.9 cm,
+    and the same HB/B."""
     for p in load_rope_table().values():
-        if p.material == "cotton":
-            assert p.bend_modulus == pytest.approx(1e6 * (0.009 / p.diameter) ** 2, rel=0.02)
-            assert p.bend_hysteresis == 0.0
-
-
-def test_validated_cotton_bending_follows_the_linear_density():
-    """The validated model's cotton: EI = b tex, b = 5.64e-10 N m^2/tex (free-slip scaling,
-    see ropes_validated.toml): every cotton rope has the same elastic bending length
-    (EI / w)^(1/3), 3.9 cm, and the same HB/B."""
-    for p in load_rope_table(ASSETS_DIR / "ropes_validated.toml").values():
         if p.material == "cotton":
             tex = p.density * 1e6
             assert p.bending_stiffness == pytest.approx(5.64e-10 * tex, rel=0.01)
@@ -553,8 +545,8 @@ def test_twist_hinges_do_not_change_bending():
 
 @pytest.mark.parametrize(
     ("table", "rope", "depth"),
-    [("ropes.toml", 1, 0.02), ("ropes.toml", 4, 0.02), ("ropes_validated.toml", 1, 0.005),
-     ("ropes_validated.toml", 4, 0.005)],
+    [("ropes_elastic.toml", 1, 0.02), ("ropes_elastic.toml", 4, 0.02), ("ropes.toml", 1, 0.005),
+     ("ropes.toml", 4, 0.005)],
 )  # fmt: skip
 def test_a_lowered_rope_lands_on_the_floor(table, rope, depth):
     """The hand lowers 1 m in 1 s, piling the rope on the floor: it stays on it.

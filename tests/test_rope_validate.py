@@ -8,7 +8,7 @@ import math
 
 import pytest
 
-from flyknot.constants import ASSETS_DIR
+from flyknot.constants import ASSETS_DIR, ROPE_TABLE
 from flyknot.errors import ConfigError
 from flyknot_sim.rope_table import get_rope, load_rope_table, load_sim_settings
 from flyknot_tools.cli import main as tools_main
@@ -26,24 +26,22 @@ from flyknot_tools.rope_validate.cases import (
 )
 from flyknot_tools.rope_validate.suite import model_with
 
-VALIDATED = ASSETS_DIR / "ropes_validated.toml"
-"""The rope model the suite chose (an elastic part and a frictional couple for cotton)."""
-ELASTIC = {"bend_hysteresis": "0"}
-"""The chosen model without its frictional couple."""
+ELASTIC_TABLE = ASSETS_DIR / "ropes_elastic.toml"
+"""The purely elastic rope table the lab used before the suite chose its model."""
+NO_COUPLE = {"bend_hysteresis": "0"}
+"""The lab's model without its frictional couple."""
 
 
 def _rope(rope=1, **changes):
-    """A rope of the validated table, with changes."""
+    """A rope of the lab's table (an elastic part and a frictional couple for cotton)."""
+    return model_with(get_rope(rope), {k: str(v) for k, v in changes.items()})
+
+
+def _elastic(rope=1):
+    """A rope of the elastic table, with its settings (impratio 1)."""
     return model_with(
-        load_rope_table(VALIDATED)[rope],
-        {k: str(v) for k, v in changes.items()},
-        settings=load_sim_settings(VALIDATED),
+        load_rope_table(ELASTIC_TABLE)[rope], {}, settings=load_sim_settings(ELASTIC_TABLE)
     )
-
-
-def _lab(rope=1):
-    """A rope of the lab's table as it is (purely elastic cotton)."""
-    return model_with(get_rope(rope), {})
 
 
 def test_peirce_bending_length():
@@ -70,16 +68,16 @@ def test_drag_decay_theory():
     assert drag_decay_theory(get_rope(6), 0.2, 4) > drag_decay_theory(p, 0.2, 4)
 
 
-def test_knot_hold_in_the_validated_model_and_lost_in_the_labs_elastic_rope():
+def test_knot_hold_in_the_labs_rope_and_lost_in_the_elastic_rope():
     swing = Swing(0.3, 0.5, seconds=4.0)
     held = knot_hold(_rope(), 0.1, swing, hold_s=1.5)
     assert held.passed, held.detail
     assert held.measured["crossings"] == 0
-    lost = knot_hold(_lab(), 0.1, swing, hold_s=1.5)
+    lost = knot_hold(_elastic(), 0.1, swing, hold_s=1.5)
     assert not lost.passed and lost.measured["final"] != "knot", lost.detail
 
 
-def test_static_hold_in_the_validated_model():
+def test_static_hold_in_the_labs_rope():
     r = static_hold(_rope(), seconds=4.0, tighten_s=4.0)
     assert r.passed and r.measured["slip_m"] <= get_rope(1).diameter, r.detail
 
@@ -87,7 +85,7 @@ def test_static_hold_in_the_validated_model():
 def test_cotton_keeps_a_loop_latex_springs_back():
     cotton = loop_spring_back(_rope())
     assert cotton.passed and cotton.measured["kept"] >= 0.5, cotton.detail
-    elastic = loop_spring_back(_rope(**ELASTIC))
+    elastic = loop_spring_back(_rope(**NO_COUPLE))
     assert not elastic.passed and elastic.measured["kept"] < 0.5, elastic.detail
     latex = loop_spring_back(_rope(7))
     assert latex.passed and latex.measured["kept"] <= 0.2, latex.detail
@@ -96,7 +94,7 @@ def test_cotton_keeps_a_loop_latex_springs_back():
 def test_cantilever_hysteresis_of_cotton_only():
     cotton = cantilever(_rope(), seconds=4.0)
     assert cotton.passed and cotton.measured["spread"] >= 0.05, cotton.detail
-    elastic = cantilever(_rope(**ELASTIC), seconds=4.0)
+    elastic = cantilever(_rope(**NO_COUPLE), seconds=4.0)
     assert abs(elastic.measured["spread"]) < 0.05 and not elastic.passed
     chain = cantilever(_rope(6), seconds=4.0)
     assert chain.passed, chain.detail
@@ -114,7 +112,7 @@ def test_capstan_needs_impratio():
 def test_rest_shape_is_a_catenary(rope):
     r = rest_shape(_rope(rope), seconds=3.0)
     assert r.passed, r.detail
-    assert rest_shape(_lab(rope), seconds=3.0).passed
+    assert rest_shape(_elastic(rope), seconds=3.0).passed
 
 
 def test_swing_whole_cycles_and_bad_values():
@@ -144,7 +142,7 @@ def test_model_with_names_the_bad_field():
 
 def test_cli_runs_the_quick_suite_and_reports_json(capsys):
     code = tools_main(
-        ["rope-validate", "--ropes", "6", "--quick", "--json", "--table", str(VALIDATED)]
+        ["rope-validate", "--ropes", "6", "--quick", "--json", "--table", str(ROPE_TABLE)]
     )
     rows = json.loads(capsys.readouterr().out)
     assert {r["case"] for r in rows} == {
@@ -170,9 +168,9 @@ def test_cli_bad_input_is_one_line_and_exit_2(capsys, tmp_path):
         '[[rope]]\nname = "c"\nmaterial = "cotton"\ndiameter = 0.006\ndensity = 0.02\n'
         'length = 1.1\nend_weight = 0.01\nbend_hysteresis = "soft"\n'
     )
-    assert tools_main(["rope-validate", "--ropes", "9", "--table", str(VALIDATED)]) == 2
+    assert tools_main(["rope-validate", "--ropes", "9", "--table", str(ROPE_TABLE)]) == 2
     assert capsys.readouterr().err == (
-        f"flyknot-tools: error: --ropes: no rope '9' in {VALIDATED} (valid choices: 1, 2, 3, 4, "
+        f"flyknot-tools: error: --ropes: no rope '9' in {ROPE_TABLE} (valid choices: 1, 2, 3, 4, "
         "5, 6, 7)\n"
     )
     assert tools_main(["rope-validate", "--ropes", "c", "--ropes-file", str(bad)]) == 2
