@@ -20,7 +20,6 @@ from flyknot.constants import DEMOS_DIR
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, RecordError
 from flyknot_app import demo_cli
-from flyknot_sim.aero import AeroParams
 from flyknot_sim.hand import HandLab, judged_frames, trial_demonstration
 from flyknot_sim.hand_motion import BLEND, N_PARAMS, KnotMotion, bernstein, windup_warp
 from flyknot_sim.hand_params import HandParams, HandVariation, hand_rotation
@@ -452,13 +451,10 @@ def test_shipped_demo_is_current_and_described(name):
 
 
 def test_replaying_stored_parameters_reproduces_the_demo_exactly():
-    # The shipped demos were made before the lab had air drag and the settle-until-rest
-    # rule (issue 10): under those conditions the replay is the demonstration, bit for bit.
+    # The shipped demos were made in the hand lab's defaults (air drag, the settle until
+    # rest): replayed there without variation, the replay is the demonstration, bit for bit.
     demo = _shipped("fast")
-    made_in = replace(
-        hand_from_demo(demo, 1, vary=False), aero=AeroParams(enabled=False), settle_s=1.5
-    )
-    lab = HandLab(made_in)
+    lab = HandLab(hand_from_demo(demo, 1, vary=False))
     trial = lab.run(motion_from_demo(demo))
     assert trial.first_contact == demo.t_c
     assert trial.knot == "trefoil"
