@@ -67,7 +67,10 @@ def test_compiled_kernel_equals_the_numpy_equations(jitter, vel, moment, dt):
     fast = bend_friction_forces(
         x, v, moment, RATE0, INV_MASS, dt, SPAN_REGULARISATION, IMPLICIT_ITERATIONS, 1e-24
     )
-    np.testing.assert_allclose(fast, ref, rtol=1e-9, atol=1e-12 * max(1.0, np.abs(ref).max()))
+    # to 1e-6 of the largest force: fastmath and another pivoting order round differently, and
+    # the fixed-point passes amplify that where a joint's rate is near r_0 (measured: 3.6e-8 in
+    # 20,000 random draws); a wrong term is off by the force itself
+    np.testing.assert_allclose(fast, ref, rtol=0, atol=1e-6 * np.abs(ref).max())
 
 
 def test_applier_uses_the_compiled_kernel_on_a_rope():
@@ -156,7 +159,9 @@ def test_params():
     rope = replace(get_rope(1), bend_hysteresis=54.0)
     assert BendFrictionParams().moment is None  # the rope's own
     assert BendFrictionParams().moment_for(rope) == rope.frictional_couple > 0
-    assert BendFrictionParams().moment_for(get_rope(1)) == 0.0  # the lab's: elastic
+    lab = get_rope(1)  # the lab's cotton: 54 1/m x EI (assets/ropes.toml)
+    assert BendFrictionParams().moment_for(lab) == pytest.approx(54.0 * lab.bending_stiffness)
+    assert BendFrictionParams().moment_for(get_rope(7)) == 0.0  # latex: elastic
     assert rope.frictional_couple == pytest.approx(rope.bend_hysteresis * rope.bending_stiffness)
     assert BendFrictionParams(moment=0.0).moment_for(rope) == 0.0
     assert BendFrictionParams(moment=0.01).moment_for(rope) == 0.01

@@ -125,7 +125,7 @@ def test_the_sped_up_throw_touches_the_reduced_limits(robot, throw):
 
 
 def test_shared_envelope_is_the_smaller_pace():
-    arm = PaceEnvelope(2.7, 4.9, 39.7, "arm")
+    arm = PaceEnvelope(2.7, 4.9, 45.0, "arm")
     env = shared_envelope(arm)
     assert (env.speed, env.axis_rate, env.accel) == (2.7, 4.9, HAND_PACE[2])
     assert shared_envelope(arm, (1.0, 50.0, 50.0)).speed == 1.0

@@ -63,10 +63,14 @@ def test_a_fixed_wait_is_judged_then_whatever_the_rope_does():
 def test_bend_friction_is_a_lab_switch():
     from flyknot.errors import ConfigError
     from flyknot_sim.bend_friction import BendFrictionParams
+    from flyknot_sim.rope_table import get_rope
 
     on = SimLab(LabParams(rope=1, settle_s=0.2, bend_friction=BendFrictionParams(0.02)))
-    off = SimLab(LabParams(rope=1, settle_s=0.2))  # the rope's own couple: none (elastic)
+    off = SimLab(LabParams(rope=1, settle_s=0.2, bend_friction=BendFrictionParams(0.0)))
+    own = SimLab(LabParams(rope=1, settle_s=0.2))  # the rope's own couple (HB/B x EI)
     assert on.plant.bend.moment == 0.02 and off.plant.bend.moment == 0.0
+    assert own.plant.bend.moment == pytest.approx(get_rope(1).frictional_couple)
+    assert own.plant.bend.moment > 0
     cmd = JointCommand(np.tile(Q0, (50, 1)))
     a, b = on.run(cmd), off.run(cmd)
     assert not np.array_equal(a.truth["centreline"], b.truth["centreline"])

@@ -62,14 +62,11 @@ def shipped():
 
 
 def test_shipped_robot_demo_is_its_commands_nominal_trial(shipped):
-    from flyknot_sim.aero import AeroParams
     from flyknot_sim.lab import LabParams, VariationParams
 
     demo, knots, T = shipped
-    # Recorded in a lab without air drag and with a fixed 1.5 s settle.
-    made_in = LabParams(
-        variation=VariationParams.none(), aero=AeroParams(enabled=False), settle_s=1.5
-    )
+    # Recorded in the lab's defaults without variation.
+    made_in = LabParams(variation=VariationParams.none())
     again = record_demonstration(knots, T, rope=demo.rope, lab_params=made_in)
     assert again.t_c == pytest.approx(demo.t_c, abs=1e-9)
     np.testing.assert_allclose(again.hand_pos, demo.hand_pos, atol=1e-9)
@@ -85,11 +82,11 @@ def test_score_of_a_tie_and_of_a_fault(shipped):
     _, knots, T = shipped
     lab = SimLab(LabParams(rope=1, variation=VariationParams.none()))
     rec = lab.run(BezierCommand(knots, T).joint_command())
-    # The shipped demonstration's nominal trial leaves the rope wrapped at the grip: no hit.
-    assert rec.knot == "trefoil" and rec.verdict.klass == "wrapped_at_grip"
-    assert command_score(rec, T) < 100.0
-    tied = dataclasses.replace(rec, verdict=verdict("knot"))
-    assert command_score(tied, T) == pytest.approx(command_score(rec, T) + 100.0)
+    # The shipped demonstration's nominal trial ties a knot in the hanging rope: a hit.
+    assert rec.knot == "trefoil" and rec.verdict.klass == "knot"
+    assert command_score(rec, T) >= 100.0
+    wrapped = dataclasses.replace(rec, verdict=verdict("wrapped_at_grip"))
+    assert command_score(wrapped, T) == pytest.approx(command_score(rec, T) - 100.0)
     faulted = dataclasses.replace(rec, fault="joint 2 velocity exceeds limit")
     assert command_score(faulted, T) == pytest.approx(-17.0)  # -20 + 3 for the contact
     with pytest.raises(ConfigError, match="record: needs the simulator's truth"):

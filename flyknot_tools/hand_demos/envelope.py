@@ -37,10 +37,11 @@ ROBOT_THROW = ASSETS_DIR / "demos" / "seeds" / "robot_command.npz"
 duration ``T`` [s]."""
 LIMIT_MARGIN = 0.05
 """Fraction of each joint limit kept free (the learner's ``limit_margin``)."""
-HAND_PACE = (3.68, 34.8, 36.3)
+HAND_PACE = (4.13, 33.7, 42.0)
 """A person's pace (speed [m/s], exit-axis rate [rad/s], acceleration [m/s^2]): the smallest
-peak values of the four shipped hand demonstrations (Inverse; Fast 3.91, 38.0, 40.2; Slow
-4.04, 38.4, 41.6; Swipe 4.12, 41.4, 46.5), measured on their motion curves."""
+peak value of each over the four shipped hand demonstrations (Fast 4.13, 40.2, 42.0; Slow
+4.20, 40.3, 43.4; Swipe 4.17, 33.7, 43.8; Inverse 4.22, 39.6, 44.7), measured on their
+motion curves."""
 
 
 @dataclass(frozen=True)
