@@ -26,6 +26,7 @@ import numpy as np
 from flyknot.errors import ConfigError
 from flyknot.geometry import matrix_to_quat
 from flyknot.judge import KnotJudge
+from flyknot.limits import JointLimits
 from flyknot.record import JointCommand, TrialRecord
 from flyknot_hw.calibrate_driver import CalibrationResult, run_calibration
 from flyknot_hw.calibrate_plan import CalibrationPlan, dry_run_plan
@@ -135,6 +136,10 @@ class DryRunCell:
     @trial_index.setter
     def trial_index(self, value: int) -> None:
         self.sim.trial_index = value
+
+    def command_limits(self) -> JointLimits:
+        """The limits a command may use: the effective ones less the lab file's margins."""
+        return self.config.safety.margins.apply(self.limits)
 
     def check(self, command: JointCommand) -> PreflightReport:
         """The preflight the real cell would run on ``command`` (raises on a violation)."""

@@ -32,6 +32,7 @@ from flyknot.constants import DEMOS_DIR, FOLLOW_THROUGH_S, PATH_FRAC
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, FlyknotError, RecordError
 from flyknot.judge import CellVerdict
+from flyknot.limits import JointLimits
 from flyknot.progress import bar_disable
 from flyknot.record import TrialRecord
 from flyknot.verdict import JUDGE_NAME, KNOT
@@ -163,6 +164,15 @@ def execute_run(
             close()
 
 
+def command_limits(lab: Any) -> JointLimits:
+    """The joint limits the ILC updates must keep for ``lab`` to play their commands: the
+    cell's own (a hardware cell's: the stricter of the paper's and the robot's less the safety
+    margins its preflight allows), else the paper's, beyond which the simulated controller
+    faults."""
+    own = getattr(lab, "command_limits", None)
+    return own() if callable(own) else JointLimits()
+
+
 def _execute_on(
     lab: Any,
     spec: RunSpec,
@@ -213,6 +223,7 @@ def _execute_on(
         knots0,
         robot,
         params,
+        limits=command_limits(lab),
         run_dir=run_dir / "learning",
         resume=resume,
         on_trial=on_trial,

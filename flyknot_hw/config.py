@@ -30,6 +30,7 @@ import numpy as np
 from flyknot.constants import COMMAND_RATE_HZ
 from flyknot.errors import ConfigError, check_choice, check_nonnegative, check_positive
 from flyknot.geometry import readonly
+from flyknot.limits import JointLimits
 
 __all__ = [
     "JOINT_SOURCES",
@@ -269,6 +270,11 @@ class Margins:
         """The largest allowed use of ``quantity``'s limit, ``1 - margin`` [-]."""
         check_choice("quantity", quantity, MARGIN_QUANTITIES)
         return 1.0 - getattr(self, quantity)
+
+    def apply(self, limits: JointLimits) -> JointLimits:
+        """``limits`` less these margins: what a command may use
+        (:meth:`flyknot.limits.JointLimits.with_margins`)."""
+        return limits.with_margins(self.position, self.velocity, self.acceleration, self.torque)
 
 
 @dataclass(frozen=True, eq=False)

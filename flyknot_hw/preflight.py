@@ -29,7 +29,7 @@ import numpy as np
 
 from flyknot.constants import N_JOINTS, Q4_MIN_NEW_SERIALS, QDD_MAX, TAU_MAX
 from flyknot.errors import CommandError, ConfigError, HardwareError, check_positive
-from flyknot.limits import JointLimits
+from flyknot.limits import JointLimits, command_derivatives, difference_matrices
 from flyknot.record import JointCommand
 from flyknot_hw.config import Margins, Workspace
 
@@ -96,27 +96,6 @@ def published_robot_limits(newer_serial: bool = True) -> JointLimits:
 def effective_limits(robot: JointLimits | None = None) -> JointLimits:
     """The stricter of the paper's limits and ``robot``'s (published ones if None)."""
     return JointLimits.stricter(JointLimits(), robot or published_robot_limits())
-
-
-def command_derivatives(q: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Velocity and acceleration of a command by central differences, at rest at both ends.
-
-        qd_i  = (q_{i+1} - q_{i-1}) / (2 dt)
-        qdd_i = (q_{i+1} - 2 q_i + q_{i-1}) / dt^2,     i = 0 .. n-1,
-
-    with q_{-1} = q_0 (the arm rests at the start pose) and q_n = q_{n-1} (it holds the last
-    target): the same differences the simulated controller faults on.
-
-    Args:
-        q: Command, shape (n, 7) [rad].
-        dt: Sample period [s].
-
-    Returns:
-        ``(qd, qdd)``, shapes (n, 7) [rad/s] and (n, 7) [rad/s^2].
-    """
-    q = np.asarray(q, dtype=float)
-    p = np.concatenate([q[:1], q, q[-1:]], axis=0)
-    return (p[2:] - p[:-2]) / (2.0 * dt), (p[2:] - 2.0 * p[1:-1] + p[:-2]) / dt**2
 
 
 def _fmt(x: float) -> str:
@@ -322,7 +301,7 @@ def preflight(
         checks.append(("workspace", p, np.abs(p - wc) / wh, 1.0, wc, wh))
         if tip_speed_max is not None:
             check_positive("tip_speed_max", tip_speed_max)
-            v = np.linalg.norm(command_derivatives(p, dt)[0], axis=1)[:, None]
+            v = np.linalg.norm(difference_matrices(n, dt)[0] @ p, axis=1)[:, None]
             allowed = margins.allowed("velocity")
             checks.append(("tip_speed", v, v / tip_speed_max, allowed, 0, tip_speed_max))
 
@@ -351,7 +330,7 @@ def preflight(
     tip_speed = None
     if fingertip is not None:
         p = np.asarray(fingertip, dtype=float)
-        tip_speed = float(np.max(np.linalg.norm(command_derivatives(p, dt)[0], axis=1)))
+        tip_speed = float(np.max(np.linalg.norm(difference_matrices(n, dt)[0] @ p, axis=1)))
     return PreflightReport(
         n=n,
         rate_hz=float(command.rate_hz),

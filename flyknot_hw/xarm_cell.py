@@ -211,6 +211,12 @@ class XArmCell:
             self.config.robot
         )
 
+    def command_limits(self) -> JointLimits:
+        """The limits a command may use here (connects to read them): the stricter of the
+        paper's and the robot's less the lab file's safety margins, what the preflight allows."""
+        self.connect()
+        return self.config.safety.margins.apply(self.limits)  # type: ignore[arg-type]
+
     def close(self) -> None:
         """Disconnect from the controller."""
         if self._api is not None:

@@ -16,7 +16,7 @@ import numpy as np
 
 from flyknot.constants import N_JOINTS
 from flyknot.errors import CommandError, ConfigError, check_choice, check_positive
-from flyknot.limits import JointLimits
+from flyknot.limits import JointLimits, command_derivatives
 
 __all__ = [
     "QUANTITIES",
@@ -84,34 +84,6 @@ def _check_q(q: object, name: str = "q") -> np.ndarray:
         i, j = np.argwhere(~np.isfinite(arr))[0]
         raise CommandError(f"{name} is not finite at sample {i}, joint {j + 1}")
     return arr
-
-
-def command_derivatives(q: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Joint velocity and acceleration of a command, by central differences at rest ends.
-
-        qd_i  = (q_{i+1} - q_{i-1}) / (2 dt)
-        qdd_i = (q_{i+1} - 2 q_i + q_{i-1}) / dt^2,     i = 0 .. n-1,
-
-    with the rest padding q_{-1} = q_0 (at rest before) and q_n = q_{n-1} (holds after), so a
-    command that starts or stops moving shows its jump in qd_0, qdd_0 and qdd_{n-1}.
-
-    Args:
-        q: Command, shape (n, 7) [rad].
-        dt: Sample period [s].
-
-    Returns:
-        ``(qd, qdd)``, shapes (n, 7) [rad/s] and (n, 7) [rad/s^2].
-
-    Raises:
-        CommandError: If ``q`` is not a finite (n, 7) array.
-        ConfigError: If ``dt`` is not a finite number > 0.
-    """
-    q = _check_q(q)
-    check_positive("dt", dt)
-    p = np.concatenate([q[:1], q, q[-1:]], axis=0)  # (n + 2, 7)
-    qd = (p[2:] - p[:-2]) / (2.0 * dt)
-    qdd = (p[2:] - 2.0 * p[1:-1] + p[:-2]) / dt**2
-    return qd, qdd
 
 
 def command_torques(

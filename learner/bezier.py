@@ -23,6 +23,7 @@ import numpy as np
 
 from flyknot.constants import COMMAND_RATE_HZ, N_BASE_ROWS, N_JOINTS, N_KNOTS, N_ROWS
 from flyknot.errors import ConfigError, check_choice, check_positive
+from flyknot.limits import difference_matrices
 from flyknot.record import JointCommand
 
 DEGREE = N_KNOTS - 1  # 7
@@ -115,6 +116,43 @@ def bernstein_basis(t: np.ndarray, T: float, derivative: int = 0) -> np.ndarray:
     return out * (factorial(n) / factorial(n - r)) / T**r
 
 
+def _grid_step(t: np.ndarray) -> float:
+    """Spacing of a uniform sample grid from 0 [s] (a single sample: the command period)."""
+    if t.size < 2:
+        return 1.0 / COMMAND_RATE_HZ
+    dt = float(t[1] - t[0])
+    if t[0] != 0.0 or dt <= 0 or np.abs(np.diff(t) - dt).max() > 1e-9 * max(1.0, dt):
+        raise ConfigError("t", "must be a uniform grid of sample times from 0 (a command's)")
+    return dt
+
+
+def controller_basis(t: np.ndarray, T: float, derivative: int = 0) -> np.ndarray:
+    """The basis of a command's samples and of their derivatives as the controllers take them.
+
+        b_c^(0) = b^(0)(t),   b_c^(r) = D_r b^(0)(t)   (r = 1, 2)
+
+    with D_1, D_2 the central differences with rest padding at the grid's spacing
+    (:func:`flyknot.limits.difference_matrices`): the velocity and acceleration the simulated
+    controller faults on and the hardware preflight refuses on. They differ from the analytic
+    derivatives by ~dt^2 / 6 times the next-higher derivative (0.1 % of the velocity limit at
+    250 Hz in a fast throw), enough to push a command bounded analytically at the margin past it.
+
+    Args:
+        t: Sample times, shape (m,) [s]: a uniform grid from 0 within [0, T].
+        T: Duration of the command [s], > 0.
+        derivative: Order r, one of 0, 1, 2.
+
+    Returns:
+        Basis, shape (m, 8) [1 / s^r].
+    """
+    check_choice("derivative", derivative, (0, 1, 2))
+    t = np.asarray(t, dtype=float)
+    basis = bernstein_basis(t, T, 0)
+    if derivative == 0:
+        return basis
+    return difference_matrices(basis.shape[0], _grid_step(t))[derivative - 1] @ basis
+
+
 def check_knots(knots: object, field: str = "knots") -> np.ndarray:
     """Knots as a float array (10, 8); ConfigError naming ``field`` if malformed."""
     k = np.asarray(knots, dtype=float)
@@ -173,7 +211,12 @@ def sample_jacobian(
     Returns:
         Jacobian, shape (m * len(rows), 80) [1 / s^r].
     """
-    basis = bernstein_basis(t, T, derivative)
+    return basis_jacobian(bernstein_basis(t, T, derivative), rows)
+
+
+def basis_jacobian(basis: np.ndarray, rows: Iterable[int] = range(N_JOINTS)) -> np.ndarray:
+    """:func:`sample_jacobian` of samples ``basis @ knots.T`` for any basis (m, 8), e.g.
+    :func:`controller_basis`: shape (m * len(rows), 80)."""
     rows = _rows(rows)
     select = np.zeros((len(rows), N_ROWS))
     select[np.arange(len(rows)), rows] = 1.0

@@ -35,7 +35,7 @@ import numpy as np
 from flyknot.constants import N_JOINTS, N_ROWS
 from flyknot.errors import SolverError
 from flyknot.geometry import readonly
-from learner.bezier import BezierCommand, bernstein_basis
+from learner.bezier import BezierCommand, bernstein_basis, controller_basis
 from learner.initial_guess_params import (
     COST_TERMS,
     InitialGuessParams,
@@ -181,7 +181,8 @@ def check_command(
 ) -> tuple[dict[str, float], list[str]]:
     """Usage of every limit by a command at its 250 Hz samples, and the violations.
 
-    Samples t = :func:`limit_sample_times` (T); analytic q, qd, qdd from the knots;
+    Samples t = :func:`limit_sample_times` (T); q, qd, qdd as the controllers take them
+    (:func:`learner.bezier.controller_basis`);
     tau = robot.torques(q, qd, qdd). A violation is q outside [q_min, q_max], |qd| > qd_max,
     |qdd| > qdd_max, |tau| > tau_max (if ``params.torque_limits``; the *unreduced* limits) or
     z_tip(q(0)) + b_z < z_min - Z_TOL.
@@ -198,7 +199,7 @@ def check_command(
     """
     lim = params.limits
     t = limit_sample_times(T)
-    q, qd, qdd = (bernstein_basis(t, T, r) @ knots[:N_JOINTS].T for r in (0, 1, 2))
+    q, qd, qdd = (controller_basis(t, T, r) @ knots[:N_JOINTS].T for r in (0, 1, 2))
     tau = robot.torques(q, qd, qdd)
     mid, half = 0.5 * (lim.q_max + lim.q_min), 0.5 * (lim.q_max - lim.q_min)
     ratios = {

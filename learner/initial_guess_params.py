@@ -209,20 +209,19 @@ def x_from_knots(knots: np.ndarray) -> np.ndarray:
 
 
 def limit_sample_times(T: float, rate_hz: float = COMMAND_RATE_HZ) -> np.ndarray:
-    """Times the limits are imposed at: i / rate_hz <= T, plus T if not among them.
+    """Times the limits are imposed at: the command's samples i / rate_hz <= T, the samples
+    the controllers check (a T between two samples is never commanded: the arm holds the last
+    sample).
 
     Args:
         T: Command duration [s], > 0.
         rate_hz: Command rate [Hz].
 
     Returns:
-        Times, shape (n,) [s], increasing, first 0 and last T.
+        Times, shape (n,) [s], a uniform grid from 0.
     """
     n = int(np.floor(T * rate_hz + 1e-9)) + 1
-    t = np.minimum(np.arange(n) / rate_hz, T)
-    if T - t[-1] > 1e-12 * max(T, 1.0):
-        t = np.append(t, T)
-    return t
+    return np.minimum(np.arange(n) / rate_hz, T)
 
 
 def cost_samples(

@@ -9,8 +9,8 @@ base offset b (3,) [m]::
     e_h = [p_tip(t_i) + b - p_h(t_i);  r(R_h(t_i)^T R_tip(t_i));  pdot_tip(t_i) - pdot_h(t_i)]
     W_h = diag(w_p I3, w_R I3, w_v I3)
     s.t.  q_min + dq <= q(t_l) <= q_max - dq          (dq = POSITION_MARGIN [rad])
-          |qd(t_l)|  <= (1 - limit_margin) qd_max
-          |qdd(t_l)| <= (1 - limit_margin) qdd_max
+          |qd_c(t_l)|  <= (1 - limit_margin) qd_max      (qd_c, qdd_c: the controllers'
+          |qdd_c(t_l)| <= (1 - limit_margin) qdd_max      central differences, below)
           |tau(t_l)| <= (1 - limit_margin) tau_max    (optional, default on; see below)
           qd(0) = qd(T) = 0                           (exact, by construction)
           z_tip(q(0)) + b_z >= z_min
@@ -49,11 +49,12 @@ Hand velocity rule. pdot_h is the demonstration positions differentiated on thei
 Sample grids. Cost samples t_i: the demonstration's own samples (``sample_rate_hz=None``,
 default), or a uniform grid over the demonstration's time span at ``sample_rate_hz`` with
 positions and velocities interpolated linearly and orientations by slerp. The limit samples t_l
-are always the 250 Hz command times i / 250 <= T plus T itself: exactly the samples the controller
-checks. ``limit_margin`` keeps a fraction of the velocity, acceleration and torque limits free
-for the controller's finite differences of the 250 Hz samples (O(dt^2) away from the analytic
-derivatives; the rest padding halves qdd at the first sample) and for IPOPT's constraint
-tolerance; positions keep POSITION_MARGIN.
+are always the 250 Hz command times i / 250 <= T, and the velocities and accelerations bounded
+there are the controllers' central differences of those samples with rest padding
+(:func:`learner.bezier.controller_basis`): exactly what the simulated controller faults on and
+the hardware preflight refuses on. ``limit_margin`` keeps a fraction of the velocity,
+acceleration and torque limits free (the preflight's margin, and IPOPT's constraint
+tolerance); positions keep POSITION_MARGIN.
 
 Torque. The paper's initial guess has no torque limit, but a command beyond it faults the robot,
 so ``torque_limits=True`` (default) adds |robot.inverse_dynamics(q, qd, qdd)| <= tau bounds at
@@ -78,7 +79,7 @@ import numpy as np
 from flyknot.constants import N_JOINTS
 from flyknot.errors import ConfigError, check_positive
 from flyknot.geometry import readonly
-from learner.bezier import bernstein_basis
+from learner.bezier import bernstein_basis, controller_basis
 from learner.initial_guess_params import (
     FREE_TO_KNOTS,
     HOME_Q,
@@ -330,7 +331,7 @@ def build_problem(
     m, n = ti.shape[0], tl.shape[0]
     fun = _sample_functions(robot, params)
     Gc = [bernstein_basis(ti, T, r) @ FREE_TO_KNOTS.T for r in (0, 1, 3)]  # (m, 6) each
-    Gl = [bernstein_basis(tl, T, r) @ FREE_TO_KNOTS.T for r in (0, 1, 2)]  # (n, 6) each
+    Gl = [controller_basis(tl, T, r) @ FREE_TO_KNOTS.T for r in (0, 1, 2)]  # (n, 6) each
     Ph_dm, Rh_dm, vh_dm = ca.DM(ph.T), ca.DM(Rh.transpose(1, 0, 2).reshape(3, 3 * m)), ca.DM(vh.T)
 
     x = ca.MX.sym("x", N_X)

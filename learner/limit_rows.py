@@ -28,7 +28,7 @@ from flyknot.constants import N_JOINTS, N_VARS
 from flyknot.errors import ConfigError, check_choice
 from flyknot.geometry import readonly
 from flyknot.limits import JointLimits
-from learner.bezier import sample_command, sample_jacobian
+from learner.bezier import basis_jacobian, check_knots, controller_basis
 
 if TYPE_CHECKING:
     from learner.inverse_qp import QPResult
@@ -101,12 +101,17 @@ def limit_rows(
 ) -> LimitRows:
     """Joint position, velocity, acceleration and torque limits at sample times.
 
-    For sample a and joint j (row ``a * 7 + j`` of each block) with Bezier basis
-    ``B_r(t)`` (8,) of time-derivative order r::
+    For sample a and joint j (row ``a * 7 + j`` of each block), with the basis ``C_r`` of the
+    samples and of their derivatives as the controllers take them (r = 0: the Bezier basis at
+    t_a; r = 1, 2: its central differences with rest padding,
+    :func:`learner.bezier.controller_basis`)::
 
-        q^(r)_j(t_a) = B_r(t_a) . kappa[j],   d q^(r)_j(t_a) / d kappa[j, :] = B_r(t_a)
+        q^(r)_j(t_a) = C_r[a] . kappa[j],   d q^(r)_j(t_a) / d kappa[j, :] = C_r[a]
         tau(t_a) = ID(q, qd, qdd)(t_a)
         d tau / d kappa = dID/dq S_0 + dID/dqd S_1 + dID/dqdd S_2,   S_r = d q^(r) / d kappa
+
+    so a row bounds exactly what the simulated controller faults on and the hardware preflight
+    refuses on.
 
     Bounds: ``q_min <= q <= q_max``, ``|qd| <= qd_max``, ``|qdd| <= qdd_max``,
     ``|tau| <= tau_max``.
@@ -114,7 +119,7 @@ def limit_rows(
     Args:
         knots: Current knots (10, 8) (rows 0-6 [rad], rows 7-9 [m]).
         T: Command duration [s].
-        t_samples: Sample times (m,) [s] in [0, T].
+        t_samples: Sample times (m,) [s]: the command's uniform grid from 0 within [0, T].
         robot_model: Inverse dynamics for the torque rows; None leaves torque out.
         limits: Bounds (default: the paper's).
         kinds: Which blocks to build, a subset of ("pos", "vel", "acc", "tau").
@@ -129,8 +134,10 @@ def limit_rows(
     if "tau" in kinds and robot_model is None:
         raise ConfigError("robot_model", "is needed for torque limits (kind 'tau')")
     t = np.asarray(t_samples, dtype=float)
-    derivs = {r: sample_command(knots, T, t, r)[:, :N_JOINTS] for r in (0, 1, 2)}  # (m, 7)
-    jacs = {r: sample_jacobian(t, T, r) for r in (0, 1, 2)}  # (m * 7, 80)
+    bases = {r: controller_basis(t, T, r) for r in (0, 1, 2)}  # (m, 8)
+    joints = check_knots(knots)[:N_JOINTS].T  # (8, 7)
+    derivs = {r: bases[r] @ joints for r in (0, 1, 2)}  # (m, 7)
+    jacs = {r: basis_jacobian(bases[r]) for r in (0, 1, 2)}  # (m * 7, 80)
     m = derivs[0].shape[0]
     bounds = {
         "pos": (limits.q_min, limits.q_max),
@@ -227,19 +234,21 @@ def sampled_violation(
     """Largest violation of the limits by a command on its samples, relative to half ranges.
 
     max over samples, joints and kinds of max(lo - y, y - hi, 0) / ((hi - lo) / 2) for
-    y = q, qd, qdd (Bezier, exact) and tau = ID(q, qd, qdd).
+    y = q, qd, qdd as the controllers take them (:func:`learner.bezier.controller_basis`) and
+    tau = ID(q, qd, qdd).
 
     Args:
         knots: Knots (10, 8).
         T: Duration [s].
-        t: Sample times (m,) [s].
+        t: Sample times (m,) [s]: the command's uniform grid from 0.
         robot: Robot model (inverse dynamics).
         limits: The limits.
 
     Returns:
         The violation (0 when every limit holds).
     """
-    q, qd, qdd = (sample_command(knots, T, t, r)[:, :N_JOINTS] for r in (0, 1, 2))
+    joints = check_knots(knots)[:N_JOINTS].T
+    q, qd, qdd = (controller_basis(t, T, r) @ joints for r in (0, 1, 2))
     worst = 0.0
     for y, lo, hi in (
         (q, limits.q_min, limits.q_max),

@@ -178,3 +178,17 @@ def test_calibrate_command_file_fit_options(tmp_path, capsys, kin):
     for argv, message in refused:
         assert cli.main(argv) == 2
         assert message in capsys.readouterr().err
+
+
+def test_the_learner_keeps_the_limits_its_cell_plays(kin):
+    from flyknot.limits import JointLimits
+    from flyknot_app.runner import command_limits
+    from flyknot_hw.preflight import effective_limits
+
+    cell = DryRunCell(_lab(), kinematics=kin)
+    margins = cell.config.safety.margins
+    assert command_limits(cell).qd_max == pytest.approx(
+        (1 - margins.velocity) * effective_limits().qd_max
+    )
+    assert command_limits(cell) == margins.apply(effective_limits())
+    assert command_limits(object()) == JointLimits()  # a simulated lab: the controller's own

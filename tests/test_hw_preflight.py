@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from flyknot.constants import Q4_MIN_NEW_SERIALS, Q_MAX, Q_MIN, QD_MAX, QDD_MAX, TAU_MAX
 from flyknot.errors import CommandError, ConfigError, FlyknotError, HardwareError
-from flyknot.limits import JointLimits
+from flyknot.limits import JointLimits, difference_matrices
 from flyknot.record import JointCommand
 from flyknot_hw.config import Margins, Workspace
 from flyknot_hw.preflight import (
@@ -202,11 +202,12 @@ def commands(draw, n_max: int = 120):
 
 
 @given(commands())
-def test_derivatives_match_the_simulated_controller(q):
-    mine = command_derivatives(q, 1 / RATE)
-    theirs = faults.command_derivatives(q, 1 / RATE)
-    np.testing.assert_allclose(mine[0], theirs[0])
-    np.testing.assert_allclose(mine[1], theirs[1])
+def test_derivatives_are_the_simulated_controllers_and_the_learners(q):
+    assert command_derivatives is faults.command_derivatives  # one rule for both cells
+    qd, qdd = command_derivatives(q, 1 / RATE)
+    d1, d2 = difference_matrices(len(q), 1 / RATE)  # what the learner bounds
+    np.testing.assert_allclose(d1 @ q, qd, rtol=0, atol=1e-9 * max(1.0, np.abs(qd).max()))
+    np.testing.assert_allclose(d2 @ q, qdd, rtol=0, atol=1e-9 * max(1.0, np.abs(qdd).max()))
 
 
 def _margined(lim: JointLimits, m: float) -> JointLimits:

@@ -33,6 +33,7 @@ def robot():
 def _knots(delta):
     k = np.zeros((10, 8))
     s = np.sin(np.linspace(0, np.pi, 8))
+    s[[1, 6]] = s[[0, 7]]  # tied end knots: at rest at both ends, as every command is
     k[:7] = HOME[:, None] + np.outer(delta, s)
     k[7:] = np.array([0.0, 0.0, 1.0])[:, None]
     return k

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from flyknot.constants import QD_MAX, XARM7_XML
 from flyknot.errors import ConfigError, SolverError
-from flyknot.limits import JointLimits
+from flyknot.limits import JointLimits, command_derivatives
 from learner.bezier import sample_command
 from learner.inverse_qp import (
     BACKENDS,
@@ -72,7 +72,9 @@ def _knots(amplitude: float = 0.35, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     s = np.linspace(0.0, 1.0, 8)
     k = np.zeros((10, 8))
-    k[:7] = HOME[:, None] + amplitude * np.sin(np.pi * s)[None, :] * rng.uniform(-1, 1, (7, 1))
+    bump = np.sin(np.pi * s)
+    bump[[1, 6]] = bump[[0, 7]]  # tied end knots: at rest at both ends, as every command is
+    k[:7] = HOME[:, None] + amplitude * bump[None, :] * rng.uniform(-1, 1, (7, 1))
     k[7:] = np.array([[0.3], [0.0], [0.2]])
     return k
 
@@ -194,11 +196,12 @@ def test_limit_rows_values_and_jacobians(robot: RobotModel):
     t = T_SAMPLES[::20]
     rows = limit_rows(knots, T, t, robot)
     m = t.size
-    for r, kind in enumerate(("pos", "vel", "acc")):
+    q = sample_command(knots, T, t)[:, :7]
+    qd, qdd = command_derivatives(q, t[1] - t[0])  # as the controllers take them
+    for kind, y in (("pos", q), ("vel", qd), ("acc", qdd)):
         a, z = rows.blocks[kind]
-        np.testing.assert_allclose(rows.b[a:z], sample_command(knots, T, t, r)[:, :7].ravel())
+        np.testing.assert_allclose(rows.b[a:z], y.ravel(), rtol=1e-9, atol=1e-9)
     a, z = rows.blocks["tau"]
-    q, qd, qdd = (sample_command(knots, T, t, r)[:, :7] for r in range(3))
     np.testing.assert_allclose(rows.b[a:z], robot.torques(q, qd, qdd).ravel(), atol=1e-12)
     np.testing.assert_allclose(rows.lo[a:z], -np.tile(JointLimits().tau_max, m))
     h = 1e-6
@@ -295,7 +298,7 @@ def test_binding_position_and_velocity_limits_hold_on_the_sampled_trajectory(
     res = require_solved(solve_qp(build_inverse_qp(M_crit=M, err_crit=err, limits=limits), backend))
     new = knots - res.dkappa
     q = sample_command(new, T, T_SAMPLES)[:, :7]
-    qd = sample_command(new, T, T_SAMPLES, 1)[:, :7]
+    qd = command_derivatives(q, 1.0 / 250.0)[0]  # the velocity the controllers check
     lim = JointLimits()
     assert np.all(q <= lim.q_max + 1e-6) and np.all(q >= lim.q_min - 1e-6)
     assert np.all(np.abs(qd) <= lim.qd_max + 1e-6)

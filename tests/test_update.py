@@ -8,10 +8,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from flyknot.constants import XARM7_XML
+from flyknot.constants import COMMAND_RATE_HZ, XARM7_XML
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, RecordError
-from flyknot.limits import JointLimits
+from flyknot.limits import JointLimits, command_derivatives
 from flyknot.record import TrialRecord
 from learner.bezier import BezierCommand
 from learner.critical_state import MarkerFitParams, critical_state_from_record
@@ -73,10 +73,11 @@ def _measured_cost(command: BezierCommand, target: DemoTarget, robot) -> float:
 
 
 def _sampled(knots: np.ndarray, robot) -> dict[str, np.ndarray]:
-    """The command's joints, rates, accelerations and torques on its 250 Hz samples."""
+    """The command's joints, rates, accelerations and torques on its 250 Hz samples, the rates
+    and accelerations as the controllers take them (central differences of the samples)."""
     cmd = BezierCommand(knots, T)
-    t = cmd.sample_times()
-    q, qd, qdd = (cmd.sample(t, r)[:, :7] for r in (0, 1, 2))
+    q = cmd.joint_command().q
+    qd, qdd = command_derivatives(q, 1.0 / COMMAND_RATE_HZ)
     return {"pos": q, "vel": qd, "acc": qdd, "tau": robot.torques(q, qd, qdd)}
 
 
@@ -247,16 +248,18 @@ def test_row_selection_helpers():
     knots[0] = np.linspace(0.0, 0.98, 8)  # joint 1 at 1.4 rad/s throughout
     rows = limit_rows(knots, 0.7, np.linspace(0, 0.7, 5), None, lim, kinds=("pos", "vel"))
     idx = initial_active_rows(rows, 0.5)
-    # Joint 1's velocity rows use 70 % of their range (1.4 of 2 rad/s); joint 4 at 0 rad sits
-    # 0.19 rad above its lower limit, 91 % away from the middle of [-0.19, 3.92].
-    np.testing.assert_array_equal(idx, np.r_[3 + 7 * np.arange(5), 35 + 7 * np.arange(5)])
+    # Joint 1's velocity rows use 70 % of their range (1.4 of 2 rad/s) inside, 35 % at the two
+    # ends (the controllers' rest padding halves the central difference there); joint 4 at
+    # 0 rad sits 0.19 rad above its lower limit, 91 % away from the middle of [-0.19, 3.92].
+    inner = 35 + 7 * np.arange(1, 4)
+    np.testing.assert_array_equal(idx, np.r_[3 + 7 * np.arange(5), inner])
     sub = subset_rows(rows, idx)
-    assert dict(sub.blocks) == {"pos": (0, 5), "vel": (5, 10)}
+    assert dict(sub.blocks) == {"pos": (0, 5), "vel": (5, 8)}
     dk = np.zeros((10, 8))
     dk[0] = np.linspace(0.0, -0.7, 8)  # speeds joint 1 up to 2.4 rad/s after subtraction
     viol = limit_violation(rows, dk)
-    np.testing.assert_allclose(viol[35::7], (2.4 - 2.0) / 2.0, atol=1e-12)
-    assert np.all(np.delete(viol, 35 + 7 * np.arange(5)) == 0.0)
+    np.testing.assert_allclose(viol[inner], (2.4 - 2.0) / 2.0, atol=1e-12)
+    assert np.all(np.delete(viol, inner) == 0.0)  # 1.2 rad/s at the ends
 
 
 # ------------------------------------------------------------------------------ failed solves
