@@ -304,11 +304,16 @@ def rope_bend_friction_forces(
 def _warm_kernel() -> None:
     """Compile (or load from numba's cache) the kernel now, once per process: not at the first
     step of a trial, which may run against a clock (the real-time fake lab)."""
-    from flyknot_sim.bend_kernel import bend_friction_forces
+    from flyknot_sim.bend_kernel import add_bend_friction, bend_friction_forces
 
     x = np.column_stack([np.arange(4.0), np.zeros(4), np.zeros(4)])
     bend_friction_forces(x, np.zeros((4, 3)), 1e-3, RATE0, np.ones(4), 1e-3,
                          SPAN_REGULARISATION, IMPLICIT_ITERATIONS, _TINY)  # fmt: skip
+    idx = np.arange(12).reshape(4, 3)
+    params = np.array([1e-3, RATE0, 1e-3, SPAN_REGULARISATION, _TINY])
+    add_bend_friction(x.ravel(), np.zeros(12), np.zeros(12), idx, idx, np.zeros((4, 3)),
+                      np.zeros((4, 3)), np.zeros((4, 3)), False, params, np.ones(4),
+                      IMPLICIT_ITERATIONS)  # fmt: skip
 
 
 class RopeBendFriction:
@@ -338,6 +343,8 @@ class RopeBendFriction:
         self._model_id: int | None = None
         self._added: np.ndarray | None = None
         self._after: np.ndarray | None = None
+        self._has_prev = False
+        self._kernel_args: tuple | None = None
         if self.moment > 0:
             _warm_kernel()
 
@@ -372,15 +379,25 @@ class RopeBendFriction:
         )
 
     def apply(self, data) -> None:
-        """Add the couples' forces of ``data``'s current state to ``data.qfrc_applied``."""
+        """Add the couples' forces of ``data``'s current state to ``data.qfrc_applied``
+        (compiled: :func:`flyknot_sim.bend_kernel.add_bend_friction` gathers the state, solves
+        and scatters without a numpy temporary)."""
         if self.moment <= 0:
             return
-        dof = self.rope.vert_dof
-        f = self.forces(data)
-        current = data.qfrc_applied[dof]
-        if self._after is not None and np.array_equal(current, self._after):
-            current = current - self._added
-        after = current + f
-        data.qfrc_applied[dof] = after
-        self._added = f
-        self._after = after
+        r, model = self.rope, data.model
+        if self._kernel_args is None or self._model_id != id(model):
+            from flyknot_sim.bend_kernel import add_bend_friction  # numba: compiled on demand
+
+            params = np.array(
+                [self.moment, self.rate0, float(model.opt.timestep), SPAN_REGULARISATION, _TINY]
+            )
+            self._added, self._after = np.zeros(r.vert_dof.shape), np.zeros(r.vert_dof.shape)
+            self._has_prev = False
+            inv_mass = self.inv_mass(model)
+            self._kernel_args = (add_bend_friction, params, inv_mass)
+        kernel, params, inv_mass = self._kernel_args
+        kernel(
+            data.qpos, data.qvel, data.qfrc_applied, r.vert_qpos, r.vert_dof, r.body_pos0,
+            self._added, self._after, self._has_prev, params, inv_mass, IMPLICIT_ITERATIONS,
+        )  # fmt: skip
+        self._has_prev = True

@@ -365,7 +365,33 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
     rc.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
     rc.add_argument("--json", action="store_true", help="print a JSON summary")
     rc.set_defaults(func=_cmd_record)
+
+    rr = dsub.add_parser(
+        "rerecord",
+        help="record a demo's stored motion again in today's lab (no search) and check it",
+    )
+    rr.add_argument("file", help="demonstration (.npz) made by demo synthesize or demo robot")
+    rr.add_argument("--out", help="output file (.npz; default: replace FILE)")
+    rr.add_argument("--check", type=int, default=20, help="varied trials of the check (20)")
+    rr.add_argument("--json", action="store_true", help="print a JSON summary")
+    rr.set_defaults(func=_cmd_rerecord)
     return d
+
+
+def _cmd_rerecord(args: argparse.Namespace) -> int:
+    from flyknot.demo import Demonstration
+    from flyknot_tools.demo_rerecord import rerecord
+
+    src = Path(args.file)
+    if not src.is_file():
+        raise ConfigError("file", f"no demonstration {str(src)!r}")
+    out = Path(args.out) if args.out else src
+    if out.suffix != ".npz":
+        raise ConfigError("--out", f"must be a .npz file, got {str(out)!r}")
+    result = rerecord(Demonstration.load(src), args.check)
+    result.demo.save(out)
+    _print_summary({"file": str(out), **result.summary()}, args.json)
+    return 0
 
 
 def _cmd_closure_study(args: argparse.Namespace) -> int:

@@ -80,7 +80,7 @@ def test_applier_uses_the_compiled_kernel_on_a_rope():
     x = data.qpos[bound.vert_qpos] + bound.body_pos0
     v = data.qvel[bound.vert_dof]
     ref = rope_bend_friction_forces(x, v, M0, RATE0, applier.inv_mass(model), 1e-3)
-    np.testing.assert_allclose(applier.forces(data), ref, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(applier.forces(data), ref, rtol=0, atol=1e-6 * np.abs(ref).max())
 
 
 @pytest.mark.parametrize("mode", MODES)

@@ -612,6 +612,7 @@ def test_demo_commands_are_split_between_flyknot_and_flyknot_tools(capsys):
         "synthesize",
         "robot",
         "record",
+        "rerecord",
     }
     assert _actions(_help(cli.main, ["demo", "--help"], capsys)) == {"replay", "critical"}
     assert _actions(_help(demo_cli.main, ["demo", "--help"], capsys)) == {"replay", "critical"}
