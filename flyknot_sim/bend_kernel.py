@@ -5,7 +5,8 @@ The same equations as :func:`flyknot_sim.bend_friction.rope_bend_friction_forces
 that one call costs tens of microseconds instead of ~0.5 ms of small numpy operations: the
 couples are solved at every simulation step, and a 1 ms step of the rope takes ~0.1 ms in
 MuJoCo. The numpy function stays the readable reference; ``tests/test_bend_friction.py``
-holds the two equal to rounding.
+holds the two equal within 1e-6 of the largest force (rounding, which the fixed-point passes
+amplify where a joint turns at about r_0).
 
 The linear system (I + dt A K) y = dw of the 3 (n - 1) joint rates is solved in its symmetric
 form. K = blockdiag(c_k P_k) with P_k symmetric, its eigenvalues 1 (normal of the joint's

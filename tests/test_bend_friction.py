@@ -246,3 +246,29 @@ def test_applier_replaces_its_own_previous_contribution():
     off = RopeBendFriction(bound, 0.0)
     off.apply(data)
     np.testing.assert_allclose(data.qfrc_applied[dof] - 0.5, friction.forces(data), atol=1e-15)
+
+
+@given(
+    a=st.lists(st.floats(-1, 1), min_size=3, max_size=3),
+    b=st.lists(st.floats(-1, 1), min_size=3, max_size=3),
+    straight=st.sampled_from([0.0, 1e-12, 1e-6, 1.0]),
+)
+@settings(max_examples=80, deadline=None)
+def test_the_kernels_square_root_squares_to_the_projector(a, b, straight):
+    """R = P^(1/2) in closed form (flyknot_sim/bend_kernel.py): R symmetric, R R = P, for bent,
+    nearly straight and straight joints."""
+    from flyknot_sim.bend_friction import _projectors
+    from flyknot_sim.bend_kernel import _sqrt_projector
+
+    ta = np.asarray(a) + np.array([0.0, 0.0, 1.5])
+    ta /= np.linalg.norm(ta)
+    tb = ta + straight * np.asarray(b)
+    tb /= np.linalg.norm(tb)
+    root = np.empty((3, 3))
+    _sqrt_projector(ta, tb, 1.0 + SPAN_REGULARISATION, root)
+    e = np.stack([ta, tb])
+    (proj,) = _projectors(e, np.ones(2))
+    np.testing.assert_allclose(root, root.T, atol=1e-12)
+    # near straight, g - c ~ lambda = 1e-10 is known to ~1e-6 relative in either form (the
+    # cancellation in 1 + lambda - t_a . t_b): P's in-plane entries then agree to ~5e-7
+    np.testing.assert_allclose(root @ root, proj, atol=1e-5)
