@@ -84,6 +84,7 @@ class LearnResult:
 
 
 def _counted(trials: tuple[TrialSummary, ...]) -> list[TrialSummary]:
+    """The last attempt of every trial, in trial order (the ones a run counts)."""
     last: dict[int, TrialSummary] = {}
     for s in trials:
         last[s.trial] = s
@@ -230,13 +231,6 @@ def _commit(
         rd.append_ledger(step.summary)
     if on_trial is not None:
         on_trial(step.summary)
-
-
-def _counted(trials: tuple[TrialSummary, ...]) -> list[TrialSummary]:
-    last: dict[int, TrialSummary] = {}
-    for s in trials:
-        last[s.trial] = s
-    return [last[k] for k in sorted(last)]
 
 
 def _finish(state: LoopState, params: ILCParams) -> LearnResult:
