@@ -166,6 +166,21 @@ def difference_matrices(n: int, dt: float) -> tuple[np.ndarray, np.ndarray]:
     return d1, d2
 
 
+def check_joint_samples(q: object, name: str = "q") -> np.ndarray:
+    """``q`` as a finite float array of shape (n, 7), n >= 1.
+
+    Raises:
+        CommandError: Naming ``name``, the shape, or the first non-finite sample and joint.
+    """
+    arr = np.asarray(q, dtype=float)
+    if arr.ndim != 2 or arr.shape[1] != N_JOINTS or arr.shape[0] < 1:
+        raise CommandError(f"{name} must have shape (n, {N_JOINTS}) with n >= 1, got {arr.shape}")
+    if not np.isfinite(arr).all():
+        i, j = np.argwhere(~np.isfinite(arr))[0]
+        raise CommandError(f"{name} is not finite at sample {i}, joint {j + 1}")
+    return arr
+
+
 def command_derivatives(q: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """Joint velocity and acceleration of a command as the controllers compute them.
 
@@ -183,12 +198,7 @@ def command_derivatives(q: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarra
         CommandError: If ``q`` is not a finite (n, 7) array.
         ConfigError: If ``dt`` is not a finite number > 0.
     """
-    arr = np.asarray(q, dtype=float)
-    if arr.ndim != 2 or arr.shape[1] != N_JOINTS or arr.shape[0] < 1:
-        raise CommandError(f"q must have shape (n, {N_JOINTS}) with n >= 1, got {arr.shape}")
-    if not np.isfinite(arr).all():
-        i, j = np.argwhere(~np.isfinite(arr))[0]
-        raise CommandError(f"q is not finite at sample {i}, joint {j + 1}")
+    arr = check_joint_samples(q)
     check_positive("dt", dt)
     p = np.concatenate([arr[:1], arr, arr[-1:]], axis=0)  # (n + 2, 7)
     return (p[2:] - p[:-2]) / (2.0 * dt), (p[2:] - 2.0 * p[1:-1] + p[:-2]) / dt**2

@@ -16,7 +16,7 @@ import numpy as np
 
 from flyknot.constants import N_JOINTS
 from flyknot.errors import CommandError, ConfigError, check_choice, check_positive
-from flyknot.limits import JointLimits, command_derivatives
+from flyknot.limits import JointLimits, check_joint_samples, command_derivatives
 
 __all__ = [
     "QUANTITIES",
@@ -76,16 +76,6 @@ class Fault:
         )
 
 
-def _check_q(q: object, name: str = "q") -> np.ndarray:
-    arr = np.asarray(q, dtype=float)
-    if arr.ndim != 2 or arr.shape[1] != N_JOINTS or arr.shape[0] < 1:
-        raise CommandError(f"{name} must have shape (n, {N_JOINTS}) with n >= 1, got {arr.shape}")
-    if not np.isfinite(arr).all():
-        i, j = np.argwhere(~np.isfinite(arr))[0]
-        raise CommandError(f"{name} is not finite at sample {i}, joint {j + 1}")
-    return arr
-
-
 def command_torques(
     model: mujoco.MjModel, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
 ) -> np.ndarray:
@@ -114,7 +104,11 @@ def command_torques(
             "model",
             f"must be the robot alone (nq = nv = {N_JOINTS}), got nq={model.nq}, nv={model.nv}",
         )
-    q, qd, qdd = _check_q(q), _check_q(qd, "qd"), _check_q(qdd, "qdd")
+    q, qd, qdd = (
+        check_joint_samples(q),
+        check_joint_samples(qd, "qd"),
+        check_joint_samples(qdd, "qdd"),
+    )
     if not (q.shape == qd.shape == qdd.shape):
         raise CommandError(f"q, qd, qdd shapes differ: {q.shape}, {qd.shape}, {qdd.shape}")
     data = mujoco.MjData(model)
@@ -196,7 +190,7 @@ def first_fault(
         ("acceleration", qdd, -limits.qdd_max, limits.qdd_max),
     ]
     if torques is not None:
-        tau = _check_q(torques, "torques")
+        tau = check_joint_samples(torques, "torques")
         if tau.shape != q.shape:
             raise CommandError(f"torques must have the shape of q {q.shape}, got {tau.shape}")
         checks.append(("torque", tau, -limits.tau_max, limits.tau_max))
