@@ -376,7 +376,10 @@ def record_demonstration(
     """The nominal trial of a command as a demonstration (module docstring).
 
     ``lab_params`` (a :class:`flyknot_sim.lab.LabParams`; default: the lab's defaults without
-    variation) selects the lab it is recorded in; its rope is ``rope``.
+    variation) selects the lab it is recorded in; its rope is ``rope``. The metadata's
+    ``command_knots`` are ``knots`` with the base-offset rows 7-9 set to the lab's base
+    position (the demonstration frame is the lab's), so that the stored command starts a
+    learner as it is.
 
     Raises:
         FlyknotError: The trial faulted, or the rope did not touch itself during the motion.
@@ -408,11 +411,16 @@ def record_demonstration(
     )
     rot = Rotation.from_quat(rec.fingertip_quat, scalar_first=True)
     quat = Slerp(rec.t_joint, rot)(t_pose).as_quat(scalar_first=True)
+    # The demonstration is recorded in the lab's frame, so the command's base-offset rows (the
+    # robot base in the demonstration frame, learner.bezier) are the lab's base position: a
+    # learner started from the stored command then maps its markers as the demonstration's.
+    stored = np.array(knots, dtype=float)
+    stored[7:] = np.asarray(lab.base_pose[:3], dtype=float)[:, None]
     meta = {
         "generator": "flyknot_tools.robot_demo",
         "source": "robot lab, nominal trial (kinesthetic demonstration)",
         "command_T": float(T),
-        "command_knots": np.asarray(knots, dtype=float).tolist(),
+        "command_knots": stored.tolist(),
         "knot": rec.knot,
         **(metadata or {}),
     }

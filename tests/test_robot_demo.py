@@ -73,6 +73,12 @@ def test_shipped_robot_demo_is_its_commands_nominal_trial(shipped):
     np.testing.assert_array_equal(np.isnan(again.markers), np.isnan(demo.markers))
     assert demo.metadata["knot"] == "trefoil"
     assert 0.3 < demo.t_c < T  # the rope touches itself during the motion
+    # the stored command's base rows are the lab's base: the demonstration's frame
+    from flyknot_sim.lab import SimLab
+
+    base = SimLab(made_in).base_pose[:3]
+    np.testing.assert_array_equal(knots[7:], np.repeat(base[:, None], 8, axis=1))
+    np.testing.assert_array_equal(np.asarray(again.metadata["command_knots"]), knots)
 
 
 def test_score_of_a_tie_and_of_a_fault(shipped):
