@@ -198,7 +198,13 @@ def command_derivatives(q: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarra
         CommandError: If ``q`` is not a finite (n, 7) array.
         ConfigError: If ``dt`` is not a finite number > 0.
     """
-    arr = check_joint_samples(q)
+    return central_differences(check_joint_samples(q), dt)
+
+
+def central_differences(x: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`difference_matrices` applied to every column of samples ``x`` (n, k), n >= 1,
+    without forming the matrices: ``(D1 x, D2 x)`` [1/s, 1/s^2 times x's unit]."""
     check_positive("dt", dt)
-    p = np.concatenate([arr[:1], arr, arr[-1:]], axis=0)  # (n + 2, 7)
+    x = np.asarray(x, dtype=float)
+    p = np.concatenate([x[:1], x, x[-1:]], axis=0)  # (n + 2, k)
     return (p[2:] - p[:-2]) / (2.0 * dt), (p[2:] - 2.0 * p[1:-1] + p[:-2]) / dt**2

@@ -29,7 +29,7 @@ import numpy as np
 
 from flyknot.constants import N_JOINTS, Q4_MIN_NEW_SERIALS, QDD_MAX, TAU_MAX
 from flyknot.errors import CommandError, ConfigError, HardwareError, check_positive
-from flyknot.limits import JointLimits, command_derivatives, difference_matrices
+from flyknot.limits import JointLimits, central_differences, command_derivatives
 from flyknot.record import JointCommand
 from flyknot_hw.config import Margins, Workspace
 
@@ -301,7 +301,7 @@ def preflight(
         checks.append(("workspace", p, np.abs(p - wc) / wh, 1.0, wc, wh))
         if tip_speed_max is not None:
             check_positive("tip_speed_max", tip_speed_max)
-            v = np.linalg.norm(difference_matrices(n, dt)[0] @ p, axis=1)[:, None]
+            v = np.linalg.norm(central_differences(p, dt)[0], axis=1)[:, None]
             allowed = margins.allowed("velocity")
             checks.append(("tip_speed", v, v / tip_speed_max, allowed, 0, tip_speed_max))
 
@@ -330,7 +330,7 @@ def preflight(
     tip_speed = None
     if fingertip is not None:
         p = np.asarray(fingertip, dtype=float)
-        tip_speed = float(np.max(np.linalg.norm(difference_matrices(n, dt)[0] @ p, axis=1)))
+        tip_speed = float(np.max(np.linalg.norm(central_differences(p, dt)[0], axis=1)))
     return PreflightReport(
         n=n,
         rate_hz=float(command.rate_hz),

@@ -8,7 +8,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from flyknot.errors import ConfigError
-from flyknot.limits import JointLimits, command_derivatives, difference_matrices
+from flyknot.limits import (
+    JointLimits,
+    central_differences,
+    command_derivatives,
+    difference_matrices,
+)
 from flyknot.record import JointCommand
 from flyknot_hw.config import Margins
 from flyknot_hw.preflight import PreflightError, effective_limits, preflight
@@ -84,3 +89,11 @@ def test_a_command_within_the_margined_limits_passes_the_preflight(use, joint, m
     elif use > 1.0 + 1e-9:
         with pytest.raises(PreflightError, match=f"joint {joint + 1} velocity"):
             preflight(command, effective_limits(), margins=margins)
+
+
+def test_central_differences_are_the_difference_matrices_on_any_width():
+    x = np.random.default_rng(4).normal(size=(9, 3))  # e.g. fingertip positions
+    d1, d2 = difference_matrices(9, DT)
+    v, a = central_differences(x, DT)
+    np.testing.assert_allclose(v, d1 @ x, rtol=0, atol=1e-9 * np.abs(v).max())
+    np.testing.assert_allclose(a, d2 @ x, rtol=0, atol=1e-9 * np.abs(a).max())
