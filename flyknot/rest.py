@@ -115,6 +115,15 @@ class SettleParams:
             doing that (measured in ``docs/rope-model.md``: such verdicts did not change when
             the same trials ran on to the cap). Without it, an unknotted rope that swings on
             (air drag damps a large swing over minutes) runs to the cap.
+        knot_set_s: Judge a knotted rope early once its knot has *set*: every verdict sample
+            over this long [s] was the same knot, and the rope round its self-contacts (the
+            knot) kept its shape, no two of its vertices moving closer or apart by more than
+            ``knot_set_tol`` rope diameters (:func:`shape_change`). A knot pulled tight by the
+            hanging rope's weight holds (the validation suite's static hold: no slip over 60
+            s; ``docs/rope-model.md``); a knot that still swings and works has a changing
+            shape. Without it, a rope with a knot in it swings on above the rest speed past
+            the cap (air drag damps it over minutes). None: off.
+        knot_set_tol: The shape tolerance of ``knot_set_s``, in rope diameters [-].
     """
 
     rest: RestCriterion = RestCriterion()
@@ -122,6 +131,8 @@ class SettleParams:
     max_s: float = 15.0
     verdict_interval_s: float = 0.25
     contact_free_unknot: bool = True
+    knot_set_s: float | None = 2.0
+    knot_set_tol: float = 0.5
 
     def __post_init__(self) -> None:
         if not isinstance(self.rest, RestCriterion):
@@ -135,12 +146,35 @@ class SettleParams:
             )
         if self.max_s < self.min_s:
             raise ConfigError("max_s", f"must be >= min_s ({self.min_s}), got {self.max_s}")
+        if self.knot_set_s is not None:
+            check_positive("knot_set_s", self.knot_set_s)
+        check_positive("knot_set_tol", self.knot_set_tol)
 
     @classmethod
     def fixed(cls, seconds: float) -> SettleParams:
         """Wait exactly ``seconds`` and judge, rested or not (min = max)."""
         check_nonnegative("settle_s", seconds)
         return cls(min_s=seconds, max_s=max(seconds, 1e-9))
+
+
+def shape_change(reference: np.ndarray, now: np.ndarray) -> float:
+    """How far a set of points moved relative to itself [m].
+
+    change = max_{a, b} | |p_a - p_b| - |r_a - r_b| |: zero for any rigid motion of the set
+    (a knot that swings with the rope without working), the largest change of a distance
+    between two of its points otherwise.
+
+    Args:
+        reference: The points then, shape (k, 3) [m].
+        now: The same points now, shape (k, 3) [m].
+    """
+    r = np.asarray(reference, dtype=float)
+    p = np.asarray(now, dtype=float)
+    if r.shape != p.shape or r.ndim != 2 or r.shape[1] != 3:
+        raise ConfigError("now", f"must have the reference's shape {r.shape}, got {p.shape}")
+    dr = np.linalg.norm(r[:, None, :] - r[None, :, :], axis=-1)
+    dp = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=-1)
+    return float(np.max(np.abs(dp - dr))) if len(r) else 0.0
 
 
 def free_end_at_rest(
@@ -202,6 +236,8 @@ class SettleOutcome:
         settled: The free end came to rest and the verdict held over the final window.
         contact_free: Not at rest, but judged early: unknotted and free of self-contact over
             the final window (``SettleParams.contact_free_unknot``).
+        knot_set: Not at rest, but judged early: the knot had set
+            (``SettleParams.knot_set_s``).
         settle_s: Time from the end of the command to the verdict [s].
         verdict: The knot verdict at the end.
         free_end_speed_m_s: Largest free-end speed over the final window [m/s].
@@ -216,12 +252,14 @@ class SettleOutcome:
     free_end_speed_m_s: float
     history_t: tuple[float, ...]
     history: tuple[str, ...]
+    knot_set: bool = False
 
     def as_metadata(self, params: SettleParams) -> dict:
         """Plain data for a trial record's metadata."""
         return {
             "settled": self.settled,
             "contact_free": self.contact_free,
+            "knot_set": self.knot_set,
             "settle_s": self.settle_s,
             "free_end_speed_m_s": self.free_end_speed_m_s,
             "verdict_stable_s": _stable_for(self.history_t, self.history),
@@ -232,6 +270,8 @@ class SettleOutcome:
                 "max_s": params.max_s,
                 "verdict_interval_s": params.verdict_interval_s,
                 "contact_free_unknot": params.contact_free_unknot,
+                "knot_set_s": params.knot_set_s,
+                "knot_set_tol": params.knot_set_tol,
             },
             "knot_history": {"t": list(self.history_t), "verdict": list(self.history)},
         }
@@ -253,11 +293,13 @@ class SettleMonitor:
     Feed it the free-end speed at every sample (:meth:`observe`); it asks ``judge()`` for a
     verdict every ``verdict_interval_s`` and says when to stop: after ``min_s``, once the speed
     has stayed below the threshold for ``window_s`` and every verdict within that window agrees
-    (at least two), or at ``max_s``.
+    (at least two), once an unknotted rope has been free of self-contact over that window,
+    once a knot has set (``knot_set_s``), or at ``max_s``.
     """
 
-    def __init__(self, params: SettleParams, t_end: float):
-        """Start monitoring; ``t_end`` is the end of the command on the caller's clock [s]."""
+    def __init__(self, params: SettleParams, t_end: float, diameter: float | None = None):
+        """Start monitoring; ``t_end`` is the end of the command on the caller's clock [s],
+        ``diameter`` the rope's [m] (needed for ``knot_set_s``; None: no knot-set check)."""
         self.params = params
         self.t_end = float(t_end)
         self._last_fast = float(t_end)
@@ -267,8 +309,15 @@ class SettleMonitor:
         self._next_verdict = float(t_end)
         self._last_contact = float(t_end)
         self._done: SettleOutcome | None = None
+        self._tol = None
+        if diameter is not None and params.knot_set_s is not None:
+            check_positive("diameter", diameter)
+            self._tol = params.knot_set_tol * float(diameter)
+        self._knot: tuple[float, str, tuple[int, int], np.ndarray] | None = None
 
-    def observe(self, t: float, speed: float, judge, contact: bool | None = None) -> bool:
+    def observe(
+        self, t: float, speed: float, judge, contact: bool | None = None, knot_region=None
+    ) -> bool:
         """Take one sample; return True when the verdict is final (see :meth:`outcome`).
 
         Args:
@@ -278,6 +327,10 @@ class SettleMonitor:
             contact: Whether the rope touches itself now (None: unknown). With
                 ``params.contact_free_unknot``, a rope that has been free of self-contact and
                 unknotted over a whole window is judged without waiting for rest.
+            knot_region: Callable returning ``(span, vertices)``: the first and last vertex
+                index touched by the rope's self-contacts (None if it touches nothing) and
+                the rope's vertices, shape (n + 1, 3) [m]; asked at knotted verdict samples
+                only. None: no knot-set check.
         """
         if self._done is not None:
             return True
@@ -295,12 +348,12 @@ class SettleMonitor:
             self._t.append(t)
             self._v.append(judge())
             self._next_verdict = t + p.verdict_interval_s
+            if knot_region is not None and self._tol is not None:
+                self._track_knot(t, self._v[-1], knot_region)
         if elapsed < p.min_s - 1e-9 and not cap:
             return False
         quiet = t - self._last_fast >= rest.window_s - 1e-9
-        window = [
-            v for tv, v in zip(self._t, self._v, strict=True) if tv >= t - rest.window_s - 1e-9
-        ]
+        window = self._window(t)
         stable = len(window) >= 2 and len(set(window)) == 1
         fixed = p.max_s <= p.min_s + 1e-9
         free = (
@@ -309,34 +362,54 @@ class SettleMonitor:
             and stable
             and window[-1] == UNKNOT
         )
-        if (quiet and stable) or free or cap or fixed:
-            if not self._t or self._t[-1] < t - 1e-9:
-                self._t.append(t)
-                self._v.append(judge())
-            final = [
-                v for tv, v in zip(self._t, self._v, strict=True) if tv >= t - rest.window_s - 1e-9
-            ]
-            settled = quiet and len(final) >= 2 and len(set(final)) == 1
-            speeds = [s for ts, s in self._speeds]
-            self._done = SettleOutcome(
-                settled=bool(settled),
-                contact_free=bool(free and not settled),
-                settle_s=float(elapsed),
-                verdict=self._v[-1],
-                free_end_speed_m_s=float(np.nanmax(speeds)) if speeds else float("nan"),
-                history_t=tuple(self._t),
-                history=tuple(self._v),
-            )
+        knot_set = self._knot is not None and t - self._knot[0] >= p.knot_set_s - 1e-9
+        if (quiet and stable) or free or knot_set or cap or fixed:
+            self._finish(t, elapsed, quiet, free, knot_set, judge)
             return True
         return False
 
+    def _window(self, t: float) -> list[str]:
+        """The verdicts of the last ``rest.window_s``."""
+        w = self.params.rest.window_s
+        return [v for tv, v in zip(self._t, self._v, strict=True) if tv >= t - w - 1e-9]
+
+    def _track_knot(self, t: float, verdict: str, knot_region) -> None:
+        """Follow a knot's shape: keep the reference while the verdict and the shape hold,
+        start a new one from the current self-contact span otherwise."""
+        if verdict == UNKNOT:
+            self._knot = None
+            return
+        span, vertices = knot_region()
+        if self._knot is not None:
+            _, kind, (lo, hi), ref = self._knot
+            if kind == verdict and shape_change(ref, vertices[lo : hi + 1]) <= self._tol:
+                return
+        self._knot = None
+        if span is not None:
+            lo, hi = span
+            self._knot = (t, verdict, (lo, hi), np.array(vertices[lo : hi + 1], dtype=float))
+
+    def _finish(self, t, elapsed, quiet, free, knot_set, judge) -> None:
+        if not self._t or self._t[-1] < t - 1e-9:
+            self._t.append(t)
+            self._v.append(judge())
+        final = self._window(t)
+        settled = quiet and len(final) >= 2 and len(set(final)) == 1
+        speeds = [s for ts, s in self._speeds]
+        self._done = SettleOutcome(
+            settled=bool(settled),
+            contact_free=bool(free and not settled),
+            settle_s=float(elapsed),
+            verdict=self._v[-1],
+            free_end_speed_m_s=float(np.nanmax(speeds)) if speeds else float("nan"),
+            history_t=tuple(self._t),
+            history=tuple(self._v),
+            knot_set=bool(knot_set and not settled and not free),
+        )
+
     @property
     def outcome(self) -> SettleOutcome:
-        """The outcome, once :meth:`observe` returned True.
-
-        Raises:
-            ConfigError: The settle has not ended yet.
-        """
+        """How the settle ended (only after :meth:`observe` returned True)."""
         if self._done is None:
             raise ConfigError("outcome", "the settle has not ended yet (observe more samples)")
         return self._done

@@ -56,7 +56,7 @@ end of the record (shorter dropouts are bridged).
 The end verdict is ``record.verdict``; when it is None (not judged, or a record written
 before verdicts carried their evidence) the last finite truth frame is judged with
 :func:`flyknot.verdict.judge_centreline`. ``metadata["settle"]`` (``settled``,
-``contact_free``, ``settle_s`` or ``settle_time_s``, ``free_end_speed_m_s``), when present,
+``contact_free``, ``knot_set``, ``settle_s`` or ``settle_time_s``, ``free_end_speed_m_s``), when present,
 adds a note to the reason of a rope judged before it was at rest.
 
 Reading trials (records, replay files, directories): :mod:`flyknot_app.anatomy_trials`; the
@@ -386,7 +386,12 @@ def _settle_note(metadata: Mapping[str, Any]) -> str:
         parts.append(f"after {waited:.1f} s")
     if isinstance(speed, (int, float)) and math.isfinite(speed):
         parts.append(f"free end up to {speed:.2f} m/s")
-    why = "unknotted and free of self-contact" if settle.get("contact_free") else "not at rest"
+    if settle.get("contact_free"):
+        why = "unknotted and free of self-contact"
+    elif settle.get("knot_set"):
+        why = "with its knot set"
+    else:
+        why = "not at rest"
     return f"; judged {why}" + (f" ({', '.join(parts)})" if parts else "")
 
 

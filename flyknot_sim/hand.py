@@ -357,12 +357,17 @@ class HandLab:
             float(variation.get("sway_rate", 0.0)),
         )
         rope = s.rope
-        monitor = SettleMonitor(rule, t_end=motion_start + motion_len)
+        monitor = SettleMonitor(
+            rule, t_end=motion_start + motion_len, diameter=p.rope_params.diameter
+        )
         drag_every = max(1, round(DRAG_HOLD_S / dt))
         end_dof = rope.vert_dof[-1]
 
         def verdict() -> str:
             return tube_knot(d.qpos[rope.vert_qpos] + rope.body_pos0)
+
+        def knot_region() -> tuple[tuple[int, int] | None, np.ndarray]:
+            return rope.self_contact_span(m, d), d.qpos[rope.vert_qpos] + rope.body_pos0
 
         nv = s.rope.n_vert
         verts = np.empty((n_steps + 1, nv, 3))
@@ -398,7 +403,8 @@ class HandLab:
                 break
             if judge and t[k + 1] >= monitor.t_end - 1e-9:
                 speed = float(np.linalg.norm(d.qvel[end_dof]))
-                if monitor.observe(float(t[k + 1]), speed, verdict, rope.self_contact(m, d)):
+                touching = rope.self_contact(m, d)
+                if monitor.observe(float(t[k + 1]), speed, verdict, touching, knot_region):
                     n_steps = k + 1
                     # The state after this step is the last sample.
                     verts[n_steps] = d.qpos[rope.vert_qpos] + rope.body_pos0

@@ -185,6 +185,12 @@ class RopeHandle:
         """See :meth:`BoundRope.self_contact`."""
         return self.bind(model).self_contact(model, data)
 
+    def self_contact_span(
+        self, model: mujoco.MjModel, data: mujoco.MjData
+    ) -> tuple[int, int] | None:
+        """See :meth:`BoundRope.self_contact_span`."""
+        return self.bind(model).self_contact_span(model, data)
+
     def length(self, model: mujoco.MjModel, data: mujoco.MjData) -> float:
         """See :meth:`BoundRope.length`."""
         return self.bind(model).length(model, data)
@@ -305,29 +311,46 @@ class BoundRope:
         """Centrelines of stored vertex positions, (..., n + 1, 3) -> same shape [m]."""
         return np.array(vertices, dtype=float, copy=True)
 
-    def self_contact(self, model: mujoco.MjModel, data: mujoco.MjData) -> bool:
-        """Whether the rope touches itself: an active contact between two elements i, j with
-        |i - j| >= 2 (sharing no vertex), or between the end weight and an element
-        j <= n - 2 (counting the weight as element n).
-        """
+    def _self_contact_elements(self, data: mujoco.MjData) -> np.ndarray:
+        """Element pairs of the rope's self-contacts, shape (k, 2): two elements i, j with
+        |i - j| >= 2 (sharing no vertex), or the end weight (as element n) and an element
+        j <= n - 2."""
         ncon = data.ncon
         if ncon == 0:
-            return False
+            return np.zeros((0, 2), dtype=int)
         c = data.contact
         flex = c.flex[:ncon]
         elem = c.elem[:ncon]
         active = c.exclude[:ncon] == 0
         f = self.flex_id
         both = active & (flex[:, 0] == f) & (flex[:, 1] == f)
-        if np.any(np.abs(elem[both, 0] - elem[both, 1]) >= 2):
-            return True
+        pairs = [elem[both][np.abs(elem[both, 0] - elem[both, 1]) >= 2]]
         geom = c.geom[:ncon]
         n = self.n_segments
         for side in (0, 1):
             hit = active & (geom[:, side] == self.end_geom) & (flex[:, 1 - side] == f)
-            if np.any(elem[hit, 1 - side] <= n - 2):
-                return True
-        return False
+            other = elem[hit, 1 - side]
+            other = other[other <= n - 2]
+            pairs.append(np.stack([np.full(len(other), n), other], axis=1))
+        return np.concatenate(pairs).astype(int)
+
+    def self_contact(self, model: mujoco.MjModel, data: mujoco.MjData) -> bool:
+        """Whether the rope touches itself: an active contact between two elements i, j with
+        |i - j| >= 2 (sharing no vertex), or between the end weight and an element
+        j <= n - 2 (counting the weight as element n).
+        """
+        return len(self._self_contact_elements(data)) > 0
+
+    def self_contact_span(
+        self, model: mujoco.MjModel, data: mujoco.MjData
+    ) -> tuple[int, int] | None:
+        """The first and last vertex of the elements in self-contact (element i joins
+        vertices i and i + 1; the end weight is vertex n), or None if the rope touches
+        nothing of itself."""
+        pairs = self._self_contact_elements(data)
+        if len(pairs) == 0:
+            return None
+        return int(pairs.min()), min(int(pairs.max()) + 1, self.n_segments)
 
     # -- state write ---------------------------------------------------------------------
     def set_hanging(

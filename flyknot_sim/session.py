@@ -376,7 +376,9 @@ class TrialSession:
             if fault is not None:
                 self.fault, self._brake_at = fault, self.n_ticks
         # The settle starts when the last command sample has been sent and held one tick.
-        monitor = SettleMonitor(rule, t_end=self.pre_steps * sim_dt + n_cmd * tick)
+        monitor = SettleMonitor(
+            rule, t_end=self.pre_steps * sim_dt + n_cmd * tick, diameter=p.rope_params.diameter
+        )
         if self.fault is not None:
             n_total = self._brake_at + round(params.brake_s / tick) + 1
             while self.n_ticks < n_total:
@@ -389,10 +391,13 @@ class TrialSession:
                 axis = d.site_xmat[p.tip_site].reshape(3, 3)[:, 2]
                 return tube_knot(d.qpos[bound.vert_qpos] + bound.body_pos0, axis)
 
+            def knot_region() -> tuple[tuple[int, int] | None, np.ndarray]:
+                return bound.self_contact_span(m, d), d.qpos[bound.vert_qpos] + bound.body_pos0
+
             def settled() -> bool:
                 speed = float(np.linalg.norm(d.qvel[end_dof]))
                 touching = bound.self_contact(m, d)
-                return monitor.observe(self.j * sim_dt, speed, verdict, touching)
+                return monitor.observe(self.j * sim_dt, speed, verdict, touching, knot_region)
 
             done = settled()
             while not done and self.n_ticks < n_max:

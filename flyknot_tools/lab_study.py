@@ -108,12 +108,18 @@ def _labs(candidate: Candidate, rope_id: int, sway_deg: float):
     return arm, hand
 
 
+SETTLE_KINDS = ("rest", "contact_free", "knot_set", "cap")
+"""How a trial's settle ended (:class:`flyknot.rest.SettleOutcome`)."""
+
+
 def _settle_kind(settle: dict | None) -> str:
-    """``rest``, ``contact_free`` or ``cap``: how the verdict was reached."""
+    """``rest``, ``contact_free``, ``knot_set`` or ``cap``: how the verdict was reached."""
     if settle and settle.get("settled"):
         return "rest"
     if settle and settle.get("contact_free"):
         return "contact_free"
+    if settle and settle.get("knot_set"):
+        return "knot_set"
     return "cap"
 
 
@@ -202,7 +208,7 @@ def _summary(trials: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "n": len(trials),
         "ties": labels.get("success", 0),
         "failures": {k: v for k, v in sorted(labels.items()) if k != "success"},
-        "settle": {k: settle.get(k, 0) for k in ("rest", "contact_free", "cap")},
+        "settle": {k: settle.get(k, 0) for k in SETTLE_KINDS},
         "sim_s_per_trial": sim / len(trials),
         "wall_per_sim_s": sum(t["wall_s"] for t in trials) / sim,
     }
@@ -275,15 +281,15 @@ def table_markdown(rows: Sequence[dict[str, Any]]) -> str:
     """The study as a markdown table (one line per row)."""
     head = (
         "| lab | start | robot ties | robot failures | hand ties | hand failures | "
-        "at rest / contact-free / cap (robot; hand) | sim s per trial (robot; hand) | "
+        "at rest / contact-free / knot set / cap (robot; hand) | sim s per trial (robot; hand) | "
         "wall s per sim s (robot; hand) |\n|---|---|---|---|---|---|---|---|---|\n"
     )
     lines = []
     for r in rows:
         a, h = r["robot"], r["hand"]
         start = "settled" if r["sway_deg"] == 0 else f"+{r['sway_deg']:g} deg sway"
-        rest = "/".join(str(a["settle"][k]) for k in ("rest", "contact_free", "cap"))
-        rest_h = "/".join(str(h["settle"][k]) for k in ("rest", "contact_free", "cap"))
+        rest = "/".join(str(a["settle"].get(k, 0)) for k in SETTLE_KINDS)
+        rest_h = "/".join(str(h["settle"].get(k, 0)) for k in SETTLE_KINDS)
         lines.append(
             f"| {r['candidate']} | {start} | {a['ties']}/{a['n']} | "
             f"{_failures_text(a['failures'])} | {h['ties']}/{h['n']} | "

@@ -272,6 +272,9 @@ def test_settle_metadata_adds_a_note():
     d = an.diagnose(record("l" * 30, contact=0.1, metadata=meta))
     assert d.label == an.NOT_THROUGH
     assert d.reason.endswith("; judged not at rest (after 15.0 s, free end up to 0.12 m/s)")
+    meta["settle"] = {**meta["settle"], "knot_set": True, "settle_s": 4.0}
+    d = an.diagnose(record("l" * 30, contact=0.1, metadata=meta))
+    assert d.reason.endswith("; judged with its knot set (after 4.0 s, free end up to 0.12 m/s)")
 
 
 # ------------------------------------------------------------------------------------------

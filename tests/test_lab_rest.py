@@ -1,4 +1,4 @@
-"""The simulated lab's settled start and knot judged at rest (issue 10)."""
+"""The simulated lab's settled start, and its knot judged at rest or once the knot has set."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from flyknot.record import JointCommand
-from flyknot.rest import RestCriterion
+from flyknot.rest import RestCriterion, SettleParams
 from flyknot_sim.lab import LabParams, SimLab, VariationParams
 
 Q0 = np.array([0.0, -0.3, 0.0, 0.8, 0.0, 1.1, 0.0])
@@ -107,3 +107,30 @@ def test_twist_and_torsional_friction_switches():
     with pytest.raises(ConfigError) as e:
         dataclasses.replace(r4, condim=6)
     assert str(e.value) == "condim: unknown value 6 (valid choices: 3, 4)"
+
+
+@pytest.mark.parametrize("seed", [10, 14])
+def test_a_set_knot_ends_the_trial_early_with_the_capped_trials_verdict(seed):
+    """Lab seeds 10 (wrapped at the grip) and 14 (a knot) of the robot demonstration's
+    command: the knot sets after ~5 s and ~5.5 s; without the knot-set rule both run to the
+    15 s cap. Same verdict, and the early record is the capped one's prefix bit for bit (the
+    physics is the same until the settle ends)."""
+    from flyknot.constants import DEMOS_DIR
+    from flyknot.demo import Demonstration
+    from learner.bezier import BezierCommand
+
+    meta = Demonstration.load(DEMOS_DIR / "robot.npz").metadata
+    cmd = BezierCommand(np.asarray(meta["command_knots"]), meta["command_T"]).joint_command()
+    early = SimLab(LabParams(rope=1, seed=seed)).run(cmd)
+    full = SimLab(LabParams(rope=1, seed=seed, settle=SettleParams(knot_set_s=None))).run(cmd)
+    st, st_full = early.metadata["settle"], full.metadata["settle"]
+    assert st["knot_set"] is True and st["settled"] is False
+    assert st_full["knot_set"] is False and st_full["settle_s"] == pytest.approx(15.0, abs=0.01)
+    assert st["settle_s"] < 10.0
+    assert early.verdict.klass == full.verdict.klass
+    assert early.verdict.klass == ("wrapped_at_grip" if seed == 10 else "knot")
+    n = len(early.t_joint)
+    np.testing.assert_array_equal(early.q_meas, full.q_meas[:n])
+    np.testing.assert_array_equal(early.fingertip_pos, full.fingertip_pos[:n])
+    k = len(early.truth["t_truth"]) - 1  # the last frame is the verdict's, off the grid
+    np.testing.assert_array_equal(early.truth["centreline"][:k], full.truth["centreline"][:k])

@@ -17,12 +17,12 @@ def test_summary_counts_ties_failures_and_how_each_was_judged():
         _trial("success", "rest", 10.0, 5.0),
         _trial("shaken_loose", "cap", 15.0, 6.0),
         _trial("not_through", "contact_free", 3.0, 1.0),
-        _trial("success", "cap", 12.0, 6.0),
+        _trial("success", "knot_set", 12.0, 6.0),
     ]
     s = _summary(trials)
     assert s["n"] == 4 and s["ties"] == 2
     assert s["failures"] == {"not_through": 1, "shaken_loose": 1}
-    assert s["settle"] == {"rest": 1, "contact_free": 1, "cap": 2}
+    assert s["settle"] == {"rest": 1, "contact_free": 1, "knot_set": 1, "cap": 1}
     assert s["sim_s_per_trial"] == pytest.approx(40.0 / 4)
     assert s["wall_per_sim_s"] == pytest.approx(18.0 / 40.0)
 
@@ -31,6 +31,7 @@ def test_settle_kind_reads_the_records_settle_metadata():
     assert _settle_kind({"settled": True, "contact_free": False}) == "rest"
     assert _settle_kind({"settled": False, "contact_free": True}) == "contact_free"
     assert _settle_kind({"settled": False, "contact_free": False}) == "cap"
+    assert _settle_kind({"settled": False, "contact_free": False, "knot_set": True}) == "knot_set"
     assert _settle_kind(None) == "cap"
 
 
@@ -41,7 +42,7 @@ def test_table_has_one_line_per_row_with_the_numbers():
     lines = md.strip().splitlines()
     assert len(lines) == 3
     assert lines[2] == (
-        "| condim 4 | +1 deg sway | 1/2 | 1 slipped_out | 1/1 | - | 1/0/1; 0/0/1 | 2.0; 2.0 "
+        "| condim 4 | +1 deg sway | 1/2 | 1 slipped_out | 1/1 | - | 1/0/0/1; 0/0/0/1 | 2.0; 2.0 "
         "| 0.50; 0.50 |"
     )
 

@@ -17,7 +17,9 @@ from flyknot.rest import (
     free_end_at_rest,
     pendulum_omega,
     settled_start,
+    shape_change,
 )
+from flyknot.geometry import quat_to_matrix
 
 
 def test_pendulum_omega_is_the_uniform_chains_first_mode():
@@ -59,9 +61,15 @@ def test_free_end_at_rest():
     assert not free_end_at_rest([], [], c, 1.1)
 
 
-def _run(monitor, t0, speed_fn, verdict_fn, contact_fn=lambda t: True, dt=0.004):
+def _run(monitor, t0, speed_fn, verdict_fn, contact_fn=lambda t: True, dt=0.004, region_fn=None):
     t = t0
-    while not monitor.observe(t, speed_fn(t), lambda t=t: verdict_fn(t), contact_fn(t)):
+    while not monitor.observe(
+        t,
+        speed_fn(t),
+        lambda t=t: verdict_fn(t),
+        contact_fn(t),
+        None if region_fn is None else (lambda t=t: region_fn(t)),
+    ):
         t += dt
         if t > t0 + 100:
             raise AssertionError("monitor never ended")
@@ -187,3 +195,76 @@ def test_start_with_sway_adds_tilts_as_vectors():
     )
     got = angle * np.array([np.cos(direction), np.sin(direction)])
     np.testing.assert_allclose(got, expected, atol=1e-12)
+
+
+_KNOT = np.random.default_rng(7).normal(scale=0.02, size=(31, 3))
+
+
+def _swinging(t):
+    """A rope swinging as a rigid body about the grip: every shape change is zero."""
+    c, s = math.cos(0.4 * math.sin(3.6 * t)), math.sin(0.4 * math.sin(3.6 * t))
+    rot = np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+    return (5, 12), _KNOT @ rot.T
+
+
+@given(
+    st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.1),
+    st.lists(st.floats(-2, 2), min_size=3, max_size=3),
+    st.integers(2, 12),
+)
+@settings(max_examples=50, deadline=None)
+def test_shape_change_is_zero_for_rigid_motions(q, shift, k):
+    pts = np.random.default_rng(k).normal(size=(k, 3))
+    rot = quat_to_matrix(np.asarray(q) / np.linalg.norm(q))
+    assert shape_change(pts, pts @ rot.T + np.asarray(shift)) < 1e-9
+
+
+def test_shape_change_is_the_largest_change_of_a_distance():
+    ref = np.array([[0.0, 0, 0], [1, 0, 0], [0, 2, 0]])
+    now = ref.copy()
+    now[1, 0] = 1.3  # |p1 - p0| 1 -> 1.3; |p1 - p2| sqrt(5) -> sqrt(1.69 + 4)
+    assert shape_change(ref, now) == pytest.approx(0.3)
+    with pytest.raises(ConfigError, match=r"^now: must have the reference's shape \(3, 3\)"):
+        shape_change(ref, now[:2])
+
+
+def test_a_set_knot_is_judged_before_rest():
+    p = SettleParams()
+    out = _run(
+        SettleMonitor(p, 0.0, diameter=0.009), 0.0, lambda t: 1.0, lambda t: "trefoil",
+        region_fn=_swinging,
+    )  # fmt: skip
+    # Knotted from the first sample (t = 0): set after knot_set_s, past min_s.
+    assert out.knot_set and not out.settled and not out.contact_free
+    assert out.settle_s == pytest.approx(p.knot_set_s, abs=0.005)
+    assert out.as_metadata(p)["knot_set"] is True
+
+
+def test_a_working_knot_is_not_set():
+    def working(t):
+        span, pts = _swinging(t)
+        pts = pts.copy()
+        pts[8] += [0.01 * math.sin(5.0 * t), 0, 0]  # one strand slides by up to 1 cm
+        return span, pts
+
+    out = _run(
+        SettleMonitor(SettleParams(max_s=6.0), 0.0, diameter=0.009), 0.0, lambda t: 1.0,
+        lambda t: "trefoil", region_fn=working,
+    )  # fmt: skip
+    assert not out.knot_set and out.settle_s == pytest.approx(6.0, abs=0.005)
+
+
+def test_the_knot_must_keep_its_type_and_the_check_can_be_off():
+    flicker = _run(
+        SettleMonitor(SettleParams(max_s=6.0), 0.0, diameter=0.009), 0.0, lambda t: 1.0,
+        lambda t: "trefoil" if int(t) % 2 else "figure-eight", region_fn=_swinging,
+    )  # fmt: skip
+    assert not flicker.knot_set and flicker.settle_s == pytest.approx(6.0, abs=0.005)
+    for monitor in (
+        SettleMonitor(SettleParams(max_s=5.0, knot_set_s=None), 0.0, diameter=0.009),
+        SettleMonitor(SettleParams(max_s=5.0), 0.0),  # no diameter: no tolerance
+    ):
+        out = _run(monitor, 0.0, lambda t: 1.0, lambda t: "trefoil", region_fn=_swinging)
+        assert not out.knot_set and out.settle_s == pytest.approx(5.0, abs=0.005)
+    with pytest.raises(ConfigError, match=r"^knot_set_s: must be a finite number > 0"):
+        SettleParams(knot_set_s=0.0)
