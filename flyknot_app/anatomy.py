@@ -56,8 +56,8 @@ end of the record (shorter dropouts are bridged).
 The end verdict is ``record.verdict``; when it is None (not judged, or a record written
 before verdicts carried their evidence) the last finite truth frame is judged with
 :func:`flyknot.verdict.judge_centreline`. ``metadata["settle"]`` (``settled``,
-``contact_free``, ``knot_set``, ``settle_s`` or ``settle_time_s``, ``free_end_speed_m_s``), when present,
-adds a note to the reason of a rope judged before it was at rest.
+``contact_free``, ``knot_set``, ``settle_s`` or ``settle_time_s``, ``free_end_speed_m_s``),
+when present, adds a note to the reason of a rope judged before it was at rest.
 
 Reading trials (records, replay files, directories): :mod:`flyknot_app.anatomy_trials`; the
 anatomy of a set of trials, its tables and figures: :mod:`flyknot_app.anatomy_report`.

@@ -123,7 +123,19 @@ def bench_sweep(runs: int = 8, progress: bool = True, settle_s: float | None = 0
     return out
 
 
-def main(what: str, *, as_json: bool = False, ropes=None, repeats: int = 1) -> int:
+BENCHMARKS = ("sim", "learner", "sweep", "protocol")
+"""What ``flyknot bench`` measures."""
+
+
+def main(
+    what: str,
+    *,
+    as_json: bool = False,
+    ropes=None,
+    repeats: int = 1,
+    workers: int = 2,
+    quick: bool = False,
+) -> int:
     """Run one benchmark and print it."""
     if repeats < 1:
         raise ConfigError("repeats", f"must be >= 1, got {repeats}")
@@ -162,4 +174,10 @@ def main(what: str, *, as_json: bool = False, ropes=None, repeats: int = 1) -> i
                 f"{res['wall_s_2']:.1f} s, speed-up {res['speedup']:.2f}x"
             )
         return 0
-    raise ConfigError("bench", f"unknown benchmark {what!r}", ["sim", "learner", "sweep"])
+    if what == "protocol":
+        from flyknot_app.bench_protocol import bench_protocol, format_protocol
+
+        res = bench_protocol(workers=workers, quick=quick, progress=not as_json)
+        print(json.dumps(res) if as_json else format_protocol(res))
+        return 0
+    raise ConfigError("bench", f"unknown benchmark {what!r}", list(BENCHMARKS))

@@ -37,25 +37,35 @@ class SimCellSpec:
         seed: Seed of the lab's trial-to-trial variation (trial i uses (seed, i)).
         settle_s: A fixed wait before the knot is judged [s]; None: until the rope is at rest.
         ropes: A user's ropes file (absolute path), or None.
+        knot_set: End the settle of a knotted rope once its knot has set
+            (:attr:`flyknot.rest.SettleParams.knot_set_s`); false: such a rope waits for rest
+            or the cap (what ``flyknot bench protocol --quick`` compares against).
     """
 
     rope: int | str = 1
     seed: int = 0
     settle_s: float | None = None
     ropes: str | None = None
+    knot_set: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
             raise ConfigError("seed", f"must be an integer >= 0, got {self.seed!r}")
         if self.settle_s is not None:
             check_nonnegative("settle_s", self.settle_s)
+        if not isinstance(self.knot_set, bool):
+            raise ConfigError("cell.knot_set", f"must be true or false, got {self.knot_set!r}")
 
 
 def _open_sim(spec: SimCellSpec) -> Cell:
+    from flyknot.rest import SettleParams
     from flyknot_sim.lab import LabParams, SimLab
 
+    settle = SettleParams() if spec.knot_set else SettleParams(knot_set_s=None)
     return SimLab(
-        LabParams(rope=spec.rope, seed=spec.seed, settle_s=spec.settle_s, ropes=spec.ropes)
+        LabParams(
+            rope=spec.rope, seed=spec.seed, settle=settle, settle_s=spec.settle_s, ropes=spec.ropes
+        )
     )
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from flyknot.errors import ConfigError
+from flyknot_app.bench import BENCHMARKS
 from flyknot_app.dispatch import dispatch
 from flyknot_app.scenario import parse_rope_arg
 from flyknot_app.trial_cli import add_trial_parsers
@@ -224,7 +225,14 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     from flyknot_app import bench
 
-    return bench.main(args.what, as_json=args.json, ropes=args.ropes, repeats=args.repeats)
+    return bench.main(
+        args.what,
+        as_json=args.json,
+        ropes=args.ropes,
+        repeats=args.repeats,
+        workers=args.workers,
+        quick=args.quick,
+    )
 
 
 DEFAULT_CHECK_MODELS = ("1e5,50", "1e3,50", "100,0.5")
@@ -506,12 +514,20 @@ def build_parser() -> argparse.ArgumentParser:
     cp.set_defaults(func=_cmd_compare)
 
     b = sub.add_parser(
-        "bench", help="benchmarks: sim (lab speed per rope), learner, sweep (Ray 2 vs 1)"
+        "bench",
+        help="benchmarks: sim (lab speed per rope), learner, sweep (Ray 2 vs 1), protocol "
+        "(the paper's scenarios at seed 0)",
     )
-    b.add_argument("what", choices=["sim", "learner", "sweep"])
+    b.add_argument("what", choices=BENCHMARKS)
     b.add_argument("--json", action="store_true", help="print one JSON object")
     b.add_argument("--ropes", type=int, nargs="*", default=None, help="rope ids (default all)")
     b.add_argument("--repeats", type=int, default=1, help="repeats per measurement")
+    b.add_argument("--workers", type=int, default=2, help="protocol: worker processes (default 2)")
+    b.add_argument(
+        "--quick",
+        action="store_true",
+        help="protocol: a fixed small subset, with and without the knot-set settle end",
+    )
     b.set_defaults(func=_cmd_bench)
     return p
 

@@ -25,7 +25,7 @@ def test_unknown_kind_and_field_list_the_valid_ones():
     with pytest.raises(
         ConfigError,
         match=r"^cell\.ip: not a field of a 'sim' cell "
-        r"\(valid choices: rope, seed, settle_s, ropes\)$",
+        r"\(valid choices: rope, seed, settle_s, ropes, knot_set\)$",
     ):
         cell_spec("sim", {"ip": "10.0.0.1"})
     with pytest.raises(ConfigError, match=r"^seed: must be an integer >= 0, got -1$"):
@@ -49,7 +49,7 @@ def test_a_scenarios_cell_table_sets_the_kind_and_the_cells_defaults():
         parse_scenario({"cell": {"kind": "robot"}, "run": [{"name": "a"}]}, name="x")
     with pytest.raises(
         ConfigError,
-        match=r"^cell\.gain: not a field of a 'sim' cell \(valid choices: rope, seed, settle_s\)$",
+        match=r"^cell\.gain: not a field of a 'sim' cell \(valid choices: rope, seed, settle_s, knot_set\)$",
     ):
         parse_scenario({"cell": {"gain": 0.5}, "run": [{"name": "a"}]}, name="x")
     with pytest.raises(ConfigError, match=r"^run\[0\]\.cell: unknown field"):
@@ -77,3 +77,10 @@ def test_the_runner_closes_the_cell_however_the_run_ends(monkeypatch, tmp_path):
     with pytest.raises(KeyboardInterrupt):
         runner.execute_run(spec, tmp_path, None, resume=False, progress=False)
     assert closed == [True]
+
+
+def test_the_sim_cells_knot_set_option_reaches_the_labs_settle():
+    assert open_cell("sim", SimCellSpec()).params.settle.knot_set_s == 2.0
+    assert open_cell("sim", SimCellSpec(knot_set=False)).params.settle.knot_set_s is None
+    with pytest.raises(ConfigError, match=r"^cell.knot_set: must be true or false, got 'no'"):
+        SimCellSpec(knot_set="no")

@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from flyknot.errors import ConfigError
+from flyknot.geometry import quat_to_matrix
 from flyknot.rest import (
     RestCriterion,
     SettleMonitor,
@@ -19,7 +20,6 @@ from flyknot.rest import (
     settled_start,
     shape_change,
 )
-from flyknot.geometry import quat_to_matrix
 
 
 def test_pendulum_omega_is_the_uniform_chains_first_mode():
