@@ -49,7 +49,8 @@ def test_a_scenarios_cell_table_sets_the_kind_and_the_cells_defaults():
         parse_scenario({"cell": {"kind": "robot"}, "run": [{"name": "a"}]}, name="x")
     with pytest.raises(
         ConfigError,
-        match=r"^cell\.gain: not a field of a 'sim' cell \(valid choices: rope, seed, settle_s, knot_set\)$",
+        match=r"^cell\.gain: not a field of a 'sim' cell "
+        r"\(valid choices: rope, seed, settle_s, knot_set\)$",
     ):
         parse_scenario({"cell": {"gain": 0.5}, "run": [{"name": "a"}]}, name="x")
     with pytest.raises(ConfigError, match=r"^run\[0\]\.cell: unknown field"):
