@@ -135,6 +135,7 @@ def main(
     repeats: int = 1,
     workers: int = 2,
     quick: bool = False,
+    out: str | None = None,
 ) -> int:
     """Run one benchmark and print it."""
     if repeats < 1:
@@ -177,7 +178,7 @@ def main(
     if what == "protocol":
         from flyknot_app.bench_protocol import bench_protocol, format_protocol
 
-        res = bench_protocol(workers=workers, quick=quick, progress=not as_json)
+        res = bench_protocol(workers=workers, quick=quick, progress=not as_json, keep=out)
         print(json.dumps(res) if as_json else format_protocol(res))
         return 0
     raise ConfigError("bench", f"unknown benchmark {what!r}", list(BENCHMARKS))

@@ -232,6 +232,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         repeats=args.repeats,
         workers=args.workers,
         quick=args.quick,
+        out=args.out,
     )
 
 
@@ -527,6 +528,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--quick",
         action="store_true",
         help="protocol: a fixed small subset, with and without the knot-set settle end",
+    )
+    b.add_argument(
+        "--out", default=None, help="protocol: keep the runs in this new directory (default: none)"
     )
     b.set_defaults(func=_cmd_bench)
     return p

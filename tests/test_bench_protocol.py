@@ -26,8 +26,10 @@ def test_the_protocol_is_every_paper_scenario_and_quick_is_a_subset_of_it():
     assert {c.scenario for c in QUICK} <= set(PAPER_SCENARIOS)
 
 
-def test_quick_times_the_same_trials_with_and_without_the_knot_set_end(capsys):
-    res = bench_protocol(workers=1, quick=True, progress=False, cases=TINY)
+def test_quick_times_the_same_trials_with_and_without_the_knot_set_end(capsys, tmp_path):
+    res = bench_protocol(workers=1, quick=True, progress=False, cases=TINY, keep=tmp_path / "b")
+    for lab in ("now", "no_knot_set"):  # kept: the run directories of both labs
+        assert (tmp_path / "b" / lab / "01-tracking" / "summary.json").is_file()
     assert capsys.readouterr().out == ""  # the runner's lines do not reach a JSON reader
     assert set(res["labs"]) == {"now", "no_knot_set"}
     for rows in res["labs"].values():
@@ -45,6 +47,8 @@ def test_quick_times_the_same_trials_with_and_without_the_knot_set_end(capsys):
     assert "no_knot_set / now, total wall time" in text and "01-tracking" in text
 
 
-def test_workers_must_be_a_positive_integer():
+def test_workers_must_be_a_positive_integer_and_out_a_new_directory(tmp_path):
     with pytest.raises(ConfigError, match=r"^--workers: must be an integer >= 1, got 0"):
         bench_protocol(workers=0)
+    with pytest.raises(ConfigError, match=r"^--out: '.*' exists already; give a new directory"):
+        bench_protocol(workers=1, cases=TINY, keep=tmp_path)
