@@ -7,15 +7,16 @@ replay directory (:func:`flyknot_app.anatomy_trials.find_trials`); :func:`format
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from flyknot.errors import ConfigError, FlyknotError, check_choice, check_int, check_nonnegative
-from flyknot.record import TrialRecord
+from flyknot.record import TrialRecord, atomic_write_text
 from flyknot_app.anatomy import (
     COLOURS,
     DESCRIPTIONS,
@@ -29,6 +30,7 @@ from flyknot_app.anatomy import (
 from flyknot_app.anatomy_trials import (
     TrialEvidence,
     TrialFile,
+    find_trials,
     load_evidence,
     require_trials,
 )
@@ -165,14 +167,69 @@ def explain_directory(
 
 
 def _diagnose_file(job: tuple[TrialFile, float | None, AnatomyParams | None, str]) -> Diagnosis:
-    """Diagnose one found trial (a module-level function: worker processes run it)."""
+    """Diagnose one found trial (a module-level function: worker processes run it); a
+    diagnosis stored beside the record for the same t_c and thresholds is read instead
+    (:func:`store_diagnoses`)."""
     f, t_c, params, dir_name = job
+    t_c = f.t_c if t_c is None else t_c
+    cached = _cached(f, t_c, params)
+    if cached is not None and (f.group or cached.group):
+        return replace(cached, name=f.name, group=f.group or cached.group)
     ev = load_evidence(f)
     group = f.group
     if not group:
         rope = ev.metadata.get("rope")
         group = f"rope {rope}" if rope is not None else dir_name
-    return diagnose(ev, t_c=f.t_c if t_c is None else t_c, params=params, group=group)
+    return diagnose(ev, t_c=t_c, params=params, group=group)
+
+
+def _cache_path(f: TrialFile) -> Path:
+    return f.path.with_name(f.path.name.rsplit(".", 1)[0] + ".diagnosis")
+
+
+def _cache_key(t_c: float | None, params: AnatomyParams | None) -> dict[str, Any]:
+    return {"t_c": t_c, "params": asdict(params or AnatomyParams())}
+
+
+def _cached(f: TrialFile, t_c: float | None, params: AnatomyParams | None) -> Diagnosis | None:
+    """The stored diagnosis of ``f`` if it was made for this t_c and these thresholds after
+    the record was last written, else None."""
+    path = _cache_path(f)
+    try:
+        if f.kind != "record" or path.stat().st_mtime < f.path.stat().st_mtime:
+            return None
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if data.get("key") != json.loads(json.dumps(_cache_key(t_c, params))):
+        return None
+    d = dict(data["diagnosis"])
+    d["trefoil_runs"] = tuple(tuple(r) for r in d.get("trefoil_runs", ()))
+    try:
+        return Diagnosis(**d)
+    except (TypeError, FlyknotError):
+        return None
+
+
+def store_diagnoses(directory: str | Path, t_c: float | None = None) -> int:
+    """Diagnose every trial record under ``directory`` and store each diagnosis beside its
+    record (``<stem>.diagnosis``: JSON, without a ``.json`` suffix so that no record glob
+    sees it), so that a report diagnosing the same trials later reads them: a run's worker
+    calls this when the run ends, in parallel with the other runs.
+
+    Returns:
+        The number of diagnoses stored.
+    """
+    n = 0
+    for f in find_trials(directory):
+        if f.kind != "record":
+            continue
+        t = f.t_c if t_c is None else t_c
+        d = _diagnose_file((f, t_c, None, Path(directory).name))
+        payload = {"key": _cache_key(t, None), "diagnosis": d.as_dict()}
+        atomic_write_text(_cache_path(f), json.dumps(payload))
+        n += 1
+    return n
 
 
 def _sorted_t_c(values: Iterable[float | None]) -> list[float | None]:

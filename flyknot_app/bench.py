@@ -89,37 +89,49 @@ def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bo
     return {"ropes": out}
 
 
-def bench_sweep(runs: int = 8, progress: bool = True, settle_s: float | None = 0.5) -> dict:
-    """Wall time of a seed sweep of ``quick`` (``runs`` seeds, one trial each, judged 0.5 s
-    after the motion) as Ray tasks on 1 and on 2 CPUs, in one process one after the other
-    (Ray's start-up is not timed; the initial guess is computed once before)."""
+def bench_sweep(runs: int = 8, trials: int = 3, progress: bool = True) -> dict:
+    """Wall time of a seed sweep of learning runs on 1 and on 2 workers, for both executors.
+
+    The sweep: ``learn-rope1`` at lab seeds 0 .. runs - 1, ``trials`` learning trials each
+    (no stop at the first knot, so every run plays them all). Each executor (a local process
+    pool, Ray tasks on a local Ray with that many CPUs) runs it on 1 and on 2 workers, one after
+    the other in this process, from the same cached initial guess (made once before, not
+    timed; Ray's start-up is not timed either).
+    """
+    import contextlib
+    import io
     import tempfile
-    import time
     from pathlib import Path
 
     from flyknot_app.runner import run_scenario
     from flyknot_app.scenario import expand_seeds, load_scenario
 
-    scen = expand_seeds(
-        load_scenario("quick", {"max_trials": 0, "settle_s": settle_s}), list(range(runs))
-    )
-    out: dict = {"runs": runs}
-    with tempfile.TemporaryDirectory() as tmp:
-        run_scenario(scen, Path(tmp) / "warm", progress=False)  # the initial guess, cached
+    overrides = {"max_trials": trials, "stop_at_success": False}
+    scen = expand_seeds(load_scenario("learn-rope1", overrides), list(range(runs)))
+    out: dict = {"runs": runs, "trials": trials}
+    quiet = contextlib.redirect_stdout(io.StringIO())  # the runner's line per run
+    with tempfile.TemporaryDirectory() as tmp, quiet:
+        one = expand_seeds(load_scenario("learn-rope1", {"max_trials": 0}), [0])
+        run_scenario(one, Path(tmp) / "warm", progress=False)  # the initial guess, cached
         cache = Path(tmp) / "warm" / "initial_guess"
-        for workers in (1, 2):
-            import ray
+        for executor in ("process", "ray"):
+            for workers in (1, 2):
+                if executor == "ray":
+                    import ray
 
-            ray.shutdown()
-            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
-            d = Path(tmp) / f"w{workers}"
-            d.mkdir()
-            (d / "initial_guess").symlink_to(cache, target_is_directory=True)
-            t0 = time.perf_counter()
-            run_scenario(scen, d, workers=workers, executor="ray", progress=progress)
-            out[f"wall_s_{workers}"] = time.perf_counter() - t0
+                    ray.shutdown()
+                    ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+                d = Path(tmp) / f"{executor}{workers}"
+                d.mkdir()
+                (d / "initial_guess").symlink_to(cache, target_is_directory=True)
+                t0 = time.perf_counter()
+                run_scenario(scen, d, workers=workers, executor=executor, progress=False)
+                out[f"{executor}_wall_s_{workers}"] = time.perf_counter() - t0
+        import ray
+
         ray.shutdown()
-    out["speedup"] = out["wall_s_1"] / out["wall_s_2"]
+    for executor in ("process", "ray"):
+        out[f"{executor}_speedup"] = out[f"{executor}_wall_s_1"] / out[f"{executor}_wall_s_2"]
     return out
 
 
@@ -170,10 +182,12 @@ def main(
         if as_json:
             print(json.dumps(res))
         else:
-            print(
-                f"{res['runs']} runs as Ray tasks: 1 CPU {res['wall_s_1']:.1f} s, 2 CPUs "
-                f"{res['wall_s_2']:.1f} s, speed-up {res['speedup']:.2f}x"
-            )
+            print(f"{res['runs']} learning runs of {res['trials']} trials (learn-rope1, seeds):")
+            for ex in ("process", "ray"):
+                print(
+                    f"  {ex:>7}: 1 worker {res[f'{ex}_wall_s_1']:.1f} s, 2 workers "
+                    f"{res[f'{ex}_wall_s_2']:.1f} s, speed-up {res[f'{ex}_speedup']:.2f}x"
+                )
         return 0
     if what == "protocol":
         from flyknot_app.bench_protocol import bench_protocol, format_protocol

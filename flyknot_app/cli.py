@@ -516,7 +516,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser(
         "bench",
-        help="benchmarks: sim (lab speed per rope), learner, sweep (Ray 2 vs 1), protocol "
+        help="benchmarks: sim (lab speed per rope), learner, sweep (2 workers vs 1), protocol "
         "(the paper's scenarios at seed 0)",
     )
     b.add_argument("what", choices=BENCHMARKS)

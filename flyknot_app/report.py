@@ -184,6 +184,15 @@ def plot_transfer_grid(runs: list[dict[str, Any]], path: Path) -> Path:
     return path
 
 
+CRITICAL_FIGURES = 8
+"""The report shows the critical-point figure of a scenario's first this many runs."""
+
+
+def critical_figure_path(out_dir: Path, run_name: str) -> Path:
+    """Where a run's critical-point figure goes (beside the scenario's ``report.md``)."""
+    return Path(out_dir) / f"critical_point_{run_name}.png"
+
+
 def plot_critical_overlays(run_dir: Path, run: dict[str, Any], path: Path) -> Path | None:
     """Rope at the critical point in each trial (measured, demo frame) against the demo's.
 
@@ -268,10 +277,13 @@ def write_report(out_dir: str | Path, summary: dict[str, Any], *, workers: int =
         figs.append(rates)
     if kind == "transfer":
         figs.append(plot_transfer_grid(runs, out_dir / "transfer_grid.png"))
-    for r in runs[:8]:
-        p = plot_critical_overlays(
-            out_dir / "runs" / r["name"], r, out_dir / f"critical_point_{r['name']}.png"
-        )
+    for r in runs[:CRITICAL_FIGURES]:
+        run_dir, path = out_dir / "runs" / r["name"], critical_figure_path(out_dir, r["name"])
+        result = run_dir / "result.json"
+        if path.is_file() and result.is_file() and path.stat().st_mtime >= result.stat().st_mtime:
+            figs.append(path)  # drawn by the run's worker when the run ended
+            continue
+        p = plot_critical_overlays(run_dir, r, path)
         if p is not None:
             figs.append(p)
     lines = [f"# {summary['scenario']}", ""]

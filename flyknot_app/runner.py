@@ -145,9 +145,19 @@ def _rope_model(spec: RunSpec):
 
 
 def execute_run(
-    spec: RunSpec, out_dir: Path, knots0: np.ndarray | None, *, resume: bool, progress: bool
+    spec: RunSpec,
+    out_dir: Path,
+    knots0: np.ndarray | None,
+    *,
+    resume: bool,
+    progress: bool,
+    figure: bool = False,
 ) -> dict[str, Any]:
     """Learn (and optionally repeat) one run; write and return its summary.
+
+    When the run ends, its trials' failure-anatomy diagnoses are stored beside their records
+    and, with ``figure``, its critical-point figure is drawn for the scenario's report: work
+    the report would otherwise do after every run, one at a time.
 
     The run's cell is opened here and closed when the run ends, however it ends (a real
     lab's connection to the controller and the motion capture).
@@ -157,11 +167,19 @@ def execute_run(
         return json.loads(result_path.read_text())
     lab = open_cell(spec.cell, spec.cell_spec())
     try:
-        return _execute_on(lab, spec, out_dir, knots0, resume=resume, progress=progress)
+        summary = _execute_on(lab, spec, out_dir, knots0, resume=resume, progress=progress)
     finally:
         close = getattr(lab, "close", None)
         if callable(close):
             close()
+    from flyknot_app.anatomy_report import store_diagnoses
+    from flyknot_app.report import critical_figure_path, plot_critical_overlays
+
+    run_dir = out_dir / "runs" / spec.name
+    store_diagnoses(run_dir)
+    if figure:
+        plot_critical_overlays(run_dir, summary, critical_figure_path(out_dir, spec.name))
+    return summary
 
 
 def command_limits(lab: Any) -> JointLimits:
@@ -329,8 +347,8 @@ def _ropes_manifest(scen: Scenario) -> dict[str, Any]:
 
 
 def _worker(args):
-    spec, out_dir, knots0, resume = args
-    return execute_run(spec, out_dir, knots0, resume=resume, progress=False)
+    spec, out_dir, knots0, resume, figure = args
+    return execute_run(spec, out_dir, knots0, resume=resume, progress=False, figure=figure)
 
 
 def run_scenario(
@@ -400,21 +418,26 @@ def run_scenario(
 
     results: dict[str, dict[str, Any]] = {}
     overall = tqdm(total=len(scen.runs), desc=scen.name, unit="run", disable=bar_disable(progress))
+    from flyknot_app.report import CRITICAL_FIGURES
+
+    drawn = {r.name for r in scen.runs[:CRITICAL_FIGURES]}  # the report's figures
     for wave in scen.order():
         jobs = []
         for spec in wave:
             knots0 = None
             if spec.start_from is not None:
                 knots0 = np.load(out_dir / "runs" / spec.start_from / "final_knots.npy")
-            jobs.append((spec, out_dir, knots0, resume))
+            jobs.append((spec, out_dir, knots0, resume, spec.name in drawn))
         if executor == "ray":
             for name, res in _ray_results(jobs, workers, address):
                 results[name] = res
                 overall.update(1)
                 _print_run(res, overall)
         elif workers == 1 or len(jobs) == 1:
-            for spec, o, k0, r in jobs:
-                results[spec.name] = execute_run(spec, o, k0, resume=r, progress=progress)
+            for spec, o, k0, r, fig in jobs:
+                results[spec.name] = execute_run(
+                    spec, o, k0, resume=r, progress=progress, figure=fig
+                )
                 overall.update(1)
                 _print_run(results[spec.name], overall)
         else:

@@ -8,6 +8,7 @@ Constructed records carry a truth centreline history written as a string, one ch
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -560,3 +561,29 @@ def test_report_section_without_trials_says_why(tmp_path):
     assert lines[0] == "## Failure anatomy"
     assert lines[2].startswith("Not available: directory: ")
     assert not (tmp_path / "anatomy.png").exists()
+
+
+def test_stored_diagnoses_are_read_back_only_when_they_still_fit(tmp_path):
+    from flyknot.constants import DEMOS_DIR
+    from flyknot_sim.lab import LabParams, SimLab
+    from learner.bezier import BezierCommand
+
+    z = np.load(DEMOS_DIR / "seeds" / "robot_command.npz")
+    command = BezierCommand(z["knots"], float(z["T"])).joint_command()
+    SimLab(LabParams(rope=1, seed=0, settle_s=0.3)).run(command).save(tmp_path / "trial")
+    fresh = ar.explain_directory(tmp_path)
+    assert ar.store_diagnoses(tmp_path) == 1
+    sidecar = tmp_path / "trial.diagnosis"
+    assert sidecar.is_file()
+    assert ar.explain_directory(tmp_path) == fresh  # read back: the same diagnosis
+    # A stored diagnosis that says something else is what a later read returns ...
+    data = json.loads(sidecar.read_text())
+    data["diagnosis"]["reason"] = "stored"
+    sidecar.write_text(json.dumps(data))
+    assert ar.explain_directory(tmp_path).diagnoses[0].reason == "stored"
+    # ... but not for another t_c, and not once the record is newer than it.
+    assert ar.explain_directory(tmp_path, t_c=0.5).diagnoses[0].reason != "stored"
+    record = tmp_path / "trial.json"
+    later = sidecar.stat().st_mtime + 5
+    os.utime(record, (later, later))
+    assert ar.explain_directory(tmp_path) == fresh

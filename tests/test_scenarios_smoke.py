@@ -49,6 +49,11 @@ def test_scenario_runs_at_tiny_size(path: Path, tmp_path, guess_cache):
             assert key in run
         assert len(run["costs"]) == len(run["knots"]) == 1
         assert (out / "runs" / run["name"] / "final_knots.npy").is_file()
+        # Every trial's failure-anatomy diagnosis, stored by the run's worker for the report.
+        records = list((out / "runs" / run["name"]).rglob("*.npz"))
+        records = [r for r in records if not r.name.endswith(".truth.npz")]
+        stored = list((out / "runs" / run["name"]).rglob("*.diagnosis"))
+        assert len(stored) == len(records) >= 1
         if run["repeats"]:
             assert len(run["repeats"]) == 1
     assert (out / "report.md").read_text().startswith(f"# {scen.name}")
