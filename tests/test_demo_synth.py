@@ -622,6 +622,7 @@ def test_demo_commands_are_split_between_flyknot_and_flyknot_tools(capsys):
         "rope-validate",
         "lab-study",
         "closure-study",
+        "settle-compare",
     }
 
 
