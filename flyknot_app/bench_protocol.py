@@ -96,19 +96,12 @@ def _run_one(
 
 def _make_guesses(cases, guesses: Path) -> float:
     """Every initial guess the cases need, into ``guesses``; wall seconds."""
-    from flyknot_app.runner import _rope_model, initial_knots
+    from flyknot_app.runner import make_initial_guesses
     from flyknot_app.scenario import load_scenario
-    from flyknot_sim.scene import SceneParams, robot_base_pose
-    from learner.kinematics import RobotModel
 
-    robot = RobotModel.from_mjcf()
-    z = float(robot_base_pose(SceneParams())[2])
     t0 = time.perf_counter()
     for name, overrides in cases:
-        scen = load_scenario(name, dict(overrides))
-        for run in scen.runs:
-            if run.start_from is None:
-                initial_knots(run.demo, guesses.parent, robot, _rope_model(run).dt, z, run.window)
+        make_initial_guesses(load_scenario(name, dict(overrides)), guesses.parent)
     return time.perf_counter() - t0
 
 
@@ -134,9 +127,9 @@ def bench_protocol(
     if cases is None:
         cases = QUICK if quick else tuple(QuickCase(name, {}) for name in PAPER_SCENARIOS)
     cases = [(c.scenario, c.overrides) for c in cases]
-    labs = {"now": None, "no_knot_set": {"kind": "sim", "knot_set": False}} if quick else {
-        "now": None
-    }  # fmt: skip
+    labs: dict[str, dict | None] = {"now": None}  # the cell as the scenario says
+    if quick:
+        labs["no_knot_set"] = {"kind": "sim", "knot_set": False}
     out: dict[str, Any] = {"workers": workers, "quick": quick, "labs": {}}
     with tempfile.TemporaryDirectory() as scratch:
         tmp = scratch if keep is None else str(keep)

@@ -346,6 +346,23 @@ def _ropes_manifest(scen: Scenario) -> dict[str, Any]:
     return {"ropes": used} if used else {}
 
 
+def make_initial_guesses(scen: Scenario, out_dir: Path, *, progress: bool = False) -> None:
+    """The initial guess of every simulated run of ``scen`` that starts from its
+    demonstration, cached in ``out_dir`` (one per demonstration and window; another cell's
+    runs make their own for that cell's base height)."""
+    from flyknot_sim.scene import SceneParams, robot_base_pose
+    from learner.kinematics import RobotModel
+
+    robot = RobotModel.from_mjcf()
+    z = float(robot_base_pose(SceneParams())[2])
+    sim_runs = [r for r in scen.runs if r.start_from is None and r.cell == "sim"]
+    for demo, window in sorted({(r.demo, r.window) for r in sim_runs}):
+        dt = next(_rope_model(r).dt for r in scen.runs if r.demo == demo)
+        if progress:
+            print(f"initial guess for demo {demo!r} (trajectory optimisation)...", flush=True)
+        initial_knots(demo, out_dir, robot, dt, z, window, progress=progress)
+
+
 def _worker(args):
     spec, out_dir, knots0, resume, figure = args
     return execute_run(spec, out_dir, knots0, resume=resume, progress=False, figure=figure)
@@ -402,20 +419,7 @@ def run_scenario(
     }
     if not (resume and (out_dir / "manifest.json").is_file()):
         (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2))
-    # Initial guesses first (cached; shared by runs of the same demo).
-    from flyknot_sim.scene import SceneParams, robot_base_pose
-    from learner.kinematics import RobotModel
-
-    robot = RobotModel.from_mjcf()
-    # Here for the simulated lab's base only: another cell's runs make their own guess.
-    sim_runs = [r for r in scen.runs if r.start_from is None and r.cell == "sim"]
-    for demo, window in sorted({(r.demo, r.window) for r in sim_runs}):
-        dt = next(_rope_model(r).dt for r in scen.runs if r.demo == demo)
-        if progress:
-            print(f"initial guess for demo {demo!r} (trajectory optimisation)...", flush=True)
-        z = float(robot_base_pose(SceneParams())[2])
-        initial_knots(demo, out_dir, robot, dt, z, window, progress=progress)
-
+    make_initial_guesses(scen, out_dir, progress=progress)
     results: dict[str, dict[str, Any]] = {}
     overall = tqdm(total=len(scen.runs), desc=scen.name, unit="run", disable=bar_disable(progress))
     from flyknot_app.report import CRITICAL_FIGURES
