@@ -254,9 +254,9 @@ class TrialRecord:
         stem = Path(stem)
         stem.parent.mkdir(parents=True, exist_ok=True)
         arrays = {k: getattr(self, k) for k in self._ARRAYS}
-        _atomic_npz(stem.with_name(stem.name + ".npz"), arrays)
+        atomic_save_npz(stem.with_name(stem.name + ".npz"), arrays)
         if self.truth:
-            _atomic_npz(stem.with_name(stem.name + ".truth.npz"), dict(self.truth))
+            atomic_save_npz(stem.with_name(stem.name + ".truth.npz"), dict(self.truth))
         meta = {
             "format_version": RECORD_FORMAT_VERSION,
             "fault": self.fault,
@@ -324,11 +324,21 @@ def atomic_write_text(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def _atomic_npz(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
+def atomic_save_npz(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
     """``np.savez_compressed`` to ``path`` through a temporary file renamed into place."""
     tmp = path.with_name(f".{path.name}.tmp")
     with open(tmp, "wb") as f:
         np.savez_compressed(f, **arrays)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def atomic_save_npy(path: Path, array: np.ndarray) -> None:
+    """``np.save`` to ``path`` through a temporary file renamed into place."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as f:
+        np.save(f, np.asarray(array))
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)

@@ -94,7 +94,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     )
     from flyknot_app.report import outcome_line
 
-    print(f"{outcome_line(scen.kind, summary['runs'])} Report: {out / 'report.md'}")
+    print(f"{outcome_line(scen.kind, summary.runs)} Report: {out / 'report.md'}")
     if args.view:
         from flyknot_app.viewer import serve
 
@@ -280,12 +280,11 @@ def _run_epilog() -> str:
     import textwrap
 
     from flyknot.constants import SCENARIOS_DIR
-    from flyknot_app.scenario import ROPE_MODEL_KEYS, RUN_KEYS, WEIGHT_KEYS
+    from flyknot.options import option_keys
+    from flyknot_app.scenario import RunSpec
 
     names = sorted(p.stem for p in SCENARIOS_DIR.glob("*.toml"))
-    plain = [k for k in RUN_KEYS if k not in ("name", "rope_model", "weights")]
-    fields = [*plain, *(f"rope_model.{k}" for k in ROPE_MODEL_KEYS)]
-    fields += [f"weights.{k}" for k in WEIGHT_KEYS]
+    fields = [k for k in option_keys(RunSpec) if k != "name"]
 
     def wrap(items: list[str]) -> str:
         return textwrap.fill(", ".join(items), 88, initial_indent="  ", subsequent_indent="  ")
@@ -465,7 +464,9 @@ def build_parser() -> argparse.ArgumentParser:
         "baseline",
         help="a baseline through the gym envs: random search, CMA-ES, PPO (the rl extra)",
     )
-    bl.add_argument("name", choices=["random", "cma", "ppo"])
+    from flyknot_app.baselines import BASELINES
+
+    bl.add_argument("name", choices=BASELINES)
     bl.add_argument(
         "--rope", type=parse_rope_arg, default=1, help="rope id 1..7 or a rope's name (default 1)"
     )

@@ -21,7 +21,6 @@ are). The seed of an ILC run is its ``seed`` field or its name's ``-seedS`` suff
 from __future__ import annotations
 
 import json
-import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,6 +35,7 @@ from matplotlib.ticker import MaxNLocator
 from flyknot.errors import ConfigError
 from flyknot.verdict import KNOT
 from flyknot_app.report import wilson_interval
+from flyknot_app.run_summary import ScenarioSummary
 
 
 @dataclass(frozen=True)
@@ -69,42 +69,45 @@ class RunSet:
         )
 
 
-def _seed(run: dict[str, Any]) -> int | None:
-    if isinstance(run.get("seed"), int):
-        return run["seed"]
-    m = re.search(r"-seed(\d+)$", str(run.get("name", "")))
-    return int(m.group(1)) if m else None
+def _ilc_rows(doc: dict[str, Any]) -> list[tuple[Any, ...]]:
+    """(costs, trials to the first knot, repeats, (rope, seed)) of a scenario's runs."""
+    runs = ScenarioSummary.from_json(doc).runs
+    return [(r.costs, r.trials_to_success, r.repeat_classes, (r.rope, r.seed)) for r in runs]
 
 
-def _tts(run: dict[str, Any]) -> int | None:
-    if "trials_to_success" in run:
-        return run["trials_to_success"]
-    first = run.get("first_success_trial")  # older run directories name it so
-    return None if first is None else first + 1
+def _baseline_rows(doc: dict[str, Any]) -> list[tuple[Any, ...]]:
+    """(costs, trials to the first knot, repeats, (rope, seed)) of a baseline's searches."""
+    return [
+        (
+            r["costs"],
+            r.get("trials_to_success"),
+            r.get("repeats") or [],
+            (r.get("rope", doc.get("rope")), r.get("seed")),
+        )
+        for r in doc["runs"]
+    ]
 
 
 def load_runset(directory: str | Path) -> RunSet:
     """Read a run directory (``summary.json``) or a baseline directory (``baseline.json``)."""
     d = Path(directory)
     if (d / "summary.json").is_file():
-        doc = json.loads((d / "summary.json").read_text())
-        runs, kind = doc["runs"], "ilc"
+        rows, kind = _ilc_rows(json.loads((d / "summary.json").read_text())), "ilc"
     elif (d / "baseline.json").is_file():
         doc = json.loads((d / "baseline.json").read_text())
-        runs = doc["runs"]
-        kind = runs[0].get("name", "baseline") if runs else "baseline"
+        rows = _baseline_rows(doc)
+        kind = doc["runs"][0].get("name", "baseline") if doc["runs"] else "baseline"
     else:
         raise ConfigError("RUN_DIR", f"{str(d)!r} holds neither summary.json nor baseline.json")
-    costs = tuple(tuple(np.nan if c is None else float(c) for c in r["costs"]) for r in runs)
-    reps = [x for r in runs for x in (r.get("repeats") or [])]
+    reps = [x for row in rows for x in row[2]]
     return RunSet(
         label=d.name,
-        costs=costs,
-        trials_to_success=tuple(_tts(r) for r in runs),
+        costs=tuple(tuple(np.nan if c is None else float(c) for c in row[0]) for row in rows),
+        trials_to_success=tuple(row[1] for row in rows),
         repeats_tied=sum(x == KNOT for x in reps),
         repeats=len(reps),
         kind=kind,
-        keys=tuple((r.get("rope", doc.get("rope")), _seed(r)) for r in runs),
+        keys=tuple(row[3] for row in rows),
     )
 
 

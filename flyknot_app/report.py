@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import json
 from collections import Counter
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import matplotlib
 
@@ -17,6 +17,7 @@ from matplotlib.ticker import MaxNLocator
 from flyknot.verdict import KNOT
 from flyknot_app.anatomy_report import report_section
 from flyknot_app.judging import report_section as verdict_section
+from flyknot_app.run_summary import RunSummary, ScenarioSummary
 
 # The paper's results (Suresh & Atkeson), quoted per scenario kind.
 PAPER = {
@@ -44,18 +45,18 @@ PAPER_SENSITIVITY = {
 }
 
 
-def _trials_text(run: dict[str, Any]) -> str:
-    n = run.get("trials_to_success")
-    return str(n) if n is not None else f">{len(run['costs'])}"
+def _trials_text(run: RunSummary) -> str:
+    n = run.trials_to_success
+    return str(n) if n is not None else f">{len(run.costs)}"
 
 
-def smoke_line(runs: list[dict[str, Any]]) -> str:
+def smoke_line(runs: Sequence[RunSummary]) -> str:
     """Whether the pipeline worked: trials played and judged, errors measured and updates
     made (a ``smoke`` scenario checks the pipeline, not the knot)."""
-    trials = sum(len(r["costs"]) for r in runs)
-    measured = sum(c is not None for r in runs for c in r["costs"])
-    faults = sum(f is not None for r in runs for f in r.get("faults") or [])
-    classes = Counter(v["klass"] for r in runs for v in r.get("verdicts") or [] if v)
+    trials = sum(len(r.costs) for r in runs)
+    measured = sum(c is not None for r in runs for c in r.costs)
+    faults = sum(f is not None for r in runs for f in r.faults)
+    classes = Counter(v["klass"] for r in runs for v in r.verdicts if v)
     judged = ", ".join(f"{k} {n}" for k, n in sorted(classes.items())) or "none"
     works = measured > 0 and trials > 0
     head = "Smoke run: the pipeline works" if works else "Smoke run: the pipeline FAILED"
@@ -68,36 +69,36 @@ def smoke_line(runs: list[dict[str, Any]]) -> str:
     return text + "."
 
 
-def outcome_line(kind: str, runs: list[dict[str, Any]]) -> str:
+def outcome_line(kind: str, runs: Sequence[RunSummary]) -> str:
     """One sentence on a scenario's outcome: knots learned, (``track``) how often tracking
     alone tied, in the first trial and in the repeats, or (``smoke``) whether the pipeline
     worked."""
     if kind == "smoke":
         return smoke_line(runs)
-    n_ok = sum(r["trials_to_success"] is not None for r in runs)
+    n_ok = sum(r.trials_to_success is not None for r in runs)
     if kind != "track":
         text = f"Knot learned in {n_ok} of {len(runs)} runs"
-        confirming = [r for r in runs if r.get("confirm")]
+        confirming = [r for r in runs if r.learner.confirm]
         if confirming:
-            k, n = confirming[0]["confirm"]
-            n_conf = sum(bool(r.get("confirmed")) for r in confirming)
+            k, n = confirming[0].learner.confirm
+            n_conf = sum(r.confirmed for r in confirming)
             text += f"; confirmed ({k} of {n} repeats tied) in {n_conf} of {len(confirming)}"
         return text + "."
-    reps = [x for r in runs for x in (r.get("repeats") or [])]
+    reps = [x for r in runs for x in r.repeat_classes]
     text = f"Tracking alone (no learning): the first trial tied in {n_ok} of {len(runs)} runs"
     if reps:
         text += f"; the repeats tied in {sum(x == KNOT for x in reps)} of {len(reps)}"
     return text + "."
 
 
-def plot_costs(runs: list[dict[str, Any]], path: Path, title: str) -> Path:
+def plot_costs(runs: Sequence[RunSummary], path: Path, title: str) -> Path:
     """Critical-point cost over trials; squares: first knot, dots: later knots."""
     fig, ax = plt.subplots(figsize=(7, 4.2), constrained_layout=True)
     for r in runs:
-        costs = [np.nan if c is None else c for c in r["costs"]]
+        costs = [np.nan if c is None else c for c in r.costs]
         x = np.arange(1, len(costs) + 1)
-        (line,) = ax.plot(x, costs, marker=".", lw=1.2, label=r.get("label") or r["name"])
-        knots = np.array(r["knots"], dtype=bool)
+        (line,) = ax.plot(x, costs, marker=".", lw=1.2, label=r.label)
+        knots = np.array(r.knots, dtype=bool)
         if knots.any():
             first = int(np.argmax(knots))
             ax.plot(x[first], costs[first], "s", ms=9, color=line.get_color())
@@ -106,7 +107,7 @@ def plot_costs(runs: list[dict[str, Any]], path: Path, title: str) -> Path:
     ax.set_yscale("log")
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set(xlabel="trial", ylabel="critical-point cost ||x(t_c) - x_demo(t_c)||²_Q", title=title)
-    if any(any(r["knots"]) for r in runs):  # the markers' meaning, once, in grey
+    if any(any(r.knots) for r in runs):  # the markers' meaning, once, in grey
         ax.plot([], [], "s", ms=8, color="0.4", label="first knot")
         ax.plot([], [], "o", ms=7, color="0.4", label="later knot")
     ax.legend(fontsize=7, ncol=2)
@@ -126,13 +127,13 @@ def wilson_interval(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
     return float(max(0.0, mid - half)), float(min(1.0, mid + half))
 
 
-def plot_success_rates(runs: list[dict[str, Any]], path: Path, title: str) -> Path | None:
+def plot_success_rates(runs: Sequence[RunSummary], path: Path, title: str) -> Path | None:
     """Knots in each run's repeats (bars) with 95 % Wilson intervals; None without repeats."""
-    rows = [r for r in runs if r.get("repeats")]
+    rows = [r for r in runs if r.repeat_classes]
     if not rows:
         return None
-    k = np.array([sum(x == KNOT for x in r["repeats"]) for r in rows])
-    n = np.array([len(r["repeats"]) for r in rows])
+    k = np.array([r.n_knots_repeated for r in rows])
+    n = np.array([len(r.repeat_classes) for r in rows])
     lo_hi = np.array([wilson_interval(int(a), int(b)) for a, b in zip(k, n, strict=True)])
     rate = k / n
     fig, ax = plt.subplots(figsize=(max(4.0, 0.6 * len(rows) + 2), 3.6), constrained_layout=True)
@@ -141,24 +142,24 @@ def plot_success_rates(runs: list[dict[str, Any]], path: Path, title: str) -> Pa
     ax.errorbar(x, rate, yerr=[rate - lo_hi[:, 0], lo_hi[:, 1] - rate], fmt="none", ecolor="k")
     for xi, a, b in zip(x, k, n, strict=True):
         ax.text(xi, 1.02, f"{a}/{b}", ha="center", va="bottom", fontsize=7)
-    ax.set_xticks(x, [r.get("label") or r["name"] for r in rows], rotation=45, ha="right")
+    ax.set_xticks(x, [r.label for r in rows], rotation=45, ha="right")
     ax.set(ylim=(0, 1.12), ylabel="knots in repeats (95 % interval)", title=title)
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
 
 
-def plot_transfer_grid(runs: list[dict[str, Any]], path: Path) -> Path:
+def plot_transfer_grid(runs: Sequence[RunSummary], path: Path) -> Path:
     """7x7 grid of trials needed to transfer rope A's command to rope B (red: failed)."""
     grid = np.full((7, 7), np.nan)
     failed = np.zeros((7, 7), dtype=bool)
-    src = {r["name"]: r for r in runs}
+    src = {r.name: r for r in runs}
     for r in runs:
-        if not r.get("start_from"):
+        if not r.start_from:
             continue
-        a = src[r["start_from"]]["rope"]
-        b = r["rope"]
-        n = r.get("trials_to_success")
+        a = src[r.start_from].rope
+        b = r.rope
+        n = r.trials_to_success
         if n is None:
             failed[a - 1, b - 1] = True
         else:
@@ -193,7 +194,7 @@ def critical_figure_path(out_dir: Path, run_name: str) -> Path:
     return Path(out_dir) / f"critical_point_{run_name}.png"
 
 
-def plot_critical_overlays(run_dir: Path, run: dict[str, Any], path: Path) -> Path | None:
+def plot_critical_overlays(run_dir: Path, run: RunSummary, path: Path) -> Path | None:
     """Rope at the critical point in each trial (measured, demo frame) against the demo's.
 
     Each trial is drawn at the critical point its update used (t_c, or the last tracked
@@ -215,7 +216,7 @@ def plot_critical_overlays(run_dir: Path, run: dict[str, Any], path: Path) -> Pa
     for u in ups:
         up = json.loads(u.read_text())
         k = int(up["trial"])
-        t_eff = float(up.get("t_eff", run["t_c"]))
+        t_eff = float(up.get("t_eff", run.t_c))
         stems = sorted((run_dir / "learning").glob(f"trial_{k:04d}_a*.json"))
         try:
             rec = TrialRecord.load(stems[-1])
@@ -244,7 +245,7 @@ def plot_critical_overlays(run_dir: Path, run: dict[str, Any], path: Path) -> Pa
         return None
     for ax, lab in zip(axes, ["x [m]", "y [m]"], strict=True):
         ax.set(xlabel=lab, ylabel="z [m]", aspect="equal")
-    axes[0].set_title(f"rope at the critical point, {run['name']} (t_c = {run['t_c']:.3f} s)")
+    axes[0].set_title(f"rope at the critical point, {run.name} (t_c = {run.t_c:.3f} s)")
     axes[1].legend(fontsize=6, loc="best")
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -265,20 +266,20 @@ def settings_lines(out_dir: Path) -> list[str]:
     return [f"Overrides (`--set`): {text}. Cell: {', '.join(cells)}.", ""]
 
 
-def write_report(out_dir: str | Path, summary: dict[str, Any], *, workers: int = 1) -> Path:
-    """Write figures and ``report.md`` for a scenario's ``summary.json`` content (the failure
-    anatomy's diagnoses on ``workers`` processes)."""
+def write_report(out_dir: str | Path, summary: ScenarioSummary, *, workers: int = 1) -> Path:
+    """Write figures and ``report.md`` for a scenario's summary (the failure anatomy's
+    diagnoses on ``workers`` processes)."""
     out_dir = Path(out_dir)
-    runs = summary["runs"]
-    kind = summary["kind"]
-    figs = [plot_costs(runs, out_dir / "costs.png", summary["scenario"])]
-    rates = plot_success_rates(runs, out_dir / "success_rates.png", summary["scenario"])
+    runs = summary.runs
+    kind = summary.kind
+    figs = [plot_costs(runs, out_dir / "costs.png", summary.scenario)]
+    rates = plot_success_rates(runs, out_dir / "success_rates.png", summary.scenario)
     if rates is not None:
         figs.append(rates)
     if kind == "transfer":
         figs.append(plot_transfer_grid(runs, out_dir / "transfer_grid.png"))
     for r in runs[:CRITICAL_FIGURES]:
-        run_dir, path = out_dir / "runs" / r["name"], critical_figure_path(out_dir, r["name"])
+        run_dir, path = out_dir / "runs" / r.name, critical_figure_path(out_dir, r.name)
         result = run_dir / "result.json"
         if path.is_file() and result.is_file() and path.stat().st_mtime >= result.stat().st_mtime:
             figs.append(path)  # drawn by the run's worker when the run ended
@@ -286,16 +287,16 @@ def write_report(out_dir: str | Path, summary: dict[str, Any], *, workers: int =
         p = plot_critical_overlays(run_dir, r, path)
         if p is not None:
             figs.append(p)
-    lines = [f"# {summary['scenario']}", ""]
-    lines += ["## The paper", "", summary.get("paper") or PAPER.get(kind, ""), "", "## Ours", ""]
+    lines = [f"# {summary.scenario}", ""]
+    lines += ["## The paper", "", summary.paper or PAPER.get(kind, ""), "", "## Ours", ""]
     if kind == "sensitivity":
         lines += [
             "| stiffness | end mass | trials until success (ours) | paper |",
             "|---|---|---|---|",
         ]
         for r in runs:
-            k = r["rope_model"]["stiffness"]
-            me = r["rope_model"]["end_mass"]
+            k = r.learner.rope_model.stiffness
+            me = r.learner.rope_model.end_mass
             lines.append(
                 f"| {k:g} | {me:g} | {_trials_text(r)} | {PAPER_SENSITIVITY.get((k, me), '-')} |"
             )
@@ -306,13 +307,11 @@ def write_report(out_dir: str | Path, summary: dict[str, Any], *, workers: int =
             "|---|---|---|---|---|---|---|---|",
         ]
         for r in runs:
-            costs = ", ".join("-" if c is None else f"{c:.3g}" for c in r["costs"])
-            rep = "-"
-            if r.get("repeat_success_rate") is not None:
-                rep = f"{sum(x == KNOT for x in r['repeats'])}/{len(r['repeats'])}"
+            costs = ", ".join("-" if c is None else f"{c:.3g}" for c in r.costs)
+            rep = f"{r.n_knots_repeated}/{len(r.repeat_classes)}" if r.repeat_classes else "-"
             lines.append(
-                f"| {r['name']} | {r['rope']} | {r['demo']} | {r['objective']} | "
-                f"{r.get('start_from') or '-'} | {_trials_text(r)} | {costs} | {rep} |"
+                f"| {r.name} | {r.rope} | {r.demo} | {r.learner.update.objective} | "
+                f"{r.start_from or '-'} | {_trials_text(r)} | {costs} | {rep} |"
             )
     lines += ["", outcome_line(kind, runs), ""]
     lines += settings_lines(out_dir)

@@ -29,6 +29,7 @@ from flyknot.errors import ConfigError
 from flyknot.verdict import JUDGE_NAME, KNOT
 from flyknot_app.judging import FAULT, rejudge_directory
 from flyknot_app.report import wilson_interval
+from flyknot_app.run_summary import ScenarioSummary
 
 
 def _rate(classes: Sequence[str | None]) -> str:
@@ -43,11 +44,8 @@ def _rate(classes: Sequence[str | None]) -> str:
     return f"{k}/{n} ({100 * lo:.0f}-{100 * hi:.0f} %)" + (f"; {others}" if others else "")
 
 
-def _trials(run: dict[str, Any]) -> str:
-    t = run.get("trials_to_success")
-    if t is not None:
-        return str(t)
-    return f"none in {len(run.get('costs') or [])}"
+def _trials(trials_to_success: int | None, n_trials: int) -> str:
+    return str(trials_to_success) if trials_to_success is not None else f"none in {n_trials}"
 
 
 def _settings(directory: Path) -> str:
@@ -64,33 +62,43 @@ def _settings(directory: Path) -> str:
     return "-"
 
 
-def _manifest_seeds(directory: Path) -> dict[str, Any]:
-    """Each run's lab seed by run name, from the run directory's ``manifest.json``."""
-    manifest = directory / "manifest.json"
-    if not manifest.is_file():
-        return {}
-    runs = json.loads(manifest.read_text()).get("runs") or []
-    return {r["name"]: r.get("seed") for r in runs if isinstance(r, dict) and "name" in r}
+def _row(what: str, label: str, rope: Any, seed: Any, settings: str, trials: str, reps) -> str:
+    return f"| {what} | {label} | {rope} | {seed} | {settings} | {trials} | {_rate(reps)} |"
 
 
-def _run_rows(directory: Path, doc: dict[str, Any], what: str) -> list[str]:
+def _not_judged(directory: Path) -> ConfigError:
+    return ConfigError(
+        "DIR",
+        f"{str(directory)!r} was run before trials carried verdicts; its counts are "
+        "not verdicts (flyknot judge re-judges its trials)",
+    )
+
+
+def _scenario_rows(directory: Path, doc: dict[str, Any]) -> list[str]:
+    """One row per run of a scenario's ``summary.json``."""
+    what, settings = f"`{doc.get('scenario', directory.name)}`", _settings(directory)
     rows = []
-    settings = _settings(directory)
-    seeds = _manifest_seeds(directory)
+    for r in ScenarioSummary.from_json(doc).runs:
+        if r.judge != JUDGE_NAME:
+            raise _not_judged(directory)
+        trials = _trials(r.trials_to_success, len(r.costs))
+        seed = "-" if r.seed is None else r.seed
+        rows.append(_row(what, r.label, r.rope, seed, settings, trials, r.repeat_classes))
+    return rows
+
+
+def _baseline_rows(directory: Path, doc: dict[str, Any]) -> list[str]:
+    """One row per search of a ``baseline.json``."""
+    name = doc["runs"][0].get("name", "baseline") if doc["runs"] else "baseline"
+    what, settings = f"baseline `{name}`", _settings(directory)
+    rows = []
     for r in doc["runs"]:
         if r.get("judge") != JUDGE_NAME:
-            raise ConfigError(
-                "DIR",
-                f"{str(directory)!r} was run before trials carried verdicts; its counts are "
-                "not verdicts (flyknot judge re-judges its trials)",
-            )
-        label = r.get("label") or r.get("name") or f"seed {r.get('seed')}"
-        rope = r.get("rope", doc.get("rope"))
-        reps = r.get("repeats") or []
-        seed = r.get("seed", seeds.get(r.get("name"), "-"))
-        rows.append(
-            f"| {what} | {label} | {rope} | {seed} | {settings} | {_trials(r)} | {_rate(reps)} |"
-        )
+            raise _not_judged(directory)
+        label = r.get("name") or f"seed {r.get('seed')}"
+        trials = _trials(r.get("trials_to_success"), len(r.get("costs") or []))
+        rope, seed = r.get("rope", doc.get("rope")), r.get("seed", "-")
+        rows.append(_row(what, label, rope, seed, settings, trials, r.get("repeats") or []))
     return rows
 
 
@@ -102,12 +110,9 @@ def rows_of(directory: str | Path) -> list[str]:
     """
     d = Path(directory)
     if (d / "summary.json").is_file():
-        doc = json.loads((d / "summary.json").read_text())
-        return _run_rows(d, doc, f"`{doc.get('scenario', d.name)}`")
+        return _scenario_rows(d, json.loads((d / "summary.json").read_text()))
     if (d / "baseline.json").is_file():
-        doc = json.loads((d / "baseline.json").read_text())
-        name = doc["runs"][0].get("name", "baseline") if doc["runs"] else "baseline"
-        return _run_rows(d, doc, f"baseline `{name}`")
+        return _baseline_rows(d, json.loads((d / "baseline.json").read_text()))
     trials = rejudge_directory(d, keep_stored=True)
     classes = [FAULT if t.fault else (t.new.klass if t.new else None) for t in trials]
     kind = "replays" if trials[0].kind == "replay" else "trials"

@@ -20,8 +20,8 @@ from __future__ import annotations
 import json
 import platform
 import time
+import zipfile
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -34,9 +34,10 @@ from flyknot.errors import ConfigError, FlyknotError, RecordError
 from flyknot.judge import CellVerdict
 from flyknot.limits import JointLimits
 from flyknot.progress import bar_disable
-from flyknot.record import TrialRecord
-from flyknot.verdict import JUDGE_NAME, KNOT
+from flyknot.record import TrialRecord, atomic_save_npy, atomic_save_npz, atomic_write_text
+from flyknot.verdict import JUDGE_NAME
 from flyknot_app.cells import open_cell
+from flyknot_app.run_summary import RunSummary, ScenarioSummary
 from flyknot_app.scenario import RunSpec, Scenario, find_named_file
 
 
@@ -96,9 +97,9 @@ def initial_knots(
     from learner.initial_guess import InitialGuessParams, initial_guess
 
     cache = out_dir / "initial_guess" / guess_cache_name(demo_name, window, base_height)
-    if cache.is_file():
-        with np.load(cache, allow_pickle=False) as z:
-            return z["knots"], json.loads(str(z["info"]))
+    cached = _cached_guess(cache)
+    if cached is not None:
+        return cached
     trimmed, target = prepare_target(demo_name, rope_dt, window)
     t = trimmed.t - trimmed.t[0]
     R = Rotation.from_quat(trimmed.hand_quat, scalar_first=True).as_matrix()
@@ -136,12 +137,17 @@ def initial_knots(
     if not res.success:
         raise FlyknotError(f"initial guess for demo {demo_name!r} failed: {res.status}")
     cache.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(cache, knots=res.knots, info=np.array(json.dumps(info)))
+    atomic_save_npz(cache, {"knots": res.knots, "info": np.array(json.dumps(info))})
     return np.asarray(res.knots), info
 
 
-def _rope_model(spec: RunSpec):
-    return spec.ilc_params().rope_model
+def _cached_guess(path: Path) -> tuple[np.ndarray, dict] | None:
+    """A cached initial guess, or None when it is absent or unreadable (made again)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return z["knots"], json.loads(str(z["info"]))
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+        return None
 
 
 def execute_run(
@@ -152,7 +158,7 @@ def execute_run(
     resume: bool,
     progress: bool,
     figure: bool = False,
-) -> dict[str, Any]:
+) -> RunSummary:
     """Learn (and optionally repeat) one run; write and return its summary.
 
     When the run ends, its trials' failure-anatomy diagnoses are stored beside their records
@@ -163,8 +169,10 @@ def execute_run(
     lab's connection to the controller and the motion capture).
     """
     result_path = out_dir / "runs" / spec.name / "result.json"
-    if resume and result_path.is_file():
-        return json.loads(result_path.read_text())
+    if resume:
+        done = _finished_run(result_path)
+        if done is not None:
+            return done
     lab = open_cell(spec.cell, spec.cell_spec())
     try:
         summary = _execute_on(lab, spec, out_dir, knots0, resume=resume, progress=progress)
@@ -199,28 +207,60 @@ def _execute_on(
     *,
     resume: bool,
     progress: bool,
-) -> dict[str, Any]:
-    from tqdm import tqdm
-
+) -> RunSummary:
+    """Learn on ``lab``, play the final command's repeats, write ``result.json``."""
     from learner.bezier import BezierCommand
-    from learner.ilc import learn
     from learner.kinematics import RobotModel
 
     run_dir = out_dir / "runs" / spec.name
-    result_path = run_dir / "result.json"
     t_start = time.perf_counter()
     robot = RobotModel.from_mjcf()
-    rope_model = _rope_model(spec)
-    _, target = prepare_target(spec.demo, rope_model.dt, spec.window)
+    dt = spec.learner.rope_model.dt
+    _, target = prepare_target(spec.demo, dt, spec.window)
     ig_info: dict[str, Any] = {}
     judge = CellVerdict()  # the verdict the cell recorded (simulated truth, or the operator's)
     if knots0 is None:
-        knots0, ig_info = initial_knots(
-            spec.demo, out_dir, robot, rope_model.dt, float(lab.base_pose[2]), spec.window
-        )
-    params = spec.ilc_params()
+        base_height = float(lab.base_pose[2])
+        knots0, ig_info = initial_knots(spec.demo, out_dir, robot, dt, base_height, spec.window)
+    res = _learn(lab, spec, target, knots0, robot, run_dir, judge, resume=resume, progress=progress)
+    atomic_save_npy(run_dir / "final_knots.npy", res.final_knots)
+    command = BezierCommand(res.final_knots, target.T).joint_command() if spec.repeats else None
+    # Repeat i is the cell's trial len(learning trials) + i, resumed or not.
+    classes, verdicts = _play_repeats(
+        lab, spec, command, len(res.trials), run_dir, judge, resume=resume, progress=progress
+    )
+    counted = [s for _, s in sorted({s.trial: s for s in res.trials}.items())]
+    first = res.first_success_trial
+    summary = RunSummary(
+        options=spec.to_json(),
+        costs=res.costs,
+        knots=res.knots,
+        faults=[s.fault for s in counted],
+        verdicts=[s.verdict for s in counted],
+        trials_to_success=None if first is None else first + 1,
+        stopped_because=res.stopped_because,
+        attempts=len(res.trials),
+        repeat_classes=classes,
+        repeat_verdicts=verdicts,
+        judge=JUDGE_NAME,
+        initial_guess=ig_info,
+        T=target.T,
+        t_c=target.t_c,
+        wall_s=time.perf_counter() - t_start,
+        custom_rope=_custom_rope_summary(lab) if spec.cell == "sim" else {},
+    )
+    atomic_write_text(run_dir / "result.json", json.dumps(summary.to_json(), indent=2))
+    return summary
+
+
+def _learn(lab, spec: RunSpec, target, knots0, robot, run_dir: Path, judge, *, resume, progress):
+    """The run's ILC loop (:func:`learner.ilc.learn`) with a progress bar per trial."""
+    from tqdm import tqdm
+
+    from learner.ilc import learn
+
     bar = tqdm(
-        total=params.max_trials,
+        total=spec.learner.trials,
         desc=spec.name,
         unit="trial",
         disable=bar_disable(progress),
@@ -235,85 +275,59 @@ def _execute_on(
         bar.n = s.trial + 1
         bar.refresh()
 
-    res = learn(
-        lab,
-        target,
-        knots0,
-        robot,
-        params,
-        limits=command_limits(lab),
-        run_dir=run_dir / "learning",
-        resume=resume,
-        on_trial=on_trial,
-        judge=judge,
+    try:
+        return learn(
+            lab,
+            target,
+            knots0,
+            robot,
+            spec.learner,
+            limits=command_limits(lab),
+            run_dir=run_dir / "learning",
+            resume=resume,
+            on_trial=on_trial,
+            judge=judge,
+        )
+    finally:
+        bar.close()
+
+
+def _play_repeats(
+    lab, spec: RunSpec, command, first: int, run_dir: Path, judge, *, resume, progress
+) -> tuple[list[str | None], list[dict[str, Any] | None]]:
+    """Play the final command ``spec.repeats`` times as the cell's trials ``first``,
+    ``first + 1``...; each repeat's verdict class (``"fault"`` for a faulted one, None without
+    a verdict) and verdict. On resume a repeat a kill left whole is read, not played."""
+    from tqdm import tqdm
+
+    classes: list[str | None] = []
+    verdicts: list[dict[str, Any] | None] = []
+    bar = tqdm(
+        range(spec.repeats),
+        desc=f"{spec.name} repeats",
+        disable=bar_disable(progress),
+        leave=False,
     )
-    bar.close()
-    # max_trials = 0: tracking alone; the initial command is the run's command (its one
-    # trial's update is never played).
-    final = np.asarray(knots0) if spec.max_trials == 0 else res.final_knots
-    np.save(run_dir / "final_knots.npy", final)
-    repeats: list[str | None] = []  # the verdict class of each repeat, or "fault"
-    repeat_verdicts: list[dict[str, Any] | None] = []
-    if spec.repeats:
-        command = BezierCommand(final, target.T).joint_command()
-        for i in tqdm(
-            range(spec.repeats),
-            desc=f"{spec.name} repeats",
-            disable=bar_disable(progress),
-            leave=False,
-        ):
-            # Repeat i is the cell's trial len(learning trials) + i, resumed or not.
-            lab.trial_index = len(res.trials) + i
-            stem = run_dir / "repeats" / f"repeat_{i:03d}"
-            rec = _written_with_truth(stem) if resume else None
-            if rec is None:  # not written, or cut short by a kill: play it (again)
-                rec = lab.run(command)
-                rec.save(stem)
-            verdict = None if rec.fault else judge(rec)
-            repeats.append("fault" if rec.fault else None if verdict is None else verdict.klass)
-            repeat_verdicts.append(None if verdict is None else verdict.to_json())
-    counted = {s.trial: s for s in res.trials}
-    summary = {
-        "name": spec.name,
-        "label": spec.label,
-        "rope": spec.rope,
-        "seed": spec.seed,
-        **(_custom_rope_summary(lab) if spec.cell == "sim" else {}),
-        "demo": spec.demo,
-        "objective": spec.objective,
-        "rope_model": asdict(rope_model),
-        "gain": spec.gain,
-        "trust_region": spec.trust_region,
-        "follow_through_s": spec.follow_through_s,
-        "path_frac": spec.path_frac,
-        "weights": dict(spec.weights),
-        "start_from": spec.start_from,
-        "costs": res.costs,
-        "knots": res.knots,
-        "faults": [counted[k].fault for k in sorted(counted)],
-        "verdicts": [counted[k].verdict for k in sorted(counted)],
-        "trials_to_success": None
-        if res.first_success_trial is None
-        else res.first_success_trial + 1,
-        "stopped_because": res.stopped_because,
-        "confirm": None if spec.confirm is None else list(spec.confirm),
-        "confirmed": res.stopped_because == "confirmed",
-        "safeguard": spec.safeguard,
-        "average": spec.average,
-        "attempts": len(res.trials),
-        "repeats": repeats,
-        "repeat_verdicts": repeat_verdicts,
-        "judge": JUDGE_NAME,
-        "repeat_success_rate": (sum(r == KNOT for r in repeats) / len(repeats))
-        if repeats
-        else None,
-        "initial_guess": ig_info,
-        "T": target.T,
-        "t_c": target.t_c,
-        "wall_s": time.perf_counter() - t_start,
-    }
-    result_path.write_text(json.dumps(summary, indent=2))
-    return summary
+    for i in bar:
+        lab.trial_index = first + i
+        stem = run_dir / "repeats" / f"repeat_{i:03d}"
+        rec = _written_with_truth(stem) if resume else None
+        if rec is None:  # not written, or cut short by a kill: play it (again)
+            rec = lab.run(command)
+            rec.save(stem)
+        verdict = None if rec.fault else judge(rec)
+        classes.append("fault" if rec.fault else None if verdict is None else verdict.klass)
+        verdicts.append(None if verdict is None else verdict.to_json())
+    return classes, verdicts
+
+
+def _finished_run(path: Path) -> RunSummary | None:
+    """The summary a finished run left, or None when it is absent or unreadable (a kill while
+    it was written: the run resumes from its run directory)."""
+    try:
+        return RunSummary.from_json(json.loads(path.read_text()))
+    except (OSError, ValueError, TypeError):
+        return None
 
 
 def _written_with_truth(stem: Path) -> TrialRecord | None:
@@ -357,7 +371,7 @@ def make_initial_guesses(scen: Scenario, out_dir: Path, *, progress: bool = Fals
     z = float(robot_base_pose(SceneParams())[2])
     sim_runs = [r for r in scen.runs if r.start_from is None and r.cell == "sim"]
     for demo, window in sorted({(r.demo, r.window) for r in sim_runs}):
-        dt = next(_rope_model(r).dt for r in scen.runs if r.demo == demo)
+        dt = next(r.learner.rope_model.dt for r in scen.runs if r.demo == demo)
         if progress:
             print(f"initial guess for demo {demo!r} (trajectory optimisation)...", flush=True)
         initial_knots(demo, out_dir, robot, dt, z, window, progress=progress)
@@ -378,7 +392,7 @@ def run_scenario(
     progress: bool = True,
     executor: str = "process",
     address: str | None = None,
-) -> dict[str, Any]:
+) -> ScenarioSummary:
     """Run every run of a scenario (waves in order, runs of a wave in parallel).
 
     ``executor``: ``"process"`` (a local process pool of ``workers``) or ``"ray"`` (Ray tasks
@@ -407,7 +421,7 @@ def run_scenario(
         "source": scen.source,
         "description": scen.description,
         "overrides": overrides or {},
-        "runs": [asdict(r) for r in scen.runs],
+        "runs": [r.to_json() for r in scen.runs],
         **_ropes_manifest(scen),
         "versions": {
             "flyknot": __version__,
@@ -418,9 +432,9 @@ def run_scenario(
         "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
     }
     if not (resume and (out_dir / "manifest.json").is_file()):
-        (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2))
+        atomic_write_text(out_dir / "manifest.json", json.dumps(manifest, indent=2))
     make_initial_guesses(scen, out_dir, progress=progress)
-    results: dict[str, dict[str, Any]] = {}
+    results: dict[str, RunSummary] = {}
     overall = tqdm(total=len(scen.runs), desc=scen.name, unit="run", disable=bar_disable(progress))
     from flyknot_app.report import CRITICAL_FIGURES
 
@@ -432,33 +446,14 @@ def run_scenario(
             if spec.start_from is not None:
                 knots0 = np.load(out_dir / "runs" / spec.start_from / "final_knots.npy")
             jobs.append((spec, out_dir, knots0, resume, spec.name in drawn))
-        if executor == "ray":
-            for name, res in _ray_results(jobs, workers, address):
-                results[name] = res
-                overall.update(1)
-                _print_run(res, overall)
-        elif workers == 1 or len(jobs) == 1:
-            for spec, o, k0, r, fig in jobs:
-                results[spec.name] = execute_run(
-                    spec, o, k0, resume=r, progress=progress, figure=fig
-                )
-                overall.update(1)
-                _print_run(results[spec.name], overall)
-        else:
-            with ProcessPoolExecutor(max_workers=workers) as pool:
-                futs = {pool.submit(_worker, j): j[0].name for j in jobs}
-                for fut in as_completed(futs):
-                    results[futs[fut]] = fut.result()
-                    overall.update(1)
-                    _print_run(results[futs[fut]], overall)
+        for name, res in _wave_results(jobs, executor, workers, address, progress):
+            results[name] = res
+            overall.update(1)
+            _print_run(res, overall)
     overall.close()
-    summary = {
-        "scenario": scen.name,
-        "kind": scen.kind,
-        "paper": scen.paper,
-        "runs": [results[r.name] for r in scen.runs],
-    }
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    runs = tuple(results[r.name] for r in scen.runs)
+    summary = ScenarioSummary(scen.name, scen.kind, runs, scen.paper)
+    atomic_write_text(out_dir / "summary.json", json.dumps(summary.to_json(), indent=2))
     from flyknot_app.report import write_report
 
     write_report(out_dir, summary, workers=max(1, workers))
@@ -466,6 +461,24 @@ def run_scenario(
 
 
 EXECUTORS = ("process", "ray")
+
+
+def _wave_results(jobs: list, executor: str, workers: int, address: str | None, progress: bool):
+    """Run one wave's ``jobs`` (independent runs); yield (run name, summary) as they finish:
+    Ray tasks, a process pool of ``workers``, or one after the other in this process."""
+    if executor == "ray":
+        yield from _ray_results(jobs, workers, address)
+    elif workers == 1 or len(jobs) == 1:
+        for spec, out_dir, knots0, resume, figure in jobs:
+            run = execute_run(
+                spec, out_dir, knots0, resume=resume, progress=progress, figure=figure
+            )
+            yield spec.name, run
+    else:
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            futs = {pool.submit(_worker, j): j[0].name for j in jobs}
+            for fut in as_completed(futs):
+                yield futs[fut], fut.result()
 
 
 def _ray_results(jobs: list, workers: int, address: str | None):
@@ -487,13 +500,13 @@ def _ray_results(jobs: list, workers: int, address: str | None):
         yield names[done[0]], ray.get(done[0])
 
 
-def _print_run(res: dict[str, Any], bar) -> None:
-    n = res["trials_to_success"]
+def _print_run(res: RunSummary, bar) -> None:
+    n = res.trials_to_success
     msg = (
-        f"{res['name']}: rope {res['rope']}, "
+        f"{res.name}: rope {res.rope}, "
         + (f"knot at trial {n}" if n is not None else "no knot")
-        + f" ({len(res['costs'])} trials)"
+        + f" ({len(res.costs)} trials)"
     )
-    if res.get("repeat_success_rate") is not None:
-        msg += f", repeats {res['repeat_success_rate'] * 100:.0f} % of {len(res['repeats'])}"
+    if res.repeat_success_rate is not None:
+        msg += f", repeats {res.repeat_success_rate * 100:.0f} % of {len(res.repeat_classes)}"
     bar.write(msg)

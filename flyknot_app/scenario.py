@@ -35,27 +35,33 @@ from __future__ import annotations
 import itertools
 import tomllib
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from flyknot.constants import FOLLOW_THROUGH_S, PATH_FRAC, SCENARIOS_DIR
 from flyknot.errors import ConfigError, check_choice, check_nonnegative
+from flyknot.options import (
+    INLINE,
+    NOT_AN_OPTION,
+    from_mapping,
+    nested_options,
+    option_names,
+    to_mapping,
+)
 from flyknot_app.cells import cell_kind, cell_spec
 from learner.ilc import ILCParams
-from learner.inverse_qp import InverseModelWeights
-from learner.rope_model import RopeModelParams
 
 KINDS = ("learn", "track", "transfer", "sensitivity", "objectives", "demos", "smoke")
-ROPE_MODEL_KEYS = tuple(f.name for f in fields(RopeModelParams))
-"""The learner's rope model fields a run may set (``rope_model.<key>``)."""
-WEIGHT_KEYS = tuple(f.name for f in fields(InverseModelWeights))
-"""The inverse-model weights a run may set (``weights.<key>``)."""
 
 
 @dataclass(frozen=True)
 class RunSpec:
     """One learning run of a scenario.
+
+    A run's options are its own fields below and the learning loop's (``learner``), which sit
+    beside them: ``max_trials``, ``gain``, ``objective``, ``weights.w_control``... (every
+    option of :class:`learner.ilc.ILCParams` and :class:`learner.update.UpdateSettings`).
 
     Attributes:
         name: Unique within the scenario (a directory name).
@@ -63,30 +69,17 @@ class RunSpec:
             its id) or one of ``ropes``.
         demo: Demonstration: a name under ``assets/demos`` (without ``.npz``) or a path.
         seed: Seed of the lab's trial-to-trial variation.
-        max_trials: Learning trials at most (0: only play the initial command once).
-        objective: ``"critical"`` or ``"equal"``.
-        stop_at_success: Stop at the first knot.
         repeats: After learning, play the final command this many more times (success rate).
         settle_s: A fixed settling time before the knot is judged [s]; None (default): the
             lab waits until the rope is at rest (``flyknot.rest.SettleParams``).
-        backend: QP solver (``"clarabel"`` or ``"osqp"``).
         start_from: Name of the run whose final command starts this one (transfer), or None.
-        rope_model: Overrides of the learner's rope model parameters.
-        gain: ILC learning gain in (0, 1] (the paper: 1).
-        weights: Overrides of the inverse-model weights (learner.inverse_qp).
-        trust_region: Largest change of any arm knot per update [rad], or None (the paper
-            has none).
-        confirm: Confirmed-success stop rule ``[k, n]`` (a tying command is repeated until
-            n of its trials ran; stop when k tied; repeats count as trials), or None: the
-            paper's stop at the first knot. On the command line: ``--set confirm=k/n``.
-        safeguard: Reject an update whose trial's cost rose above the best trial's and step
-            from the best command instead, shrunk by 1/2 per rejection (the paper: none).
-        average: Plays of each command before an update, on their mean critical-point error
-            (each play a trial; the paper: 1).
         follow_through_s: Demonstration window end t_f - t_c [s] (the paper: 0.035).
         path_frac: Demonstration window start: the fraction of the hand path travelled at
             t_0, in [0, 1) (the paper: 0.05).
         label: Free text for figures (e.g. "k=1e3, m_e=5").
+        learner: The learning loop's options (:class:`learner.ilc.ILCParams`; ``max_trials``
+            0 plays the initial command once: tracking alone). On the command line the
+            confirmed-success rule is ``--set confirm=k/n``.
         ropes: A user's ropes file (absolute path; set from the scenario's top-level
             ``ropes``), or None.
         cell: Kind of cell the run plays on (:data:`flyknot_app.cells.CELLS`; set by the
@@ -100,26 +93,16 @@ class RunSpec:
     rope: int | str = 1
     demo: str = "fast"
     seed: int = 0
-    max_trials: int = 10
-    objective: str = "critical"
-    stop_at_success: bool = True
     repeats: int = 0
     settle_s: float | None = None
-    backend: str = "clarabel"
     start_from: str | None = None
-    rope_model: Mapping[str, float] = field(default_factory=dict)
-    gain: float = 1.0
-    weights: Mapping[str, float] = field(default_factory=dict)
-    trust_region: float | None = None
-    confirm: tuple[int, int] | None = None
-    safeguard: bool = False
-    average: int = 1
     follow_through_s: float = FOLLOW_THROUGH_S
     path_frac: float = PATH_FRAC
     label: str = ""
-    ropes: str | None = None
-    cell: str = "sim"
-    cell_options: Mapping[str, Any] = field(default_factory=dict)
+    learner: ILCParams = field(default_factory=ILCParams, metadata=INLINE)
+    ropes: str | None = field(default=None, metadata=NOT_AN_OPTION)
+    cell: str = field(default="sim", metadata=NOT_AN_OPTION)
+    cell_options: Mapping[str, Any] = field(default_factory=dict, metadata=NOT_AN_OPTION)
 
     def __post_init__(self) -> None:
         cell_kind(self.cell)
@@ -136,39 +119,18 @@ class RunSpec:
         else:
             check_choice("rope", rope, range(1, 8))
         object.__setattr__(self, "rope", rope)
-        for f in ("seed", "max_trials", "repeats"):
+        for f in ("seed", "repeats"):
             v = getattr(self, f)
             if not isinstance(v, int) or isinstance(v, bool) or v < 0:
                 raise ConfigError(f, f"must be an integer >= 0, got {v!r}")
         if self.settle_s is not None:
             check_nonnegative("settle_s", self.settle_s)
-        for key, choices in (("rope_model", ROPE_MODEL_KEYS), ("weights", WEIGHT_KEYS)):
-            values = dict(getattr(self, key))
-            for k in values:
-                check_choice(f"{key} key", k, choices)
-            object.__setattr__(self, key, values)
-        # The learner's options are validated where they live (ILCParams).
-        object.__setattr__(self, "confirm", self.ilc_params().confirm)
+        if not isinstance(self.learner, ILCParams):
+            raise ConfigError("learner", f"must be an ILCParams, got {self.learner!r}")
         check_nonnegative("follow_through_s", self.follow_through_s)
         if not (isinstance(self.path_frac, (int, float)) and 0.0 <= self.path_frac < 1.0):
             raise ConfigError("path_frac", f"must lie in [0, 1), got {self.path_frac!r}")
-
-    def ilc_params(self) -> ILCParams:
-        """The learning loop's options of this run (:class:`learner.ilc.ILCParams`), which
-        validates them; ``max_trials`` 0 (the initial command alone) plays one trial."""
-        return ILCParams(
-            max_trials=max(1, self.max_trials),
-            stop_at_success=self.stop_at_success,
-            objective=self.objective,
-            backend=self.backend,
-            rope_model=RopeModelParams(**self.rope_model),
-            gain=self.gain,
-            weights=InverseModelWeights(**self.weights),
-            trust_region=self.trust_region,
-            confirm=self.confirm,
-            safeguard=self.safeguard,
-            average=self.average,
-        )
+        object.__setattr__(self, "cell_options", dict(self.cell_options))
 
     def cell_spec(self) -> Any:
         """The validated spec of the run's cell (:func:`flyknot_app.cells.cell_spec`)."""
@@ -180,10 +142,15 @@ class RunSpec:
         """(follow_through_s, path_frac): what selects the demonstration window."""
         return (float(self.follow_through_s), float(self.path_frac))
 
+    def to_json(self) -> dict[str, Any]:
+        """Every option of the run (:func:`flyknot.options.to_mapping`) and its cell."""
+        cell = {"ropes": self.ropes, "cell": self.cell, "cell_options": dict(self.cell_options)}
+        return {**to_mapping(self), **cell}
 
-RUN_KEYS = tuple(f.name for f in fields(RunSpec) if f.name not in ("ropes", "cell", "cell_options"))
-"""Fields a scenario's runs, defaults, grid and ``--set`` may give (``ropes`` and the cell's
-kind are top-level)."""
+
+RUN_KEYS = option_names(RunSpec)
+"""Options a scenario's runs, defaults, grid and ``--set`` may give (``ropes`` and the cell
+are top-level)."""
 
 
 def parse_rope_arg(text: str) -> int | str:
@@ -275,33 +242,58 @@ demonstration window from 5 % of the hand path to t_c + 35 ms (Suresh & Atkeson;
 scenario files' own values and why they differ: README "Learner settings")."""
 
 
+def option_path(key: str) -> list[str]:
+    """A ``--set`` key as its path of option names (``weights.w_control`` -> two names), each
+    checked against the options of the run or of the table it names.
+
+    Raises:
+        ConfigError: A name that is not an option there (the message lists the valid ones).
+    """
+    parts = key.split(".")
+    cls: type | None = RunSpec
+    for i, part in enumerate(parts):
+        names = option_names(cls) if cls is not None else ()
+        if cls is None or part not in names:
+            where = "--set key" if i == 0 else f"{'.'.join(parts[:i])} key"
+            valid = [n for n in names if n != "name"] + (["max_runs"] if i == 0 else [])
+            raise ConfigError(where, f"unknown value {part!r}", valid)
+        cls = nested_options(cls, part)
+    return parts
+
+
 def parse_overrides(pairs: list[str] | None) -> dict[str, Any]:
-    """``["max_trials=2", "rope_model.stiffness=1e3"]`` -> a nested dict of run fields."""
+    """``["max_trials=2", "rope_model.stiffness=1e3"]`` -> a nested dict of run options."""
     out: dict[str, Any] = {}
     for p in pairs or []:
         if "=" not in p:
             raise ConfigError("--set", f"expected key=value, got {p!r}")
-        key, value = p.split("=", 1)
-        key = key.strip()
-        if key.startswith("rope_model."):
-            sub = key.split(".", 1)[1]
-            check_choice("rope_model key", sub, ROPE_MODEL_KEYS)
-            out.setdefault("rope_model", {})[sub] = _coerce_override(value)
-        elif key.startswith("weights."):
-            sub = key.split(".", 1)[1]
-            check_choice("weights key", sub, WEIGHT_KEYS)
-            out.setdefault("weights", {})[sub] = _coerce_override(value)
-        elif key == "max_runs":
+        key, value = (part.strip() for part in p.split("=", 1))
+        if key == "max_runs":
             out["max_runs"] = int(value)
-        else:
-            check_choice("--set key", key, [k for k in RUN_KEYS if k != "name"] + ["max_runs"])
-            out[key] = _coerce_override(value)
+            continue
+        *tables, leaf = option_path(key)
+        node = out
+        for t in tables:
+            node = node.setdefault(t, {})
+        node[leaf] = _coerce_override(value)
     return out
 
 
 def _name_part(value: Any) -> str:
     """A grid value in a run name: a rope name's spaces and slashes become '_'."""
     return "_".join(value.replace("/", " ").split()) if isinstance(value, str) else str(value)
+
+
+def merge_options(*layers: Mapping[str, Any]) -> dict[str, Any]:
+    """Option tables laid over each other: a later layer's value wins, nested tables merge."""
+    out: dict[str, Any] = {}
+    for layer in layers:
+        for k, v in layer.items():
+            if isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
+                out[k] = merge_options(out[k], v)
+            else:
+                out[k] = dict(v) if isinstance(v, Mapping) else v
+    return out
 
 
 def _make_run(
@@ -311,13 +303,8 @@ def _make_run(
     cell: str = "sim",
     cell_options: Mapping[str, Any] | None = None,
 ) -> RunSpec:
-    for k in raw:
-        if k not in RUN_KEYS:
-            raise ConfigError(f"{where}.{k}", "unknown field", RUN_KEYS)
-    try:
-        return RunSpec(**raw, ropes=ropes, cell=cell, cell_options=dict(cell_options or {}))
-    except TypeError as e:
-        raise ConfigError(where, str(e)) from None
+    given = {"ropes": ropes, "cell": cell, "cell_options": dict(cell_options or {})}
+    return from_mapping(RunSpec, raw, where=where, given=given)
 
 
 def parse_scenario(
@@ -358,8 +345,6 @@ def parse_scenario(
     defaults = {**cell_defaults, **dict(doc.get("defaults", {}))}
     overrides = dict(overrides or {})
     max_runs = overrides.pop("max_runs", None)
-    rope_model = {**dict(defaults.pop("rope_model", {})), **dict(overrides.pop("rope_model", {}))}
-    weights = {**dict(defaults.pop("weights", {})), **dict(overrides.pop("weights", {}))}
     raw_runs: list[dict[str, Any]] = []
     if "grid" in doc:
         grid = dict(doc["grid"])
@@ -375,14 +360,7 @@ def parse_scenario(
         raw_runs.append(dict(entry))
     runs = []
     for i, entry in enumerate(raw_runs):
-        merged = {**defaults, **entry, **overrides}
-        merged["rope_model"] = {
-            **rope_model,
-            **dict(entry.get("rope_model", {})),
-            **dict(overrides.get("rope_model", {})),
-        }
-        merged["weights"] = {**weights, **dict(entry.get("weights", {}))}
-        merged.setdefault("name", f"run{i}")
+        merged = merge_options({"name": f"run{i}"}, defaults, entry, overrides)
         runs.append(_make_run(merged, f"run[{i}]", ropes, kind, options))
     scen = Scenario(
         name=str(doc.get("name", name)),

@@ -128,7 +128,7 @@ def learn(
     if rd is not None:
         state = _open_run(rd, state, cell, params, resume)
     ctx = Context(target, robot, params, limits, judge)
-    while state.stop is None and state.k < params.max_trials:
+    while state.stop is None and state.k < params.trials:
         command = BezierCommand(state.knots, target.T)  # kappa_k
         joint_cmd = command.joint_command()
         for attempt in state.attempts(params):
@@ -141,7 +141,7 @@ def learn(
             if step.last:
                 break
         state.advance(step)
-    return _finish(state, params)
+    return _finish(state, params, knots0)
 
 
 def _open_run(
@@ -233,8 +233,11 @@ def _commit(
         on_trial(step.summary)
 
 
-def _finish(state: LoopState, params: ILCParams) -> LearnResult:
+def _finish(state: LoopState, params: ILCParams, knots0: np.ndarray) -> LearnResult:
+    """The run's result; tracking alone (``max_trials`` 0) keeps the initial command (its
+    one trial's update is never played)."""
     t = tuple(state.trials)
     first = next((s.trial for s in _counted(t) if s.success), None)
     why = state.stop or ("max_trials" if first is None else "max_trials (knot tied)")
-    return LearnResult(t, first, np.asarray(state.knots), why)
+    final = knots0 if params.max_trials == 0 else state.knots
+    return LearnResult(t, first, np.asarray(final), why)

@@ -338,7 +338,7 @@ def assess(
             predicted_cost_after=None,
             action="repeat (tracking lost before t_c)",
         ), None
-    cost = critical_cost(res.err, params.weights) if np.all(np.isfinite(res.err)) else None
+    cost = critical_cost(res.err, params.update.weights) if np.all(np.isfinite(res.err)) else None
     return TrialSummary(
         **base,
         tracking_lost=False,

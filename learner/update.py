@@ -50,6 +50,7 @@ from flyknot.constants import COMMAND_RATE_HZ, N_JOINTS, N_KNOTS, N_ROWS
 from flyknot.errors import ConfigError, RecordError, check_choice, check_nonnegative, check_positive
 from flyknot.geometry import readonly
 from flyknot.limits import JointLimits
+from flyknot.options import NOT_AN_OPTION
 from flyknot.record import TrialRecord
 from learner.bezier import BezierCommand
 from learner.critical_state import MarkerFitParams, critical_state_from_record
@@ -96,7 +97,8 @@ class UpdateSettings:
         objective: ``"critical"`` (the paper's) or ``"equal"`` (every pre-collision sample
             weighted equally).
         weights: QP weights (default: the paper's).
-        limits: Joint limits on the updated command, or None for none.
+        limits: Joint limits on the updated command, or None for none (the cell's: set by
+            the program, not an option a file gives).
         follow_through: Include the follow-through fingertip terms.
         base_update: ``"constant"`` or ``"zero"`` (see :mod:`learner.inverse_qp`).
         trust_region: Largest change of any arm knot [rad] (a box in the QP), or None.
@@ -117,7 +119,7 @@ class UpdateSettings:
 
     objective: str = "critical"
     weights: InverseModelWeights = field(default_factory=InverseModelWeights)
-    limits: JointLimits | None = field(default_factory=JointLimits)
+    limits: JointLimits | None = field(default_factory=JointLimits, metadata=NOT_AN_OPTION)
     follow_through: bool = True
     base_update: str = "constant"
     trust_region: float | None = None

@@ -531,23 +531,20 @@ def test_cli_explain_errors_are_one_line(tmp_path, capsys):
 
 def test_report_has_an_anatomy_section(tmp_path):
     from flyknot_app.report import write_report
+    from flyknot_app.run_summary import RunSummary, ScenarioSummary
 
     root = run_directory(tmp_path)
-    runs = [
-        {
-            "name": name,
-            "label": name,
-            "rope": rope,
-            "demo": "robot",
-            "objective": "critical",
-            "costs": [1.0, 0.5],
-            "knots": [False, name == "rope1"],
-            "trials_to_success": 2 if name == "rope1" else None,
-            "t_c": 0.15,
-        }
+    runs = tuple(
+        RunSummary(
+            {"name": name, "label": name, "rope": rope, "demo": "robot"},
+            costs=[1.0, 0.5],
+            knots=[False, name == "rope1"],
+            trials_to_success=2 if name == "rope1" else None,
+            t_c=0.15,
+        )
         for name, rope in (("rope1", 1), ("rope2", 2))
-    ]
-    text = write_report(root, {"scenario": "s", "kind": "learn", "runs": runs}).read_text()
+    )
+    text = write_report(root, ScenarioSummary("s", "learn", runs)).read_text()
     section = text.split("## Failure anatomy")[1].split("## Figures")[0]
     assert "| success | knot in the hanging rope, no fault | 1 | 25 % |" in section
     assert "| run | n | success | faulted | not_through | slipped_out |" in section

@@ -12,8 +12,15 @@ from flyknot_app.compare import compare, load_runset, mean_trials, ratios, seed_
 
 
 def _write(d, runs, name="summary.json"):
+    """A scenario's summary.json (runs named ``r0``, ``r1``... unless named) or a
+    baseline.json."""
     d.mkdir(parents=True)
-    (d / name).write_text(json.dumps({"runs": runs}))
+    if name == "summary.json":
+        runs = [{"name": f"r{i}", **r} for i, r in enumerate(runs)]
+        doc = {"scenario": "s", "kind": "learn", "runs": runs}
+    else:
+        doc = {"runs": runs}
+    (d / name).write_text(json.dumps(doc))
     return d
 
 
@@ -21,8 +28,8 @@ def test_table_and_figures(tmp_path, capsys):
     a = _write(
         tmp_path / "ilc",
         [
-            {"costs": [0.6, 0.3], "trials_to_success": 2, "repeats": ["knot", "unknot"]},
-            {"costs": [0.5, None, 0.2], "trials_to_success": None, "repeats": ["knot"]},
+            {"costs": [0.6, 0.3], "trials_to_success": 2, "repeat_classes": ["knot", "unknot"]},
+            {"costs": [0.5, None, 0.2], "trials_to_success": None, "repeat_classes": ["knot"]},
         ],
     )
     b = _write(
@@ -30,8 +37,9 @@ def test_table_and_figures(tmp_path, capsys):
         [{"costs": [0.9, 0.8, 0.7, 0.4], "trials_to_success": 4, "repeats": []}],
         "baseline.json",
     )
-    old = _write(tmp_path / "old", [{"costs": [1.0], "first_success_trial": 0}])
-    assert load_runset(old).trials_to_success == (1,)
+    odd = _write(tmp_path / "odd", [{"costs": [1.0], "first_success": 0}])
+    with pytest.raises(ConfigError, match=r"^summary.first_success: unknown field \(valid"):
+        load_runset(odd)
     assert cli.main(["compare", str(a), str(b), "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
     assert "| ilc | 1 of 2 | 2 (2-2) | 2/3 (21%-94%) |" in out
@@ -55,7 +63,7 @@ def _runs(tts, n_used, extra):
 def test_ilc_beside_each_baseline_seed_by_seed(tmp_path, capsys):
     ilc = _write(
         tmp_path / "ilc",
-        _runs([2, 4, 3], [10] * 3, lambda i: {"name": f"rope1-seed{i}", "rope": 1}),
+        _runs([2, 4, 3], [10] * 3, lambda i: {"name": f"rope1-seed{i}", "rope": 1, "seed": i}),
     )
     cma = tmp_path / "cma"
     cma.mkdir()

@@ -126,16 +126,19 @@ def test_confirm_errors(kwargs, message):
 
 def test_outcome_line_reports_both_stop_rules():
     from flyknot_app.report import outcome_line
+    from flyknot_app.run_summary import RunSummary
 
-    runs = [
-        {"trials_to_success": 3, "confirm": [2, 3], "confirmed": True},
-        {"trials_to_success": 2, "confirm": [2, 3], "confirmed": False},
-        {"trials_to_success": None, "confirm": [2, 3], "confirmed": False},
-    ]
+    def run(name, n, why):
+        return RunSummary(
+            {"name": name, "confirm": [2, 3]}, trials_to_success=n, stopped_because=why
+        )
+
+    runs = [run("a", 3, "confirmed"), run("b", 2, "max_trials"), run("c", None, "max_trials")]
     assert outcome_line("learn", runs) == (
         "Knot learned in 2 of 3 runs; confirmed (2 of 3 repeats tied) in 1 of 3."
     )
-    assert outcome_line("learn", [{"trials_to_success": 1}]) == "Knot learned in 1 of 1 runs."
+    one = RunSummary({"name": "d"}, trials_to_success=1, stopped_because="success")
+    assert outcome_line("learn", [one]) == "Knot learned in 1 of 1 runs."
 
 
 def _spy(cell, monkeypatch):

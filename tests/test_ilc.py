@@ -17,6 +17,7 @@ from learner.rope_model import RopeModelParams
 from learner.run_directory import RunDirectory
 from learner.system_model import model_demonstration, model_record
 from learner.target import DemoTarget
+from learner.update import UpdateSettings
 from tests.knot_curves import judged
 
 HOME = np.array([0.0, -0.247, 0.0, 0.909, 0.0, 1.15644, 0.0])
@@ -117,6 +118,15 @@ def test_resume_neither_loses_nor_repeats_a_trial(robot, problem, monkeypatch, t
         learn(cell, target, start, robot, more, run_dir=tmp_path / "run")
 
 
+def test_tracking_alone_plays_once_and_keeps_the_initial_command(robot, problem, monkeypatch):
+    target, start = problem
+    cell, spy = _cell_for(robot, target, knot_cost=0.0)
+    monkeypatch.setattr(BezierCommand, "joint_command", spy)
+    res = learn(cell, target, start, robot, ILCParams(max_trials=0, rope_model=ROPE))
+    assert cell.n == 1 and len(res.costs) == 1
+    np.testing.assert_array_equal(res.final_knots, start)
+
+
 def test_fault_steps_halfway_back(robot, problem, monkeypatch):
     target, start = problem
     cell, spy = _cell_for(robot, target, knot_cost=0.0, fault_on=(1,))
@@ -139,9 +149,9 @@ def test_params_validation():
     with pytest.raises(
         ConfigError, match=r"objective: unknown value 'x' \(valid choices: critical, equal\)"
     ):
-        ILCParams(objective="x")
-    with pytest.raises(ConfigError, match="max_trials: must be an integer >= 1, got 0"):
-        ILCParams(max_trials=0)
+        ILCParams(update=UpdateSettings(objective="x"))
+    with pytest.raises(ConfigError, match="max_trials: must be an integer >= 0, got -1"):
+        ILCParams(max_trials=-1)
 
 
 def test_safe_step_halves_a_step_that_would_break_a_limit(robot):
@@ -184,8 +194,14 @@ def test_trust_region_caps_every_arm_knot_step(robot, problem, monkeypatch):
     free = np.abs(cell.played[1] - cell.played[0])[:7].max()
     radius = 0.3 * free
     cell.played.clear()
-    learn(cell, target, start, robot, ILCParams(max_trials=2, rope_model=ROPE, trust_region=radius))
+    learn(
+        cell,
+        target,
+        start,
+        robot,
+        ILCParams(max_trials=2, rope_model=ROPE, update=UpdateSettings(trust_region=radius)),
+    )
     boxed = np.abs(cell.played[1] - cell.played[0])[:7].max()
     assert boxed <= radius * (1 + 1e-4) and boxed >= radius * (1 - 1e-3)
     with pytest.raises(ConfigError, match="trust_region: must be a finite number > 0, got 0"):
-        ILCParams(trust_region=0)
+        ILCParams(update=UpdateSettings(trust_region=0))

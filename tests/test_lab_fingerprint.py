@@ -56,6 +56,7 @@ def learning_costs() -> list[str]:
     from learner.inverse_qp import InverseModelWeights
     from learner.kinematics import RobotModel
     from learner.rope_model import RopeModelParams
+    from learner.update import UpdateSettings
 
     rope_model = RopeModelParams(stiffness=100.0, damping=0.5)
     _, target = prepare_target("robot", rope_model.dt, (0.25, 0.0))
@@ -66,7 +67,7 @@ def learning_costs() -> list[str]:
         stop_at_success=False,
         rope_model=rope_model,
         gain=0.5,
-        weights=InverseModelWeights(w_control=5.0),
+        update=UpdateSettings(weights=InverseModelWeights(w_control=5.0)),
     )
     lab = SimLab(LabParams(rope=1, seed=3, settle_s=0.3))
     res = learn(lab, target, knots0, RobotModel.from_mjcf(), params)

@@ -5,28 +5,24 @@ from __future__ import annotations
 import json
 
 from flyknot_app.report import plot_costs, settings_lines, write_report
+from flyknot_app.run_summary import RunSummary, ScenarioSummary
 
 
 def _run(name, knots):
-    return {
-        "name": name,
-        "label": name,
-        "rope": 1,
-        "demo": "robot",
-        "objective": "critical",
-        "costs": [0.6, 0.4, 0.3],
-        "knots": knots,
-        "trials_to_success": (knots.index(True) + 1) if any(knots) else None,
-        "t_c": 0.65,
-    }
+    options = {"name": name, "label": name, "rope": 1, "demo": "robot", "objective": "critical"}
+    return RunSummary(
+        options,
+        costs=[0.6, 0.4, 0.3],
+        knots=knots,
+        trials_to_success=(knots.index(True) + 1) if any(knots) else None,
+        t_c=0.65,
+    )
 
 
 def test_report_lists_the_overrides_and_the_cell(tmp_path):
     manifest = {"overrides": {"max_trials": 3, "gain": 1}, "runs": [{"name": "a", "cell": "sim"}]}
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
-    text = write_report(
-        tmp_path, {"scenario": "s", "kind": "learn", "runs": [_run("a", [0, 0, 1])]}
-    )
+    text = write_report(tmp_path, ScenarioSummary("s", "learn", (_run("a", [0, 0, 1]),)))
     assert "Overrides (`--set`): `gain=1`, `max_trials=3`. Cell: sim." in text.read_text()
     (tmp_path / "manifest.json").write_text(json.dumps({"overrides": {}, "runs": []}))
     assert settings_lines(tmp_path) == ["Overrides (`--set`): none. Cell: sim.", ""]

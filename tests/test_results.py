@@ -18,13 +18,13 @@ def _summary(tmp_path, judge="verdict"):
         "rope": 1,
         "costs": [0.5, 0.3],
         "trials_to_success": 2,
-        "repeats": ["knot", "wrapped_at_grip", "knot", "fault"],
+        "repeat_classes": ["knot", "wrapped_at_grip", "knot", "fault"],
         "judge": judge,
         "seed": 0,
     }
-    none = {**run, "name": "rope4", "rope": 4, "trials_to_success": None, "repeats": []}
+    none = {**run, "name": "rope4", "rope": 4, "trials_to_success": None, "repeat_classes": []}
     del none["seed"]
-    doc = {"scenario": "04-success-rate", "runs": [run, none]}
+    doc = {"scenario": "04-success-rate", "kind": "learn", "runs": [run, none]}
     (d / "summary.json").write_text(json.dumps(doc))
     (d / "manifest.json").write_text(json.dumps({"overrides": {"repeats": 4}}))
     return d

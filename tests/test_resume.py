@@ -40,7 +40,7 @@ def _run(out: Path, *extra: str, kill_in_save: int | None = None) -> subprocess.
         code = (
             "import os, signal, sys\n"
             "import flyknot.record as r\n"
-            "write, calls = r._atomic_npz, [0]\n"
+            "write, calls = r.atomic_save_npz, [0]\n"
             "def dying(path, arrays):\n"
             "    calls[0] += 1\n"
             f"    if calls[0] == {kill_in_save}:\n"
@@ -50,7 +50,7 @@ def _run(out: Path, *extra: str, kill_in_save: int | None = None) -> subprocess.
             "            np.savez_compressed(f, **arrays)\n"
             "        os.kill(os.getpid(), signal.SIGKILL)\n"
             "    write(path, arrays)\n"
-            "r._atomic_npz = dying\n"
+            "r.atomic_save_npz = dying\n"
             "from flyknot_app.cli import main\n"
             "sys.exit(main(sys.argv[1:]))\n"
         )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +10,7 @@ import pytest
 
 from flyknot.constants import SCENARIOS_DIR
 from flyknot.errors import ConfigError
+from flyknot_app.run_summary import RunSummary, ScenarioSummary
 from flyknot_app.scenario import limit_runs, load_scenario, parse_overrides, parse_scenario
 
 FILES = sorted(SCENARIOS_DIR.glob("*.toml"))
@@ -48,15 +50,15 @@ def test_transfer_covers_all_49_pairs_after_the_learning_runs():
 
 def test_sensitivity_matches_the_paper_table():
     scen = load_scenario("07-sensitivity")
-    got = [(r.rope_model["stiffness"], r.rope_model["end_mass"]) for r in scen.runs]
+    got = [(r.learner.rope_model.stiffness, r.learner.rope_model.end_mass) for r in scen.runs]
     assert got == [(1e5, 5.0), (1e4, 5.0), (1e3, 5.0), (1e2, 5.0), (1e5, 0.05), (1e5, 0.005)]
 
 
 def test_overrides_apply_to_every_run():
     ov = parse_overrides(["max_trials=2", "rope_model.stiffness=1e3", "settle_s=0.5"])
     scen = load_scenario("03-ropes", ov)
-    assert all(r.max_trials == 2 and r.settle_s == 0.5 for r in scen.runs)
-    assert all(r.rope_model["stiffness"] == 1e3 for r in scen.runs)
+    assert all(r.learner.max_trials == 2 and r.settle_s == 0.5 for r in scen.runs)
+    assert all(r.learner.rope_model.stiffness == 1e3 for r in scen.runs)
 
 
 def test_limit_runs_keeps_dependencies():
@@ -86,10 +88,11 @@ def test_limit_runs_keeps_dependencies():
         ),
         (
             {"run": [{"name": "a", "max_trial": 3}]},
-            "run[0].max_trial: unknown field (valid choices: name, rope, demo, seed, max_trials, "
-            "objective, stop_at_success, repeats, settle_s, backend, start_from, rope_model, "
-            "gain, weights, trust_region, confirm, safeguard, average, follow_through_s, "
-            "path_frac, label)",
+            "run[0].max_trial: unknown field (valid choices: name, rope, demo, seed, repeats, "
+            "settle_s, start_from, follow_through_s, path_frac, label, max_trials, "
+            "stop_at_success, tracking_retries, gain, rope_model, confirm, safeguard, average, "
+            "objective, weights, follow_through, base_update, trust_region, backend, margin, "
+            "max_rounds, solver_settings, interpolation, fit, fallback_s)",
         ),
         ({"run": [{"name": "a"}, {"name": "a"}]}, "run.name: duplicate run names: a"),
         (
@@ -98,8 +101,8 @@ def test_limit_runs_keeps_dependencies():
         ),
         (
             {"run": [{"name": "a", "rope_model": {"stiff": 1.0}}]},
-            "rope_model key: unknown value 'stiff' (valid choices: stiffness, damping, link_mass, "
-            "end_mass, link_length, n_links, dt, gravity)",
+            "run[0].rope_model.stiff: unknown field (valid choices: stiffness, damping, "
+            "link_mass, end_mass, link_length, n_links, dt, gravity)",
         ),
         (
             {"runs": []},
@@ -124,7 +127,8 @@ def test_unknown_scenario_lists_names():
 
 def test_gain_and_weight_overrides():
     scen = load_scenario("quick", parse_overrides(["gain=0.5", "weights.w_control=5"]))
-    assert scen.runs[0].gain == 0.5 and scen.runs[0].weights == {"w_control": 5}
+    learner = scen.runs[0].learner
+    assert learner.gain == 0.5 and learner.update.weights.w_control == 5
     with pytest.raises(ConfigError, match=r"gain: must lie in \(0, 1\], got 2"):
         load_scenario("quick", parse_overrides(["gain=2"]))
     with pytest.raises(ConfigError, match="weights key: unknown value 'w_x'"):
@@ -132,11 +136,14 @@ def test_gain_and_weight_overrides():
 
 
 def test_trust_region_override_and_bad_value():
-    assert load_scenario("quick").runs[0].trust_region is None
+    assert load_scenario("quick").runs[0].learner.update.trust_region is None
     scen = load_scenario("quick", parse_overrides(["trust_region=0.1"]))
-    assert scen.runs[0].trust_region == 0.1
+    assert scen.runs[0].learner.update.trust_region == 0.1
     assert (
-        load_scenario("quick", parse_overrides(["trust_region=none"])).runs[0].trust_region is None
+        load_scenario("quick", parse_overrides(["trust_region=none"]))
+        .runs[0]
+        .learner.update.trust_region
+        is None
     )
     with pytest.raises(ConfigError) as e:
         load_scenario("quick", parse_overrides(["trust_region=-1"]))
@@ -215,9 +222,9 @@ def test_outcome_line_for_learning_and_tracking():
     from flyknot_app.report import outcome_line
 
     runs = [
-        {"trials_to_success": 3, "repeats": ["knot", "unknot"]},
-        {"trials_to_success": None, "repeats": ["wrapped_at_grip", "knot"]},
-        {"trials_to_success": None},
+        RunSummary({"name": "a"}, trials_to_success=3, repeat_classes=["knot", "unknot"]),
+        RunSummary({"name": "b"}, repeat_classes=["wrapped_at_grip", "knot"]),
+        RunSummary({"name": "c"}),
     ]
     assert outcome_line("learn", runs) == "Knot learned in 1 of 3 runs."
     assert outcome_line("track", runs) == (
@@ -246,15 +253,19 @@ def test_wilson_interval_known_values():
 
 def test_confirm_field_from_toml_and_command_line():
     scen = load_scenario("learn-rope1", parse_overrides(["confirm=19/20"]))
-    assert scen.runs[0].confirm == (19, 20)
+    assert scen.runs[0].learner.confirm == (19, 20)
+    from flyknot.options import from_mapping
     from flyknot_app.scenario import RunSpec
 
-    assert RunSpec(name="a", confirm=[2, 3]).confirm == (2, 3)
+    def run(**options):
+        return from_mapping(RunSpec, {"name": "a", **options})
+
+    assert run(confirm=[2, 3]).learner.confirm == (2, 3)
     with pytest.raises(ConfigError) as e:
-        RunSpec(name="a", confirm="3/2")
+        run(confirm="3/2")
     assert str(e.value) == "confirm: must be [k, n] (or k/n) with 1 <= k <= n, got '3/2'"
     with pytest.raises(ConfigError) as e:
-        RunSpec(name="a", confirm=[1, 2], stop_at_success=False)
+        run(confirm=[1, 2], stop_at_success=False)
     assert str(e.value) == "confirm: needs stop_at_success = true"
 
 
@@ -264,14 +275,14 @@ def test_paper_settings_set_the_papers_learner(tmp_path, monkeypatch):
 
     scen = load_scenario("learn-rope1", parse_overrides(list(PAPER_SETTINGS)))
     run = scen.runs[0]
-    assert (run.gain, run.path_frac, run.follow_through_s) == (1.0, 0.05, 0.035)
-    assert run.weights["w_control"] == 0.5
-    assert (run.rope_model["stiffness"], run.rope_model["damping"]) == (1e5, 50.0)
+    assert (run.learner.gain, run.path_frac, run.follow_through_s) == (1.0, 0.05, 0.035)
+    assert run.learner.update.weights.w_control == 0.5
+    assert (run.learner.rope_model.stiffness, run.learner.rope_model.damping) == (1e5, 50.0)
     seen = {}
 
     def fake_run(scen, out, **kw):
         seen["scen"], seen["overrides"] = scen, kw["overrides"]
-        return {"runs": []}
+        return ScenarioSummary(scen.name, scen.kind, ())
 
     monkeypatch.setattr(runner, "run_scenario", fake_run)
     argv = ["run", "learn-rope1", "--paper-settings", "--set", "gain=0.7"]
@@ -294,7 +305,7 @@ def test_every_scenarios_description_says_what_it_runs(name):
         assert f"rope {next(iter(ropes))}" in text
     else:
         assert any(w in text for w in ("each rope", "every rope", "all 7 ropes"))
-    assert f"{max(r.max_trials for r in scen.runs)} trials" in text
+    assert f"{max(r.learner.max_trials for r in scen.runs)} trials" in text
     repeats = max(r.repeats for r in scen.runs)
     if repeats:
         assert f"{repeats} repeats" in text or f"{repeats} times" in text
@@ -306,38 +317,42 @@ def test_every_scenarios_description_says_what_it_runs(name):
 def test_the_smoke_line_says_whether_the_pipeline_worked():
     from flyknot_app.report import outcome_line
 
-    ok = {
-        "costs": [0.6, 0.4],
-        "faults": [None, None],
-        "verdicts": [{"klass": "unknot"}, {"klass": "wrapped_at_grip"}],
-        "trials_to_success": None,
-    }
+    ok = RunSummary(
+        {"name": "a"},
+        costs=[0.6, 0.4],
+        faults=[None, None],
+        verdicts=[{"klass": "unknot"}, {"klass": "wrapped_at_grip"}],
+    )
     assert outcome_line("smoke", [ok]) == (
         "Smoke run: the pipeline works: 2 trials played (0 faulted), judged (unknot 1, "
         "wrapped_at_grip 1), the critical-point error measured in 2."
     )
-    bad = {**ok, "costs": [None], "faults": ["joint 4 torque limit"], "verdicts": [None]}
+    bad = replace(ok, costs=[None], faults=["joint 4 torque limit"], verdicts=[None])
     assert outcome_line("smoke", [bad]).startswith("Smoke run: the pipeline FAILED: 1 trials")
 
 
 def test_a_runs_learner_options_are_the_loops():
-    """RunSpec hands its learner options to ILCParams, which validates them: same names,
-    same defaults, and a run's parameters are the loop's."""
+    """A run's learner options are the loop's and the update's, read by one generic parser:
+    every field of ILCParams and UpdateSettings (but the cell's limits) is a run option."""
     from dataclasses import fields
 
-    from flyknot_app.scenario import RunSpec
+    from flyknot.options import from_mapping, option_names
+    from flyknot_app.scenario import RUN_KEYS, RunSpec
     from learner.ilc import ILCParams
+    from learner.update import UpdateSettings
 
-    run = {f.name: f.default for f in fields(RunSpec)}
-    loop = {f.name: f.default for f in fields(ILCParams)}
-    shared = sorted(set(run) & set(loop) - {"max_trials", "rope_model", "weights"})
-    assert shared == [
-        "average", "backend", "confirm", "gain", "objective", "safeguard", "stop_at_success",
-        "trust_region",
-    ]  # fmt: skip
-    assert all(run[k] == loop[k] for k in shared)
-    spec = RunSpec(name="a", gain=0.5, weights={"w_control": 5.0}, rope_model={"damping": 0.5})
-    params = spec.ilc_params()
-    assert (params.gain, params.weights.w_control, params.rope_model.damping) == (0.5, 5.0, 0.5)
+    loop = [f.name for f in fields(ILCParams) if f.name != "update"]
+    update = [f.name for f in fields(UpdateSettings) if f.name != "limits"]
+    assert option_names(ILCParams) == (*loop, *update)
+    assert set(option_names(ILCParams)) <= set(RUN_KEYS)
+    values = {"name": "a", "gain": 0.5, "weights": {"w_control": 5.0}}
+    spec = from_mapping(RunSpec, {**values, "rope_model": {"damping": 0.5}, "margin": 0.25})
+    params = spec.learner
+    assert (params.gain, params.update.weights.w_control, params.rope_model.damping) == (
+        0.5,
+        5.0,
+        0.5,
+    )
+    assert params.update.margin == 0.25 and params.update.weights.w_crit_pos == 25.0
     with pytest.raises(ConfigError, match=r"^gain: must lie in \(0, 1\], got 2$"):
-        RunSpec(name="a", gain=2)
+        from_mapping(RunSpec, {"name": "a", "gain": 2})

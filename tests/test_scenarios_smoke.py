@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from flyknot.constants import SCENARIOS_DIR
+from flyknot_app.run_summary import ScenarioSummary
 from flyknot_app.runner import guess_cache_name, initial_knots, run_scenario
 from flyknot_app.scenario import load_scenario, parse_overrides
 from flyknot_sim.scene import SceneParams, robot_base_pose
@@ -43,19 +44,20 @@ def test_scenario_runs_at_tiny_size(path: Path, tmp_path, guess_cache):
     shutil.copytree(guess_cache, out / "initial_guess")
     summary = run_scenario(scen, out, overrides=overrides, progress=False)
     on_disk = json.loads((out / "summary.json").read_text())
-    assert on_disk == json.loads(json.dumps(summary))
-    for run in summary["runs"]:
+    assert on_disk == json.loads(json.dumps(summary.to_json()))
+    assert ScenarioSummary.from_json(on_disk) == summary
+    for run in on_disk["runs"]:
         for key in ("rope", "objective", "costs", "knots", "trials_to_success"):
             assert key in run
-        assert len(run["costs"]) == len(run["knots"]) == 1
-        assert (out / "runs" / run["name"] / "final_knots.npy").is_file()
+    for run in summary.runs:
+        assert len(run.costs) == len(run.knots) == 1
+        assert (out / "runs" / run.name / "final_knots.npy").is_file()
         # Every trial's failure-anatomy diagnosis, stored by the run's worker for the report.
-        records = list((out / "runs" / run["name"]).rglob("*.npz"))
+        records = list((out / "runs" / run.name).rglob("*.npz"))
         records = [r for r in records if not r.name.endswith(".truth.npz")]
-        stored = list((out / "runs" / run["name"]).rglob("*.diagnosis"))
+        stored = list((out / "runs" / run.name).rglob("*.diagnosis"))
         assert len(stored) == len(records) >= 1
-        if run["repeats"]:
-            assert len(run["repeats"]) == 1
+        assert len(run.repeat_classes) == run.options["repeats"] <= 1
     assert (out / "report.md").read_text().startswith(f"# {scen.name}")
     assert (out / "costs.png").is_file()
     if scen.kind == "transfer":
@@ -72,7 +74,7 @@ def test_resume_after_an_interrupted_run_repeats_nothing(tmp_path, guess_cache):
     ledger = (out / "runs" / "rope1" / "learning" / "ledger.jsonl").read_text()
     again = run_scenario(scen, out, resume=True, progress=False)
     assert (out / "runs" / "rope1" / "learning" / "ledger.jsonl").read_text() == ledger
-    assert again["runs"][0]["costs"] == first["runs"][0]["costs"]
+    assert again.runs[0].costs == first.runs[0].costs
 
 
 def test_tracking_repeats_play_the_initial_command(tmp_path, guess_cache):
@@ -89,7 +91,8 @@ def test_tracking_repeats_play_the_initial_command(tmp_path, guess_cache):
         k0 = z["knots"]
     np.testing.assert_array_equal(np.load(out / "runs" / spec.name / "final_knots.npy"), k0)
     summary = json.loads((out / "summary.json").read_text())
-    assert len(summary["runs"][0]["costs"]) == 1 and len(summary["runs"][0]["repeats"]) == 1
+    run = summary["runs"][0]
+    assert len(run["costs"]) == 1 and len(run["repeat_classes"]) == 1 and run["repeats"] == 1
     assert summary["runs"][0]["seed"] == spec.seed  # flyknot compare names the run's seed
     assert summary["runs"][0]["judge"] == "verdict"
     assert (out / "success_rates.png").is_file()
