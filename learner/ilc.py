@@ -41,7 +41,6 @@ from flyknot.record import Cell, TrialRecord
 from learner.bezier import BezierCommand
 from learner.ilc_params import ILCParams, parse_confirm
 from learner.ilc_step import (
-    MAX_HALVINGS,
     Context,
     LoopState,
     Step,
@@ -54,7 +53,6 @@ from learner.run_directory import RunDirectory, TrialSummary, written_record
 from learner.target import DemoTarget
 
 __all__ = [
-    "MAX_HALVINGS",
     "ILCParams",
     "LearnResult",
     "critical_cost",

@@ -62,6 +62,9 @@ class ILCParams:
             own update, shrunk by 1/2 per consecutive rejection (the paper has none).
         average: Plays of each command before an update (>= 1; the paper: 1); the update
             uses the mean critical-point error of the plays (each play is a trial).
+        step_halvings: Halvings of an update's step at most while its command breaks a
+            joint limit on its samples (the QP holds torque limits to first order only); the
+            last is taken anyway and the cell's controller decides (>= 0).
         update: How every update forms and solves its QP (objective, weights, trust region,
             solver...: :class:`learner.update.UpdateSettings`; its options sit beside these).
             Its joint limits are the cell's, given to :func:`learner.ilc.learn`.
@@ -75,10 +78,11 @@ class ILCParams:
     confirm: tuple[int, int] | None = None
     safeguard: bool = False
     average: int = 1
+    step_halvings: int = 4
     update: UpdateSettings = field(default_factory=UpdateSettings, metadata=INLINE)
 
     def __post_init__(self) -> None:
-        for name in ("max_trials", "tracking_retries"):
+        for name in ("max_trials", "tracking_retries", "step_halvings"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
                 raise ConfigError(name, f"must be an integer >= 0, got {v!r}")

@@ -219,7 +219,8 @@ def decide(
     if back is not None:
         group.clear()
         action = f"cost rose: back to the best command, step x0.5^{guard.rejects}"
-        new = safe_step(back[0], params.gain * back[1], ctx.target.T, ctx.robot, ctx.limits)
+        dk = params.gain * back[1]
+        new = safe_step(back[0], dk, ctx.target.T, ctx.robot, ctx.limits, params.step_halvings)
         return Step(replace(summary, action=action), update, new, None, True)
     measured = summary.fault is None and not summary.tracking_lost
     if params.average > 1 and len(group) + 1 < params.average and measured:
@@ -260,26 +261,29 @@ def next_knots(
         return prev_knots + 0.5 * (knots - prev_knots), None
     if summary.update_solved:
         dk = ctx.params.gain * np.asarray(update.dkappa)
-        return safe_step(knots, dk, ctx.target.T, ctx.robot, ctx.limits), None
+        halvings = ctx.params.step_halvings
+        return safe_step(knots, dk, ctx.target.T, ctx.robot, ctx.limits, halvings), None
     return knots, None  # failed QP: command unchanged (reported in the ledger)
 
 
-MAX_HALVINGS = 4
-
-
 def safe_step(
-    knots: np.ndarray, dkappa: np.ndarray, T: float, robot: RobotModel, limits: JointLimits
+    knots: np.ndarray,
+    dkappa: np.ndarray,
+    T: float,
+    robot: RobotModel,
+    limits: JointLimits,
+    halvings: int = 4,
 ) -> np.ndarray:
-    """kappa - alpha dkappa with the largest alpha in 1, 1/2, ..., 1/16 whose command keeps
-    every limit on its 250 Hz samples (torque by the robot model's inverse dynamics).
+    """kappa - alpha dkappa with the largest alpha in 1, 1/2, ..., 1/2^halvings whose command
+    keeps every limit on its 250 Hz samples (torque by the robot model's inverse dynamics).
 
     The QP holds the limits only to first order (torque is linearised); a step that breaks a
-    limit would fault the robot and teach nothing. If even 1/16 breaks one, that step is
-    taken anyway and the lab's controller decides.
+    limit would fault the robot and teach nothing. If even the smallest breaks one, that step
+    is taken anyway and the lab's controller decides.
     """
     t = BezierCommand(knots, T).sample_times()
     alpha = 1.0
-    for _ in range(MAX_HALVINGS + 1):
+    for _ in range(halvings + 1):
         new = knots - alpha * dkappa
         if sampled_violation(new, T, t, robot, limits) <= 1e-9:
             return new

@@ -170,6 +170,8 @@ def test_safe_step_halves_a_step_that_would_break_a_limit(robot):
     assert alpha in (0.5, 0.25, 0.125, 0.0625)
     small = 0.01 * dk
     np.testing.assert_allclose(_safe_step(knots, small, T, robot, JointLimits()), knots - small)
+    # With no halving allowed the whole step is taken, limits or not.
+    np.testing.assert_allclose(_safe_step(knots, dk, T, robot, JointLimits(), 0), knots - dk)
 
 
 def test_gain_scales_the_step(robot, problem, monkeypatch):
