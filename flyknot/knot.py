@@ -41,6 +41,7 @@ topoly is consistent. The diagrams and the Alexander polynomial are in
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 from pathlib import Path
@@ -221,13 +222,19 @@ def closure_directions(n: int) -> np.ndarray:
     Raises:
         ConfigError: ``n`` is not an integer >= 1.
     """
-    n = _check_n_directions(n)
+    return _directions(_check_n_directions(n)).copy()
+
+
+@functools.cache
+def _directions(n: int) -> np.ndarray:
+    """:func:`closure_directions` for a checked ``n``, computed once, read-only."""
     i = np.arange(n)
     z = 1.0 - (2.0 * i + 1.0) / n
     r = np.sqrt(np.clip(1.0 - z * z, 0.0, None))
     phi = i * _GOLDEN_ANGLE
-    d = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
-    return d[_van_der_corput_order(n)]
+    d = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)[_van_der_corput_order(n)]
+    d.flags.writeable = False
+    return d
 
 
 def _van_der_corput_order(n: int) -> np.ndarray:
@@ -351,7 +358,7 @@ def closure_votes(
         ConfigError: ``n_directions`` is not an integer >= 1.
     """
     p = normalise(check_points(points))
-    dirs = closure_directions(n_directions)
+    dirs = _directions(_check_n_directions(n_directions))
     votes: dict[str, int] = {}
     for done, d in enumerate(dirs, start=1):
         name = classify_closure(p, d)

@@ -8,7 +8,8 @@ that passes *over* every strand). The Alexander polynomial of that diagram (the 
 form of Alexander's matrix, J. W. Alexander, Trans. AMS 30 (1928) 275-306; evaluated at roots
 of unity and recovered by an FFT, :func:`alexander_polynomial`) is looked up in topoly's table
 of knot polynomials for a name in Rolfsen notation (:func:`knot_name`). Pure NumPy apart from
-that table; why not topoly's own closures: see :mod:`flyknot.knot`.
+that table and the compiled crossing search (:mod:`flyknot.knot_kernel`); why not topoly's
+own closures: see :mod:`flyknot.knot`.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from flyknot.errors import ConfigError, RecordError
+from flyknot.knot_kernel import count_hits, crossings
 
 __all__ = [
     "OTHER",
@@ -95,7 +97,8 @@ def projection_frame(direction: np.ndarray) -> np.ndarray:
     a[int(np.argmin(np.abs(d)))] = 1.0
     e1 = a - (a @ d) * d
     e1 /= np.linalg.norm(e1)
-    return np.stack([e1, np.cross(d, e1), d])
+    e2 = [d[1] * e1[2] - d[2] * e1[1], d[2] * e1[0] - d[0] * e1[2], d[0] * e1[1] - d[1] * e1[0]]
+    return np.array([e1, e2, d])
 
 
 # --------------------------------------------------------------------------------------------
@@ -137,7 +140,7 @@ def _edge_pairs(m: int) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs (i < j) of non-adjacent edges of a closed m-gon."""
     i, j = np.triu_indices(m, k=2)
     keep = ~((i == 0) & (j == m - 1))
-    return i[keep], j[keep]
+    return np.ascontiguousarray(i[keep]), np.ascontiguousarray(j[keep])
 
 
 def project_diagram(
@@ -176,18 +179,37 @@ def project_diagram(
     """
     if closure not in ("over", "edge"):
         raise ConfigError("closure", f"unknown value {closure!r}", ["over", "edge"])
-    frame = projection_frame(direction)
+    frame = _frame(np.asarray(direction, dtype=float).tobytes())
     q = np.asarray(points, dtype=float) @ frame.T
     u, h = q[:, :2], q[:, 2]
-    h0, h1 = h, np.roll(h, -1)  # heights at the start and end of each edge
-    if closure == "over":
-        path = _over_path(u)
-        k = len(path) + 1  # edges of the closing path
-        rise = 10.0 + np.arange(k + 1, dtype=float)
-        u = np.vstack([u, path])
-        h0 = np.concatenate([h[:-1], rise[:-1]])
-        h1 = np.concatenate([h[1:], rise[1:]])
+    if closure == "edge":
+        return _crossings(u, h, np.roll(h, -1), strict)  # heights at each edge's two ends
+    path = _over_path(u)
+    k = len(path) + 1  # edges of the closing path
+    rise = 10.0 + np.arange(k + 1, dtype=float)
+    u = np.vstack([u, path]) if len(path) else u
+    h0 = np.concatenate([h[:-1], rise[:-1]])
+    h1 = np.concatenate([h[1:], rise[1:]])
     return _crossings(u, h0, h1, strict)
+
+
+@functools.lru_cache(maxsize=256)
+def _frame(direction: bytes) -> np.ndarray:
+    """:func:`projection_frame` of a direction given as its float64 bytes (closures use the
+    same few directions for every curve), read-only."""
+    frame = projection_frame(np.frombuffer(direction, dtype=float))
+    frame.flags.writeable = False
+    return frame
+
+
+@functools.cache
+def _rays() -> np.ndarray:
+    """The 12 rays out of an end point tried for the closing path, 3 (cos a, sin a) at
+    a = 0.1 + k pi / 6, shape (12, 2), read-only."""
+    ang = np.arange(12) * (np.pi / 6.0) + 0.1
+    rays = 3.0 * np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    rays.flags.writeable = False
+    return rays
 
 
 def _over_path(u: np.ndarray) -> np.ndarray:
@@ -196,8 +218,7 @@ def _over_path(u: np.ndarray) -> np.ndarray:
     direct = _count_hits(u[-1:], u[:1], u, skip=(0, n - 2))[0]
     if direct == 0:
         return np.zeros((0, 2))
-    ang = np.arange(12) * (np.pi / 6.0) + 0.1
-    rays = 3.0 * np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    rays = _rays()
     hit_first = _count_hits(np.repeat(u[:1], 12, 0), u[0] + rays, u, skip=(0,))
     hit_last = _count_hits(np.repeat(u[-1:], 12, 0), u[-1] + rays, u, skip=(n - 2,))
     a, b = int(np.argmin(hit_first)), int(np.argmin(hit_last))
@@ -214,75 +235,25 @@ def _over_path(u: np.ndarray) -> np.ndarray:
 
 
 def _count_hits(a: np.ndarray, b: np.ndarray, u: np.ndarray, skip: tuple[int, ...]) -> np.ndarray:
-    """Crossings of each 2-D segment a[k] -> b[k] with the open polyline u, skipping edges."""
-    e0, e1 = u[:-1], u[1:]
-    keep = np.ones(len(e0), dtype=bool)
-    keep[list(skip)] = False
-    e0, e1 = e0[keep], e1[keep]
-    r = (b - a)[:, None, :]
-    s = (e1 - e0)[None]
-    w = e0[None] - a[:, None, :]
-    den = r[..., 0] * s[..., 1] - r[..., 1] * s[..., 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (w[..., 0] * s[..., 1] - w[..., 1] * s[..., 0]) / den
-        v = (w[..., 0] * r[..., 1] - w[..., 1] * r[..., 0]) / den
-    return np.sum((den != 0) & (t > 0) & (t < 1) & (v > 0) & (v < 1), axis=1)
+    """Crossings of each 2-D segment a[k] -> b[k] with the open polyline u, skipping edges
+    (:func:`flyknot.knot_kernel.count_hits`)."""
+    mask = np.zeros(len(u) - 1, dtype=np.bool_)
+    mask[list(skip)] = True
+    return count_hits(np.ascontiguousarray(a), np.ascontiguousarray(b), u, mask)
 
 
 def _crossings(u: np.ndarray, h0: np.ndarray, h1: np.ndarray, strict: bool) -> Diagram | None:
-    """Crossings of the closed 2-D polygon u (m, 2) whose edge k rises from h0[k] to h1[k]."""
+    """Crossings of the closed 2-D polygon u (m, 2) whose edge k rises from h0[k] to h1[k]
+    (:func:`flyknot.knot_kernel.crossings` over the non-adjacent edge pairs)."""
     m = len(u)
     i, j = _edge_pairs(m)
-    a, r = u[i], u[(i + 1) % m] - u[i]
-    c, s = u[j], u[(j + 1) % m] - u[j]
-    w = c - a
-    den = r[:, 0] * s[:, 1] - r[:, 1] * s[:, 0]
-    tn = w[:, 0] * s[:, 1] - w[:, 1] * s[:, 0]
-    sn = w[:, 0] * r[:, 1] - w[:, 1] * r[:, 0]
-    lr = np.linalg.norm(r, axis=1)
-    ls = np.linalg.norm(s, axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = tn / den
-        v = sn / den
-        et = _EPS / lr
-        es = _EPS / ls
-    general = np.abs(den) > 1e-12 * lr * ls
-    proper = general & (t > et) & (t < 1 - et) & (v > es) & (v < 1 - es)
-    degenerate = general & ~proper & (t >= -et) & (t <= 1 + et) & (v >= -es) & (v <= 1 + es)
-    par = ~general
-    if par.any():  # parallel or zero-length edges: degenerate if collinear and overlapping
-        degenerate |= par & _collinear_overlap(a, r, c, s, lr, ls)
-    if strict and degenerate.any():
+    u = np.ascontiguousarray(u, dtype=float)
+    h0 = np.ascontiguousarray(h0, dtype=float)
+    h1 = np.ascontiguousarray(h1, dtype=float)
+    degenerate, over, under, sign = crossings(u, h0, h1, i, j, _EPS, strict)
+    if degenerate:
         return None
-    i, j, t, v = i[proper], j[proper], t[proper], v[proper]
-    r, s = r[proper], s[proper]
-    hi = h0[i] + t * (h1[i] - h0[i])
-    hj = h0[j] + v * (h1[j] - h0[j])
-    if strict and np.any(np.abs(hi - hj) <= _EPS):
-        return None
-    i_over = hi > hj
-    over = np.where(i_over, i + t, j + v)
-    under = np.where(i_over, j + v, i + t)
-    ro = np.where(i_over[:, None], r, s)
-    rw = np.where(i_over[:, None], s, r)
-    sign = np.sign(ro[:, 0] * rw[:, 1] - ro[:, 1] * rw[:, 0]).astype(int)
     return Diagram(n_edges=m, over=over, under=under, sign=sign)
-
-
-def _collinear_overlap(a, r, c, s, lr, ls) -> np.ndarray:
-    """For parallel 2-D segments a + t r and c + v s: do they lie on one line and overlap?"""
-    ref = np.where((lr >= ls)[:, None], r, s)
-    lref = np.maximum(np.maximum(lr, ls), 1e-300)
-    w = c - a
-    off = np.abs(ref[:, 0] * w[:, 1] - ref[:, 1] * w[:, 0]) / lref
-    # Project all four end points on the common direction and compare intervals.
-    e = ref / lref[:, None]
-    a0, a1 = np.zeros(len(a)), np.einsum("ij,ij->i", r, e)
-    c0 = np.einsum("ij,ij->i", w, e)
-    c1 = c0 + np.einsum("ij,ij->i", s, e)
-    lo = np.maximum(np.minimum(a0, a1), np.minimum(c0, c1))
-    hi = np.minimum(np.maximum(a0, a1), np.maximum(c0, c1))
-    return (off <= _EPS) & (hi >= lo - _EPS)
 
 
 def alexander_matrix(

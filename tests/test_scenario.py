@@ -349,7 +349,7 @@ def test_a_runs_learner_options_are_the_loops():
     assert option_names(ILCParams) == (*loop, *update)
     own = ("name", "rope", "demo", "seed", "repeats", "settle_s", "start_from")
     own += ("follow_through_s", "path_frac", "label")
-    assert RUN_KEYS == (*own, *option_names(ILCParams))
+    assert (*own, *option_names(ILCParams)) == RUN_KEYS
     values = {"name": "a", "gain": 0.5, "weights": {"w_control": 5.0}}
     spec = from_mapping(RunSpec, {**values, "rope_model": {"damping": 0.5}, "margin": 0.25})
     params = spec.learner
