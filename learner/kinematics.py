@@ -257,6 +257,7 @@ class RobotModel:
         v = Jp @ qd
         Jd = ca.jacobian(d, q)
         Jv = ca.jacobian(v, q)
+        vq, vqd, vqdd = (ca.SX.sym(name, n) for name in ("vq", "vqd", "vqdd"))
         Jt_q = ca.jacobian(tau, q)
         Jt_qd = ca.jacobian(tau, qd)
         Jt_qdd = ca.jacobian(tau, qdd)
@@ -284,6 +285,11 @@ class RobotModel:
             "tau": ca.Function("tau_flat", [q, qd, qdd], [tau]),
             "tau_jac": ca.Function(
                 "tau_jac_flat", [q, qd, qdd], [rows(Jt_q), rows(Jt_qd), rows(Jt_qdd)]
+            ),
+            "tau_jvp": ca.Function(
+                "tau_jvp_flat",
+                [q, qd, qdd, vq, vqd, vqdd],
+                [ca.jtimes(tau, ca.vertcat(q, qd, qdd), ca.vertcat(vq, vqd, vqdd))],
             ),
         }
         zeros = np.zeros(n)
@@ -406,3 +412,35 @@ class RobotModel:
         qdd = self._batch("qdd", qdd, m)
         a, b, c = self._mapped("tau_jac", m)(q.T, qd.T, qdd.T)
         return TorqueJacobians(*(np.asarray(x).T.reshape(m, n, n) for x in (a, b, c)))
+
+    def torque_jvp(
+        self,
+        q: np.ndarray,
+        qd: np.ndarray,
+        qdd: np.ndarray,
+        dq: np.ndarray,
+        dqd: np.ndarray,
+        dqdd: np.ndarray,
+    ) -> np.ndarray:
+        """Directional derivative of the inverse dynamics for a batch (forward mode).
+
+        ``dtau = dtau/dq dq + dtau/dqd dqd + dtau/dqdd dqdd`` at each state, without forming
+        the Jacobians.
+
+        Args:
+            q: Joint angles (m, n) [rad].
+            qd: Joint velocities (m, n) [rad/s].
+            qdd: Joint accelerations (m, n) [rad/s^2].
+            dq: Direction of the angles (m, n) [rad].
+            dqd: Direction of the velocities (m, n) [rad/s].
+            dqdd: Direction of the accelerations (m, n) [rad/s^2].
+
+        Returns:
+            ``dtau`` (m, n) [N m].
+        """
+        q = self._batch("q", q)
+        m = q.shape[0]
+        args = [self._batch(name, x, m) for name, x in (("qd", qd), ("qdd", qdd))]
+        dirs = [self._batch(name, x, m) for name, x in (("dq", dq), ("dqd", dqd), ("dqdd", dqdd))]
+        out = self._mapped("tau_jvp", m)(q.T, *(x.T for x in args), *(x.T for x in dirs))
+        return np.asarray(out).T

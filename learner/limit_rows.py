@@ -91,6 +91,102 @@ class LimitRows:
         return int(self.J.shape[0])
 
 
+@dataclass(frozen=True)
+class _DenseBlock:
+    """Rows whose knot Jacobian is at hand: position, velocity, acceleration (exact)."""
+
+    J: np.ndarray  # (r, 80)
+
+    def rows(self, idx: np.ndarray) -> np.ndarray:
+        return self.J[idx]
+
+    def product(self, dk: np.ndarray) -> np.ndarray:
+        return self.J @ dk
+
+
+@dataclass(frozen=True)
+class _TorqueBlock:
+    """Torque rows, row ``a * 7 + j`` for sample a and joint j: the knot Jacobian
+    ``dID/dq S_0 + dID/dqd S_1 + dID/dqdd S_2`` of a sample is formed only when one of its rows
+    is asked for, and ``J dkappa`` is the inverse dynamics' directional derivative along
+    ``(S_0, S_1, S_2) dkappa``, without any Jacobian."""
+
+    robot: RobotModel
+    states: tuple[np.ndarray, np.ndarray, np.ndarray]  # q, qd, qdd, each (m, 7)
+    S: tuple[np.ndarray, np.ndarray, np.ndarray]  # d q^(r) / d kappa, each (m, 7, 80)
+
+    def rows(self, idx: np.ndarray) -> np.ndarray:
+        samples, where = np.unique(idx // N_JOINTS, return_inverse=True)
+        dq, dqd, dqdd = self.robot.torque_jacobians(*(x[samples] for x in self.states))
+        S0, S1, S2 = (x[samples] for x in self.S)
+        J = (
+            np.einsum("aij,ajc->aic", dq, S0)
+            + np.einsum("aij,ajc->aic", dqd, S1)
+            + np.einsum("aij,ajc->aic", dqdd, S2)
+        )
+        return J[where, idx % N_JOINTS]
+
+    def product(self, dk: np.ndarray) -> np.ndarray:
+        v = [S @ dk for S in self.S]  # (m, 7) each
+        return self.robot.torque_jvp(*self.states, *v).ravel()
+
+
+@dataclass(frozen=True)
+class LimitGrid:
+    """Every limit row of a command on its sample grid (:func:`limit_rows`): the values, the
+    bounds and the blocks of :class:`LimitRows`, with the knot Jacobian formed only for the
+    rows taken into a QP (:meth:`take`) and applied to an update without forming it
+    (:meth:`product`).
+
+    Attributes:
+        b: Values at the current knots (r,).
+        lo: Lower bounds (r,).
+        hi: Upper bounds (r,).
+        blocks: Named row ranges ``name -> (start, stop)``.
+        parts: The row source of each block, in block order.
+    """
+
+    b: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    blocks: Mapping[str, tuple[int, int]]
+    parts: tuple[_DenseBlock | _TorqueBlock, ...]
+
+    @property
+    def n_rows(self) -> int:
+        """Number of limit rows."""
+        return int(self.b.shape[0])
+
+    @property
+    def J(self) -> np.ndarray:
+        """Every row's knot Jacobian (r, 80), formed on each call."""
+        return self.rows(np.arange(self.n_rows))
+
+    def rows(self, idx: np.ndarray) -> np.ndarray:
+        """The knot Jacobian of the rows ``idx`` (sorted), shape (len(idx), 80)."""
+        idx = np.asarray(idx, dtype=int)
+        out = np.empty((idx.size, N_VARS))
+        for (a, z), part in zip(self.blocks.values(), self.parts, strict=True):
+            lo, hi = np.searchsorted(idx, a), np.searchsorted(idx, z)
+            if hi > lo:
+                out[lo:hi] = part.rows(idx[lo:hi] - a)
+        return out
+
+    def product(self, dkappa: np.ndarray) -> np.ndarray:
+        """``J dkappa`` for every row, shape (r,), with ``dkappa`` (80,)."""
+        return np.concatenate([part.product(dkappa) for part in self.parts])
+
+    def take(self, idx: np.ndarray) -> LimitRows:
+        """The rows ``idx`` (sorted) as :class:`LimitRows`, the named blocks kept contiguous."""
+        idx = np.asarray(idx, dtype=int)
+        blocks = {
+            name: (int(np.searchsorted(idx, a)), int(np.searchsorted(idx, z)))
+            for name, (a, z) in self.blocks.items()
+        }
+        J = self.rows(idx)
+        return LimitRows(J=J, b=self.b[idx], lo=self.lo[idx], hi=self.hi[idx], blocks=blocks)
+
+
 def limit_rows(
     knots: np.ndarray,
     T: float,
@@ -98,7 +194,7 @@ def limit_rows(
     robot_model: RobotModel | None,
     limits: JointLimits | None = None,
     kinds: Sequence[str] = LIMIT_KINDS,
-) -> LimitRows:
+) -> LimitGrid:
     """Joint position, velocity, acceleration and torque limits at sample times.
 
     For sample a and joint j (row ``a * 7 + j`` of each block), with the basis ``C_r`` of the
@@ -111,7 +207,8 @@ def limit_rows(
         d tau / d kappa = dID/dq S_0 + dID/dqd S_1 + dID/dqdd S_2,   S_r = d q^(r) / d kappa
 
     so a row bounds exactly what the simulated controller faults on and the hardware preflight
-    refuses on.
+    refuses on. The torque rows' Jacobians are formed only for the rows a QP takes
+    (:class:`LimitGrid`).
 
     Bounds: ``q_min <= q <= q_max``, ``|qd| <= qd_max``, ``|qdd| <= qdd_max``,
     ``|tau| <= tau_max``.
@@ -125,7 +222,7 @@ def limit_rows(
         kinds: Which blocks to build, a subset of ("pos", "vel", "acc", "tau").
 
     Returns:
-        The stacked rows: J (r, 80), b (r,), lo, hi, with blocks named by ``kinds``.
+        The grid of rows: b (r,), lo, hi, blocks named by ``kinds``, the Jacobian on demand.
     """
     limits = JointLimits() if limits is None else limits
     kinds = list(kinds)
@@ -133,6 +230,8 @@ def limit_rows(
         check_choice("kinds", k, LIMIT_KINDS)
     if "tau" in kinds and robot_model is None:
         raise ConfigError("robot_model", "is needed for torque limits (kind 'tau')")
+    if not kinds:
+        raise ConfigError("kinds", "must name at least one limit", LIMIT_KINDS)
     t = np.asarray(t_samples, dtype=float)
     bases = {r: controller_basis(t, T, r) for r in (0, 1, 2)}  # (m, 8)
     joints = check_knots(knots)[:N_JOINTS].T  # (8, 7)
@@ -145,37 +244,33 @@ def limit_rows(
         "acc": (-limits.qdd_max, limits.qdd_max),
         "tau": (-limits.tau_max, limits.tau_max),
     }
-    Js, bs, los, his, blocks = [], [], [], [], {}
+    parts, bs, los, his, blocks = [], [], [], [], {}
     start = 0
     for kind in kinds:
         if kind == "tau":
-            q, qd, qdd = derivs[0], derivs[1], derivs[2]
-            b = robot_model.torques(q, qd, qdd)  # type: ignore[union-attr]
-            dq, dqd, dqdd = robot_model.torque_jacobians(q, qd, qdd)  # type: ignore[union-attr]
-            S = [jacs[r].reshape(m, N_JOINTS, N_VARS) for r in (0, 1, 2)]
-            J = (
-                np.einsum("aij,ajc->aic", dq, S[0])
-                + np.einsum("aij,ajc->aic", dqd, S[1])
-                + np.einsum("aij,ajc->aic", dqdd, S[2])
-            ).reshape(m * N_JOINTS, N_VARS)
+            states = (derivs[0], derivs[1], derivs[2])
+            b = robot_model.torques(*states)  # type: ignore[union-attr]
+            S = tuple(jacs[r].reshape(m, N_JOINTS, N_VARS) for r in (0, 1, 2))
+            parts.append(_TorqueBlock(robot_model, states, S))  # type: ignore[arg-type]
         else:
             r = LIMIT_KINDS.index(kind)
-            b, J = derivs[r], jacs[r]
+            b = derivs[r]
+            parts.append(_DenseBlock(jacs[r]))
         lo, hi = bounds[kind]
-        Js.append(J)
         bs.append(np.asarray(b).ravel())
         los.append(np.tile(lo, m))
         his.append(np.tile(hi, m))
         blocks[kind] = (start, start + m * N_JOINTS)
         start += m * N_JOINTS
-    if not Js:
-        raise ConfigError("kinds", "must name at least one limit", LIMIT_KINDS)
-    return LimitRows(
-        J=np.vstack(Js),
-        b=np.concatenate(bs),
-        lo=np.concatenate(los),
-        hi=np.concatenate(his),
-        blocks=blocks,
+    b, lo, hi = np.concatenate(bs), np.concatenate(los), np.concatenate(his)
+    if not np.all(np.isfinite(b)):
+        raise ConfigError("b", "must be finite")
+    return LimitGrid(
+        b=readonly(b),
+        lo=readonly(lo),
+        hi=readonly(hi),
+        blocks=MappingProxyType(blocks),
+        parts=tuple(parts),
     )
 
 
@@ -184,7 +279,7 @@ def limit_rows(
 # --------------------------------------------------------------------------------------------
 
 
-def row_scale(rows: LimitRows) -> tuple[np.ndarray, np.ndarray]:
+def row_scale(rows: LimitRows | LimitGrid) -> tuple[np.ndarray, np.ndarray]:
     """Mid point and half range of every row (half range 1 where a bound is infinite).
 
     Every selection and violation below is measured in these units: a row's value y is
@@ -197,7 +292,7 @@ def row_scale(rows: LimitRows) -> tuple[np.ndarray, np.ndarray]:
     return mid, half
 
 
-def initial_active_rows(rows: LimitRows, margin: float) -> np.ndarray:
+def initial_active_rows(rows: LimitRows | LimitGrid, margin: float) -> np.ndarray:
     """Rows whose current value uses at least ``margin`` of the range: |b - mid| >= m * half.
 
     Args:
@@ -211,7 +306,7 @@ def initial_active_rows(rows: LimitRows, margin: float) -> np.ndarray:
     return np.flatnonzero(np.abs(rows.b - mid) >= margin * half)
 
 
-def limit_violation(rows: LimitRows, dkappa: np.ndarray) -> np.ndarray:
+def limit_violation(rows: LimitRows | LimitGrid, dkappa: np.ndarray) -> np.ndarray:
     """Linearised violation of every row after the update, relative to the half range.
 
     y = b - J dkappa,  viol = max(lo - y, y - hi, 0) / half.
@@ -224,7 +319,8 @@ def limit_violation(rows: LimitRows, dkappa: np.ndarray) -> np.ndarray:
         Violations, shape (r,) (0 where the row holds).
     """
     _, half = row_scale(rows)
-    y = rows.b - rows.J @ np.asarray(dkappa, dtype=float).ravel()
+    dk = np.asarray(dkappa, dtype=float).ravel()
+    y = rows.b - (rows.product(dk) if isinstance(rows, LimitGrid) else rows.J @ dk)
     return np.maximum(0.0, np.maximum(rows.lo - y, y - rows.hi)) / half
 
 
@@ -261,8 +357,10 @@ def sampled_violation(
     return worst
 
 
-def subset_rows(rows: LimitRows, idx: np.ndarray) -> LimitRows:
+def subset_rows(rows: LimitRows | LimitGrid, idx: np.ndarray) -> LimitRows:
     """The rows ``idx`` (sorted) of ``rows``, with the named blocks kept contiguous."""
+    if isinstance(rows, LimitGrid):
+        return rows.take(idx)
     idx = np.asarray(idx, dtype=int)
     blocks = {}
     for name, (a, z) in rows.blocks.items():
@@ -296,7 +394,7 @@ class GeneratedSolve:
 
 
 def generate_constraints(
-    rows: LimitRows | None,
+    rows: LimitRows | LimitGrid | None,
     solve: Callable[[LimitRows | None], QPResult],
     margin: float,
     max_rounds: int,
@@ -349,6 +447,7 @@ __all__ = [
     "LIMIT_KINDS",
     "LIMIT_TOL",
     "GeneratedSolve",
+    "LimitGrid",
     "LimitRows",
     "generate_constraints",
     "initial_active_rows",

@@ -481,8 +481,8 @@ def ilc_update(
     sampled = 0.0
     if res.solved:
         dk = _project_base(res.dkappa, s.base_update)
-        if rows is not None:
-            viol = limit_violation(rows, dk)
+        if rows is not None and not np.array_equal(dk[:N_JOINTS], res.dkappa[:N_JOINTS]):
+            viol = limit_violation(rows, dk)  # the limits see the joint rows only
         new_knots = knots - dk
         if s.limits is not None:
             sampled = sampled_violation(new_knots, T, t_samples, robot, s.limits)

@@ -25,7 +25,7 @@ from learner.inverse_qp import (
     solve_qp,
 )
 from learner.kinematics import RobotModel
-from learner.limit_rows import LimitRows, limit_rows
+from learner.limit_rows import LimitRows, limit_rows, subset_rows
 
 CHAIN7 = Path(__file__).parent / "data" / "chain7.xml"
 N_MARK = 11
@@ -217,6 +217,24 @@ def test_limit_rows_values_and_jacobians(robot: RobotModel):
         scale = max(1.0, np.abs(rows.J[a:z]).max())
         assert np.abs(rows.J[a:z] - J_fd[a:z]).max() <= 1e-6 * scale, kind
     assert np.all(rows.J[:, 56:] == 0)  # base offset rows move no joint
+
+
+def test_the_grid_forms_only_the_rows_asked_for(robot: RobotModel):
+    """Rows taken from the grid equal those of the whole Jacobian bit for bit, in any block
+    order; J dkappa without the Jacobian equals the product with it."""
+    knots = _knots(seed=5)
+    t = T_SAMPLES[::10]
+    for kinds in (("pos", "vel", "acc", "tau"), ("tau", "pos")):
+        grid = limit_rows(knots, T, t, robot, kinds=kinds)
+        full = grid.J
+        idx = np.sort(np.random.default_rng(1).choice(grid.n_rows, 40, replace=False))
+        np.testing.assert_array_equal(grid.rows(idx), full[idx])
+        taken = subset_rows(grid, idx)
+        np.testing.assert_array_equal(taken.J, full[idx])
+        np.testing.assert_array_equal(taken.b, grid.b[idx])
+        assert list(taken.blocks) == list(kinds)
+        dk = np.random.default_rng(2).standard_normal(80)
+        np.testing.assert_allclose(grid.product(dk), full @ dk, rtol=1e-10, atol=1e-9)
 
 
 # ------------------------------------------------------------------------------ solving

@@ -182,6 +182,24 @@ def test_torque_jacobians_match_finite_differences(setup: Setup):
     _assert_jac(jac.dtau_dqdd, _central_fd(lambda x: robot.torques(q, qd, x), qdd))
 
 
+def test_torque_jvp_is_the_jacobians_along_a_direction(setup: Setup):
+    """dtau = dtau/dq dq + dtau/dqd dqd + dtau/dqdd dqdd, and central differences along it."""
+    robot = setup.robot
+    q, qd, qdd = setup.random_states(5, seed=8)
+    rng = np.random.default_rng(9)
+    v = [rng.standard_normal(q.shape) for _ in range(3)]
+    jac = robot.torque_jacobians(q, qd, qdd)
+    want = sum(np.einsum("aij,aj->ai", J, d) for J, d in zip(jac, v, strict=True))
+    got = robot.torque_jvp(q, qd, qdd, *v)
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10)
+    h = 1e-6
+    plus = robot.torques(q + h * v[0], qd + h * v[1], qdd + h * v[2])
+    minus = robot.torques(q - h * v[0], qd - h * v[1], qdd - h * v[2])
+    np.testing.assert_allclose(got, (plus - minus) / (2 * h), rtol=1e-5, atol=1e-6)
+    with pytest.raises(ConfigError, match=r"dqd: expected shape \(5, 7\)"):
+        robot.torque_jvp(q, qd, qdd, v[0], v[1][:2], v[2])
+
+
 def test_casadi_functions_match_batches(setup: Setup):
     robot = setup.robot
     q, qd, qdd = setup.random_states(3, seed=7)
