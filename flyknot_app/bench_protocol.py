@@ -25,11 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from flyknot.constants import SCENARIOS_DIR
 from flyknot.errors import ConfigError
-
-PAPER_SCENARIOS = tuple(sorted(p.stem for p in SCENARIOS_DIR.glob("0*.toml")))
-"""The paper's experiments, one scenario file each."""
+from flyknot_app.paper import PAPER_SCENARIOS
 
 
 @dataclass(frozen=True)

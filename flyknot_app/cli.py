@@ -12,6 +12,7 @@ import numpy as np
 from flyknot.errors import ConfigError
 from flyknot_app.bench import BENCHMARKS
 from flyknot_app.dispatch import dispatch
+from flyknot_app.paper import add_paper_parser
 from flyknot_app.scenario import parse_rope_arg
 from flyknot_app.trial_cli import add_trial_parsers
 
@@ -373,6 +374,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=_cmd_run)
 
     add_trial_parsers(sub)
+    add_paper_parser(sub)
 
     s = sub.add_parser("showcase", help="one fast showcase trial on the simulated lab")
     s.add_argument(

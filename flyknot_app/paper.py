@@ -1,0 +1,268 @@
+"""``flyknot paper``: every experiment of the paper over lab seeds, and one results table.
+
+Each paper scenario (``scenarios/0*.toml``) runs once per lab seed (``flyknot run SCENARIO
+--seeds ...``: run ``r`` becomes ``r-seedS``) into ``OUT/<scenario>``, sharing one cache of
+initial guesses (``OUT/initial_guess``); ``--resume`` continues where a run stopped. Then
+:func:`paper_table` reads every ``summary.json`` back and writes ``OUT/results.md``: per
+experiment, each run over the seeds (trials until the first knot: median, range and how many
+seeds tied within the budget; knots in the repeats pooled over the seeds with a 95 % Wilson
+interval) beside the paper's result, the transfer grid and the sensitivity table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import re
+import statistics
+import subprocess
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from flyknot.constants import REPO_ROOT, SCENARIOS_DIR
+from flyknot.errors import ConfigError
+
+if TYPE_CHECKING:
+    from flyknot_app.run_summary import RunSummary, ScenarioSummary
+
+PAPER_SCENARIOS = tuple(sorted(p.stem for p in SCENARIOS_DIR.glob("0*.toml")))
+"""The paper's experiments, one scenario file each."""
+_SEED_SUFFIX = re.compile(r"-seed\d+$")
+
+
+def run_paper(
+    out: str | Path,
+    seeds: Sequence[int],
+    *,
+    workers: int = 1,
+    resume: bool = False,
+    overrides: dict | None = None,
+    scenarios: Sequence[str] = PAPER_SCENARIOS,
+    progress: bool = True,
+) -> dict[str, float]:
+    """Run ``scenarios`` over ``seeds`` into ``out`` (module docstring); wall seconds per
+    scenario."""
+    from flyknot_app.runner import run_scenario
+    from flyknot_app.scenario import expand_seeds, load_scenario
+
+    out = Path(out)
+    for name in scenarios:
+        if name not in PAPER_SCENARIOS:
+            raise ConfigError("--scenarios", f"unknown paper scenario {name!r}", PAPER_SCENARIOS)
+    guesses = out / "initial_guess"
+    guesses.mkdir(parents=True, exist_ok=True)
+    walls: dict[str, float] = {}
+    for name in scenarios:
+        scen = expand_seeds(load_scenario(name, dict(overrides or {})), list(seeds))
+        where = out / name
+        again = resume and (where / "manifest.json").is_file()
+        where.mkdir(parents=True, exist_ok=True)
+        if not (where / "initial_guess").exists():
+            (where / "initial_guess").symlink_to(guesses.resolve(), target_is_directory=True)
+        if progress:
+            print(f"{name}: {len(scen.runs)} runs -> {where}", flush=True)
+        t0 = time.perf_counter()
+        run_scenario(
+            scen, where, workers=workers, resume=again, overrides=overrides, progress=progress
+        )
+        walls[name] = time.perf_counter() - t0
+        if progress:
+            print(f"{name}: {walls[name]:.0f} s", flush=True)
+    return walls
+
+
+def _base(run: RunSummary) -> str:
+    """A run's name without its seed suffix."""
+    return _SEED_SUFFIX.sub("", run.name)
+
+
+def _grouped(summary: ScenarioSummary) -> dict[str, list[RunSummary]]:
+    """The runs of a scenario by their name without the seed, in first-seen order."""
+    groups: dict[str, list[RunSummary]] = {}
+    for r in summary.runs:
+        groups.setdefault(_base(r), []).append(r)
+    return groups
+
+
+def trials_text(runs: Sequence[RunSummary]) -> str:
+    """Trials until the first knot over seeds: ``median (min-max), k of n seeds tied``; a
+    seed without a knot counts as its budget + 1 (``>``)."""
+    tied = [r.trials_to_success for r in runs if r.trials_to_success is not None]
+    if not tied:
+        budget = max((len(r.costs) for r in runs), default=0)
+        return f"none in {budget} ({len(runs)} seeds)"
+    med = statistics.median(tied)
+    span = f"{min(tied)}-{max(tied)}" if len(tied) > 1 else f"{tied[0]}"
+    return f"{med:g} ({span}), {len(tied)} of {len(runs)} seeds tied"
+
+
+def repeats_text(runs: Sequence[RunSummary]) -> str:
+    """Knots in the repeats pooled over seeds, with a 95 % Wilson interval, or ``-``."""
+    from flyknot_app.report import wilson_interval
+
+    k = sum(r.n_knots_repeated for r in runs)
+    n = sum(len(r.repeat_classes) for r in runs)
+    if not n:
+        return "-"
+    lo, hi = wilson_interval(k, n)
+    return f"{k}/{n} ({100 * lo:.0f}-{100 * hi:.0f} %)"
+
+
+def _runs_section(name: str, summary: ScenarioSummary) -> list[str]:
+    from flyknot_app.report import PAPER
+
+    paper = summary.paper or PAPER.get(summary.kind, "-")
+    lines = [f"## `{name}` ({summary.kind})", "", f"Paper: {paper}", ""]
+    lines += ["| run | rope | demo | objective | trials until the first knot | knots in repeats |"]
+    lines += ["|---|---|---|---|---|---|"]
+    for base, runs in _grouped(summary).items():
+        r = runs[0]
+        objective = r.learner.update.objective
+        lines.append(
+            f"| {base} | {r.rope} | {r.demo} | {objective} | {trials_text(runs)} | "
+            f"{repeats_text(runs)} |"
+        )
+    return [*lines, ""]
+
+
+def _sensitivity_section(summary: ScenarioSummary) -> list[str]:
+    from flyknot_app.report import PAPER_SENSITIVITY
+
+    lines = ["### Sensitivity to the learner's rope model", ""]
+    lines += ["| stiffness | end mass | trials until the first knot (ours) | paper |"]
+    lines += ["|---|---|---|---|"]
+    for runs in _grouped(summary).values():
+        rm = runs[0].learner.rope_model
+        paper = PAPER_SENSITIVITY.get((rm.stiffness, rm.end_mass), "-")
+        lines.append(f"| {rm.stiffness:g} | {rm.end_mass:g} | {trials_text(runs)} | {paper} |")
+    return [*lines, ""]
+
+
+def _transfer_section(summary: ScenarioSummary) -> list[str]:
+    """Median trials to transfer rope A's command to rope B over seeds (``-``: no seed tied)."""
+    runs = {r.name: r for r in summary.runs}
+    cells: dict[tuple, list[RunSummary]] = {}
+    for r in summary.runs:
+        if r.start_from:
+            cells.setdefault((runs[r.start_from].rope, r.rope), []).append(r)
+    ropes = sorted({b for _, b in cells} | {a for a, _ in cells}, key=str)
+    lines = ["### Transfer: median trials until the first knot, command of rope A on rope B", ""]
+    if not cells:
+        return [*lines, "No transfer run in this directory.", ""]
+    lines += ["| A \\ B | " + " | ".join(str(b) for b in ropes) + " |"]
+    lines += ["|---" * (len(ropes) + 1) + "|"]  # "-": no seed tied; empty: not run
+    for a in ropes:
+        row = []
+        for b in ropes:
+            tied = [r.trials_to_success for r in cells.get((a, b), []) if r.trials_to_success]
+            row.append(f"{statistics.median(tied):g}" if tied else "-" if (a, b) in cells else "")
+        lines.append(f"| {a} | " + " | ".join(row) + " |")
+    return [*lines, ""]
+
+
+def _commit() -> str:
+    try:
+        done = subprocess.run(
+            ["git", "-C", str(REPO_ROOT), "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return done.stdout.strip()
+
+
+def paper_table(out: str | Path, command: str) -> str:
+    """The results document of a ``flyknot paper`` directory (module docstring).
+
+    Raises:
+        ConfigError: ``out`` holds no scenario's ``summary.json``.
+    """
+    from flyknot_app.run_summary import ScenarioSummary
+
+    out = Path(out)
+    found = [n for n in PAPER_SCENARIOS if (out / n / "summary.json").is_file()]
+    if not found:
+        raise ConfigError("--out", f"{str(out)!r} holds no paper scenario's summary.json")
+    seeds = set()
+    sections: list[str] = []
+    for name in found:
+        summary = ScenarioSummary.from_json(json.loads((out / name / "summary.json").read_text()))
+        seeds |= {r.seed for r in summary.runs}
+        sections += _runs_section(name, summary)
+        if summary.kind == "sensitivity":
+            sections += _sensitivity_section(summary)
+        if summary.kind == "transfer":
+            sections += _transfer_section(summary)
+    head = [
+        "# Results",
+        "",
+        f"The paper's experiments in the simulated lab, lab seeds "
+        f"{', '.join(str(s) for s in sorted(seeds, key=str))}; written "
+        f"{dt.date.today().isoformat()} at commit {_commit()} by `{command}`. A knot is a "
+        "verdict `knot` of `flyknot.verdict` (an overhand knot in the hanging rope). Trials "
+        "until the first knot: median (range) over the seeds that tied; knots in the repeats: "
+        "pooled over the seeds, 95 % Wilson interval. Each run's report, with a picture of "
+        "every counted knot: `OUT/<scenario>/report.md`.",
+        "",
+    ]
+    return "\n".join(head + sections)
+
+
+def add_paper_parser(sub) -> None:
+    """Add ``paper`` to ``flyknot``'s subparsers."""
+    p = sub.add_parser(
+        "paper",
+        help="every experiment of the paper over lab seeds, then one results table",
+    )
+    p.add_argument("--seeds", default="0-4", help="lab seeds: A-B or A,B,... (default 0-4)")
+    p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    p.add_argument("--out", default="runs/paper", help="directory (default runs/paper)")
+    p.add_argument("--resume", action="store_true", help="continue the runs found in --out")
+    p.add_argument(
+        "--scenarios",
+        nargs="+",
+        default=list(PAPER_SCENARIOS),
+        metavar="NAME",
+        help="only these paper scenarios (default: all)",
+    )
+    p.add_argument(
+        "--set", action="append", metavar="KEY=VALUE", help="override a run option (repeatable)"
+    )
+    p.add_argument(
+        "--results", default=None, help="also write the table to this file (docs/results.md)"
+    )
+    p.add_argument("--table-only", action="store_true", help="run nothing; write the table")
+    p.set_defaults(func=_cmd_paper)
+
+
+def _cmd_paper(args: argparse.Namespace) -> int:
+    from flyknot_app.cli import _parse_seeds
+    from flyknot_app.scenario import parse_overrides
+
+    seeds = _parse_seeds(args.seeds)
+    overrides = parse_overrides(list(args.set or []))
+    out = Path(args.out)
+    if not args.table_only:
+        if not args.resume and any((out / n / "manifest.json").is_file() for n in args.scenarios):
+            raise ConfigError("--out", f"{str(out)!r} already holds paper runs; use --resume")
+        run_paper(
+            out,
+            seeds,
+            workers=args.workers,
+            resume=args.resume,
+            overrides=overrides,
+            scenarios=args.scenarios,
+        )
+    command = f"flyknot paper --seeds {args.seeds} --out {args.out}"
+    command += "".join(f" --set {p}" for p in args.set or [])
+    text = paper_table(out, command)
+    (out / "results.md").write_text(text)
+    if args.results:
+        Path(args.results).write_text(text)
+    print(f"results: {out / 'results.md'}" + (f" and {args.results}" if args.results else ""))
+    return 0

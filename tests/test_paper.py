@@ -1,0 +1,87 @@
+"""``flyknot paper``: the paper's scenarios over seeds, and the results table read from them."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from flyknot_app.cli import main
+from flyknot_app.paper import paper_table, repeats_text, trials_text
+from flyknot_app.run_summary import RunSummary, ScenarioSummary
+
+
+def _run(name, seed, tts, n=10, repeats=(), **options):
+    return RunSummary(
+        {"name": f"{name}-seed{seed}", "seed": seed, "demo": "robot", **options},
+        costs=[0.5] * (tts or n),
+        trials_to_success=tts,
+        repeat_classes=list(repeats),
+        judge="verdict",
+    )
+
+
+def test_trials_and_repeats_over_seeds():
+    runs = [_run("r", 0, 3, repeats=["knot"] * 38 + ["unknot"] * 2), _run("r", 1, None)]
+    runs.append(_run("r", 2, 5, repeats=["knot"] * 40))
+    assert trials_text(runs) == "4 (3-5), 2 of 3 seeds tied"
+    assert trials_text(runs[1:2]) == "none in 10 (1 seeds)"
+    assert repeats_text(runs) == "78/80 (91-99 %)"
+    assert repeats_text(runs[1:2]) == "-"
+
+
+def _write(out, name, kind, runs):
+    (out / name).mkdir(parents=True)
+    doc = ScenarioSummary(name, kind, tuple(runs)).to_json()
+    (out / name / "summary.json").write_text(json.dumps(doc))
+
+
+def test_the_table_has_every_experiment_beside_the_paper(tmp_path):
+    _write(tmp_path, "03-ropes", "learn", [_run("rope1", s, 2 + s, rope=1) for s in (0, 1)])
+    sens = [
+        _run("k1e2-me5", s, None, rope_model={"stiffness": 100.0, "end_mass": 5.0}) for s in (0, 1)
+    ]
+    _write(tmp_path, "07-sensitivity", "sensitivity", sens)
+    transfer = [_run("learn-rope1", 0, 2, rope=1), _run("learn-rope2", 0, 4, rope=2)]
+    transfer += [
+        _run("r1-on-r2", 0, 3, rope=2, start_from="learn-rope1-seed0"),
+        _run("r2-on-r1", 0, None, rope=1, start_from="learn-rope2-seed0"),
+    ]
+    _write(tmp_path, "06-transfer", "transfer", transfer)
+    text = paper_table(tmp_path, "flyknot paper --seeds 0-1")
+    assert "lab seeds 0, 1;" in text and "by `flyknot paper --seeds 0-1`" in text
+    assert "| rope1 | 1 | robot | critical | 2.5 (2-3), 2 of 2 seeds tied | - |" in text
+    assert "Paper: All 7 ropes learned within 10 trials" in text
+    assert "| 100 | 5 | none in 10 (2 seeds) | >10 |" in text
+    assert "| A \\ B | 1 | 2 |" in text
+    assert "| 1 |  | 3 |" in text and "| 2 | - |  |" in text
+
+
+def test_a_directory_without_runs_is_one_line(tmp_path, capsys):
+    assert main(["paper", "--out", str(tmp_path), "--table-only"]) == 2
+    assert "holds no paper scenario's summary.json" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("bad", [["--scenarios", "09-x"], ["--seeds", "x"]])
+def test_bad_arguments_are_one_line(tmp_path, capsys, bad):
+    assert main(["paper", "--out", str(tmp_path / "p"), *bad]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_one_scenario_over_two_seeds_then_resumed(tmp_path, capsys):
+    out = tmp_path / "p"
+    argv = ["paper", "--seeds", "0-1", "--scenarios", "04-success-rate", "--out", str(out)]
+    argv += ["--set", "max_runs=1", "--set", "max_trials=1", "--set", "settle_s=0.2"]
+    argv += ["--set", "repeats=1", "--results", str(tmp_path / "results.md")]
+    assert main(argv) == 0
+    ledger = out / "04-success-rate" / "runs" / "rope1-seed1" / "learning" / "ledger.jsonl"
+    before = ledger.read_text()
+    text = (tmp_path / "results.md").read_text()
+    assert text == (out / "results.md").read_text()
+    assert (
+        "| rope1 | 1 | robot | critical |" in text and "(2 seeds)" in text
+    ) or "seeds tied" in text
+    assert main(argv) == 2  # the runs are there: --resume or another --out
+    assert "use --resume" in capsys.readouterr().err
+    assert main([*argv, "--resume"]) == 0
+    assert ledger.read_text() == before
