@@ -17,7 +17,7 @@ A field whose default is itself a dataclass is a nested table (``weights = {w_co
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import MISSING, Field, fields, is_dataclass, replace
 from types import MappingProxyType
 from typing import Any, TypeVar
@@ -30,6 +30,35 @@ INLINE = MappingProxyType({"options": "inline"})
 """Field metadata: the field's options sit beside the outer class's own."""
 NOT_AN_OPTION = MappingProxyType({"options": "none"})
 """Field metadata: the program sets the field; no mapping may."""
+
+
+class ReadOnlyMap(Mapping):
+    """A read-only copy of a mapping that, unlike ``types.MappingProxyType``, pickles (options
+    and summaries travel to and from worker processes)."""
+
+    __slots__ = ("_data",)
+
+    def __init__(self, data: Mapping[str, Any] | None = None):
+        object.__setattr__(self, "_data", dict(data or {}))
+
+    def __getitem__(self, key: str) -> Any:
+        return self._data[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._data)
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError("a ReadOnlyMap cannot be changed")
+
+    def __repr__(self) -> str:
+        return f"ReadOnlyMap({self._data!r})"
+
+    def __reduce__(self):
+        """Rebuild from a plain dict."""
+        return (ReadOnlyMap, (self._data,))
 
 
 def _mode(f: Field) -> str:

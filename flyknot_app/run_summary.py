@@ -11,11 +11,10 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields
-from types import MappingProxyType
 from typing import Any
 
 from flyknot.errors import ConfigError
-from flyknot.options import from_mapping, option_names
+from flyknot.options import ReadOnlyMap, from_mapping, option_names
 from flyknot.verdict import KNOT
 from flyknot_app.scenario import RunSpec
 from learner.ilc_params import ILCParams
@@ -45,8 +44,8 @@ class RunSummary:
         judge: The name of the judge whose verdicts these are (``flyknot.verdict.JUDGE_NAME``).
         initial_guess: The initial guess's solve (status, cost, errors, T, t_c), or empty
             when the run started from another run's command.
-        T: Duration of the command [s].
-        t_c: Critical time of the demonstration [s].
+        T: Duration of the command [s] (None: not known).
+        t_c: Critical time of the demonstration [s] (None: not known).
         wall_s: Wall time of the run [s].
         custom_rope: A custom rope's ``rope_name``, ``rope_params`` and ``ropes_file``, or
             empty for a rope of the paper's.
@@ -64,8 +63,8 @@ class RunSummary:
     repeat_verdicts: tuple[Mapping[str, Any] | None, ...] = ()
     judge: str = ""
     initial_guess: Mapping[str, Any] = field(default_factory=dict)
-    T: float = float("nan")
-    t_c: float = float("nan")
+    T: float | None = None
+    t_c: float | None = None
     wall_s: float = 0.0
     custom_rope: Mapping[str, Any] = field(default_factory=dict)
 
@@ -78,7 +77,7 @@ class RunSummary:
         for name in ("costs", "knots", "faults", "verdicts", "repeat_classes", "repeat_verdicts"):
             object.__setattr__(self, name, tuple(getattr(self, name)))
         for name in ("options", "initial_guess", "custom_rope"):
-            object.__setattr__(self, name, MappingProxyType(dict(getattr(self, name))))
+            object.__setattr__(self, name, ReadOnlyMap(getattr(self, name)))
 
     @property
     def name(self) -> str:

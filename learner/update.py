@@ -42,7 +42,6 @@ import time
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from types import MappingProxyType
 
 import numpy as np
 
@@ -50,7 +49,7 @@ from flyknot.constants import COMMAND_RATE_HZ, N_JOINTS, N_KNOTS, N_ROWS
 from flyknot.errors import ConfigError, RecordError, check_choice, check_nonnegative, check_positive
 from flyknot.geometry import readonly
 from flyknot.limits import JointLimits
-from flyknot.options import NOT_AN_OPTION
+from flyknot.options import NOT_AN_OPTION, ReadOnlyMap
 from flyknot.record import TrialRecord
 from learner.bezier import BezierCommand
 from learner.critical_state import MarkerFitParams, critical_state_from_record
@@ -159,7 +158,7 @@ class UpdateSettings:
         object.__setattr__(self, "follow_through", bool(self.follow_through))
         object.__setattr__(self, "margin", float(margin))
         object.__setattr__(self, "max_rounds", int(rounds))
-        object.__setattr__(self, "solver_settings", MappingProxyType(dict(self.solver_settings)))
+        object.__setattr__(self, "solver_settings", ReadOnlyMap(self.solver_settings))
 
 
 @dataclass(frozen=True, eq=False)
@@ -220,7 +219,7 @@ class UpdateResult:
                 raise ConfigError(name, f"must have shape ({N_ROWS}, {N_KNOTS}), got {a.shape}")
             object.__setattr__(self, name, a)
         object.__setattr__(self, "err", readonly(self.err))
-        object.__setattr__(self, "timings", MappingProxyType(dict(self.timings)))
+        object.__setattr__(self, "timings", ReadOnlyMap(self.timings))
 
 
 # --------------------------------------------------------------------------------------------

@@ -171,3 +171,23 @@ def test_a_summary_reads_back_what_it_wrote():
 def test_no_outcome_field_shadows_a_run_option():
     own = {f.name for f in fields(RunSummary)} - {"options"}
     assert not own & set(OPTION_KEYS)
+
+
+def test_runs_and_summaries_travel_to_worker_processes():
+    """A run's options go to a worker process and its summary comes back (pickled)."""
+    import pickle
+
+    from flyknot.options import ReadOnlyMap
+    from flyknot_app.scenario import load_scenario
+
+    spec = load_scenario("04-success-rate").runs[0]
+    assert pickle.loads(pickle.dumps(spec)) == spec
+    summary = RunSummary(spec.to_json(), costs=[0.5], initial_guess={"cost": 1.0}, T=1.0)
+    back = pickle.loads(pickle.dumps(summary))
+    assert back == summary and back.to_json() == summary.to_json()
+    frozen = ReadOnlyMap({"a": 1})
+    assert pickle.loads(pickle.dumps(frozen)) == {"a": 1}
+    with pytest.raises(AttributeError):
+        frozen._data = {}
+    with pytest.raises(TypeError):
+        frozen["a"] = 2  # type: ignore[index]

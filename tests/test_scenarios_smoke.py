@@ -97,3 +97,16 @@ def test_tracking_repeats_play_the_initial_command(tmp_path, guess_cache):
     assert summary["runs"][0]["judge"] == "verdict"
     assert (out / "success_rates.png").is_file()
     assert "Tracking alone (no learning)" in (out / "report.md").read_text()
+
+
+def test_two_worker_processes_give_the_runs_of_one(tmp_path, guess_cache):
+    """Runs spread over a process pool (their options pickled to the workers, their
+    summaries back) give what one process gives."""
+    scen = load_scenario("04-success-rate", parse_overrides([*TINY, "repeats=0"]))
+    results = []
+    for workers in (1, 2):
+        out = tmp_path / f"w{workers}"
+        shutil.copytree(guess_cache, out / "initial_guess")
+        summary = run_scenario(scen, out, workers=workers, progress=False)
+        results.append([(r.name, r.costs, r.repeat_classes) for r in summary.runs])
+    assert results[0] == results[1] and len(results[0]) == 2
