@@ -91,12 +91,13 @@ def trials_text(runs: Sequence[RunSummary]) -> str:
     """Trials until the first knot over seeds: ``median (min-max), k of n seeds tied``; a
     seed without a knot counts as its budget + 1 (``>``)."""
     tied = [r.trials_to_success for r in runs if r.trials_to_success is not None]
+    seeds = f"{len(runs)} seed" + ("s" if len(runs) != 1 else "")
     if not tied:
         budget = max((len(r.costs) for r in runs), default=0)
-        return f"none in {budget} ({len(runs)} seeds)"
+        return f"none in {budget} ({seeds})"
     med = statistics.median(tied)
     span = f"{min(tied)}-{max(tied)}" if len(tied) > 1 else f"{tied[0]}"
-    return f"{med:g} ({span}), {len(tied)} of {len(runs)} seeds tied"
+    return f"{med:g} ({span}), {len(tied)} of {seeds} tied"
 
 
 def repeats_text(runs: Sequence[RunSummary]) -> str:
@@ -120,6 +121,8 @@ def _runs_section(name: str, summary: ScenarioSummary) -> list[str]:
     lines += ["|---|---|---|---|---|---|"]
     for base, runs in _grouped(summary).items():
         r = runs[0]
+        if r.start_from:
+            continue  # a transfer: in the grid below
         objective = r.learner.update.objective
         lines.append(
             f"| {base} | {r.rope} | {r.demo} | {objective} | {trials_text(runs)} | "
@@ -131,7 +134,7 @@ def _runs_section(name: str, summary: ScenarioSummary) -> list[str]:
 def _sensitivity_section(summary: ScenarioSummary) -> list[str]:
     from flyknot_app.report import PAPER_SENSITIVITY
 
-    lines = ["### Sensitivity to the learner's rope model", ""]
+    lines = ["Trials until the first knot on rope 1, by the learner's rope model.", ""]
     lines += ["| stiffness | end mass | trials until the first knot (ours) | paper |"]
     lines += ["|---|---|---|---|"]
     for runs in _grouped(summary).values():
@@ -193,9 +196,11 @@ def paper_table(out: str | Path, command: str) -> str:
     for name in found:
         summary = ScenarioSummary.from_json(json.loads((out / name / "summary.json").read_text()))
         seeds |= {r.seed for r in summary.runs}
-        sections += _runs_section(name, summary)
         if summary.kind == "sensitivity":
+            sections += [f"## `{name}` ({summary.kind})", ""]
             sections += _sensitivity_section(summary)
+            continue
+        sections += _runs_section(name, summary)
         if summary.kind == "transfer":
             sections += _transfer_section(summary)
     head = [

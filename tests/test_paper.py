@@ -25,7 +25,7 @@ def test_trials_and_repeats_over_seeds():
     runs = [_run("r", 0, 3, repeats=["knot"] * 38 + ["unknot"] * 2), _run("r", 1, None)]
     runs.append(_run("r", 2, 5, repeats=["knot"] * 40))
     assert trials_text(runs) == "4 (3-5), 2 of 3 seeds tied"
-    assert trials_text(runs[1:2]) == "none in 10 (1 seeds)"
+    assert trials_text(runs[1:2]) == "none in 10 (1 seed)"
     assert repeats_text(runs) == "78/80 (91-99 %)"
     assert repeats_text(runs[1:2]) == "-"
 
@@ -55,6 +55,7 @@ def test_the_table_has_every_experiment_beside_the_paper(tmp_path):
     assert "| 100 | 5 | none in 10 (2 seeds) | >10 |" in text
     assert "| A \\ B | 1 | 2 |" in text
     assert "| 1 |  | 3 |" in text and "| 2 | - |  |" in text
+    assert "| r1-on-r2 |" not in text and "| k1e2-me5 |" not in text  # in the tables only
 
 
 def test_a_directory_without_runs_is_one_line(tmp_path, capsys):
