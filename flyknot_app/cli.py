@@ -13,7 +13,7 @@ from flyknot.errors import ConfigError
 from flyknot_app.bench import BENCHMARKS
 from flyknot_app.dispatch import dispatch
 from flyknot_app.paper import add_paper_parser
-from flyknot_app.scenario import parse_rope_arg
+from flyknot_app.scenario import parse_rope_arg, parse_seeds
 from flyknot_app.trial_cli import add_trial_parsers
 
 
@@ -81,7 +81,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.seeds is not None:
         from flyknot_app.scenario import expand_seeds
 
-        scen = expand_seeds(scen, _parse_seeds(args.seeds))
+        scen = expand_seeds(scen, parse_seeds(args.seeds))
     out = Path(args.out) if args.out else _default_run_dir(scen.name, args.resume)
     print(f"scenario {scen.name!r} ({scen.kind}, {len(scen.runs)} runs) -> {out}")
     summary = run_scenario(
@@ -147,21 +147,6 @@ def _cmd_explain(args: argparse.Namespace) -> int:
     return 0
 
 
-def _parse_seeds(text: str) -> list[int]:
-    """``"0-4"`` or ``"0,2,5"`` as a list of seeds."""
-    try:
-        if "-" in text:
-            lo, hi = (int(v) for v in text.split("-", 1))
-            seeds = list(range(lo, hi + 1))
-        else:
-            seeds = [int(v) for v in text.split(",")]
-    except ValueError:
-        seeds = []
-    if not seeds or min(seeds) < 0:
-        raise ConfigError("--seeds", f"must be A-B or A,B,... with seeds >= 0, got {text!r}")
-    return seeds
-
-
 def _cmd_baseline(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -177,7 +162,7 @@ def _cmd_baseline(args: argparse.Namespace) -> int:
     params = BaselineParams(
         budget=args.budget, sigma=args.sigma, scale=args.scale, repeats=args.repeats
     )
-    seeds = _parse_seeds(args.seeds)
+    seeds = parse_seeds(args.seeds)
     settings = None
     if args.name == "ppo":
         from dataclasses import asdict

@@ -246,10 +246,9 @@ def add_paper_parser(sub) -> None:
 
 
 def _cmd_paper(args: argparse.Namespace) -> int:
-    from flyknot_app.cli import _parse_seeds
-    from flyknot_app.scenario import parse_overrides
+    from flyknot_app.scenario import parse_overrides, parse_seeds
 
-    seeds = _parse_seeds(args.seeds)
+    seeds = parse_seeds(args.seeds)
     overrides = parse_overrides(list(args.set or []))
     out = Path(args.out)
     if not args.table_only:

@@ -375,6 +375,21 @@ def parse_scenario(
     return scen
 
 
+def parse_seeds(text: str) -> list[int]:
+    """``"0-4"`` or ``"0,2,5"`` as a list of seeds."""
+    try:
+        if "-" in text:
+            lo, hi = (int(v) for v in text.split("-", 1))
+            seeds = list(range(lo, hi + 1))
+        else:
+            seeds = [int(v) for v in text.split(",")]
+    except ValueError:
+        seeds = []
+    if not seeds or min(seeds) < 0:
+        raise ConfigError("--seeds", f"must be A-B or A,B,... with seeds >= 0, got {text!r}")
+    return seeds
+
+
 def expand_seeds(scen: Scenario, seeds: list[int]) -> Scenario:
     """Every run once per lab seed: run ``r`` becomes ``r-seedS`` with ``seed = S`` (a
     transfer run starts from the same seed's source run)."""
