@@ -30,6 +30,9 @@ if TYPE_CHECKING:
 
 PAPER_SCENARIOS = tuple(sorted(p.stem for p in SCENARIOS_DIR.glob("0*.toml")))
 """The paper's experiments, one scenario file each."""
+PAPER_SETTINGS_DIR = "paper-settings"
+"""Where ``flyknot paper --paper-settings`` runs (``OUT/paper-settings/<scenario>``): the same
+experiments with the paper's learner settings (``flyknot_app.scenario.PAPER_SETTINGS``)."""
 _SEED_SUFFIX = re.compile(r"-seed\d+$")
 
 
@@ -112,22 +115,35 @@ def repeats_text(runs: Sequence[RunSummary]) -> str:
     return f"{k}/{n} ({100 * lo:.0f}-{100 * hi:.0f} %)"
 
 
-def _runs_section(name: str, summary: ScenarioSummary) -> list[str]:
+def _runs_section(
+    name: str, summary: ScenarioSummary, papers: ScenarioSummary | None = None
+) -> list[str]:
+    """Each run over the seeds; with ``papers`` (the same scenario run with the paper's
+    learner settings) its results beside."""
     from flyknot_app.report import PAPER
 
     paper = summary.paper or PAPER.get(summary.kind, "-")
     lines = [f"## `{name}` ({summary.kind})", "", f"Paper: {paper}", ""]
-    lines += ["| run | rope | demo | objective | trials until the first knot | knots in repeats |"]
-    lines += ["|---|---|---|---|---|---|"]
+    head = "| run | rope | demo | objective | trials until the first knot | knots in repeats |"
+    rule = "|---|---|---|---|---|---|"
+    other = {} if papers is None else _grouped(papers)
+    if papers is not None:
+        head += " with the paper's learner settings: trials | knots in repeats |"
+        rule += "---|---|"
+    lines += [head, rule]
     for base, runs in _grouped(summary).items():
         r = runs[0]
         if r.start_from:
             continue  # a transfer: in the grid below
         objective = r.learner.update.objective
-        lines.append(
+        row = (
             f"| {base} | {r.rope} | {r.demo} | {objective} | {trials_text(runs)} | "
             f"{repeats_text(runs)} |"
         )
+        if papers is not None:
+            theirs = other.get(base, [])
+            row += f" {trials_text(theirs) if theirs else '-'} | {repeats_text(theirs)} |"
+        lines.append(row)
     return [*lines, ""]
 
 
@@ -191,16 +207,22 @@ def paper_table(out: str | Path, command: str) -> str:
     found = [n for n in PAPER_SCENARIOS if (out / n / "summary.json").is_file()]
     if not found:
         raise ConfigError("--out", f"{str(out)!r} holds no paper scenario's summary.json")
+
+    def read(path: Path) -> ScenarioSummary | None:
+        doc = path / "summary.json"
+        return ScenarioSummary.from_json(json.loads(doc.read_text())) if doc.is_file() else None
+
     seeds = set()
     sections: list[str] = []
     for name in found:
-        summary = ScenarioSummary.from_json(json.loads((out / name / "summary.json").read_text()))
+        summary = read(out / name)
+        papers = read(out / PAPER_SETTINGS_DIR / name)
         seeds |= {r.seed for r in summary.runs}
         if summary.kind == "sensitivity":
             sections += [f"## `{name}` ({summary.kind})", ""]
             sections += _sensitivity_section(summary)
             continue
-        sections += _runs_section(name, summary)
+        sections += _runs_section(name, summary, papers)
         if summary.kind == "transfer":
             sections += _transfer_section(summary)
     head = [
@@ -212,7 +234,9 @@ def paper_table(out: str | Path, command: str) -> str:
         "verdict `knot` of `flyknot.verdict` (an overhand knot in the hanging rope). Trials "
         "until the first knot: median (range) over the seeds that tied; knots in the repeats: "
         "pooled over the seeds, 95 % Wilson interval. Each run's report, with a picture of "
-        "every counted knot: `OUT/<scenario>/report.md`.",
+        "every counted knot: `OUT/<scenario>/report.md`. Where the same experiments ran with "
+        "the paper's learner settings (`flyknot paper --paper-settings`), their results stand "
+        "beside.",
         "",
     ]
     return "\n".join(head + sections)
@@ -241,6 +265,12 @@ def add_paper_parser(sub) -> None:
     p.add_argument(
         "--results", default=None, help="also write the table to this file (docs/results.md)"
     )
+    p.add_argument(
+        "--paper-settings",
+        action="store_true",
+        help="run with the paper's learner settings, into OUT/paper-settings (the table puts "
+        "them beside the scenarios' own)",
+    )
     p.add_argument("--table-only", action="store_true", help="run nothing; write the table")
     p.set_defaults(func=_cmd_paper)
 
@@ -249,13 +279,19 @@ def _cmd_paper(args: argparse.Namespace) -> int:
     from flyknot_app.scenario import parse_overrides, parse_seeds
 
     seeds = parse_seeds(args.seeds)
-    overrides = parse_overrides(list(args.set or []))
+    pairs = list(args.set or [])
+    if args.paper_settings:
+        from flyknot_app.scenario import PAPER_SETTINGS
+
+        pairs = [*PAPER_SETTINGS, *pairs]  # a later --set wins
+    overrides = parse_overrides(pairs)
     out = Path(args.out)
+    where = out / PAPER_SETTINGS_DIR if args.paper_settings else out
     if not args.table_only:
-        if not args.resume and any((out / n / "manifest.json").is_file() for n in args.scenarios):
-            raise ConfigError("--out", f"{str(out)!r} already holds paper runs; use --resume")
+        if not args.resume and any((where / n / "manifest.json").is_file() for n in args.scenarios):
+            raise ConfigError("--out", f"{str(where)!r} already holds paper runs; use --resume")
         run_paper(
-            out,
+            where,
             seeds,
             workers=args.workers,
             resume=args.resume,

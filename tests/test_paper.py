@@ -58,6 +58,16 @@ def test_the_table_has_every_experiment_beside_the_paper(tmp_path):
     assert "| r1-on-r2 |" not in text and "| k1e2-me5 |" not in text  # in the tables only
 
 
+def test_the_papers_learner_settings_stand_beside(tmp_path):
+    _write(tmp_path, "03-ropes", "learn", [_run("rope1", s, 2 + s, rope=1) for s in (0, 1)])
+    theirs = [_run("rope1", s, None, rope=1, repeats=["knot"]) for s in (0, 1)]
+    _write(tmp_path / "paper-settings", "03-ropes", "learn", theirs)
+    text = paper_table(tmp_path, "flyknot paper")
+    assert "| with the paper's learner settings: trials | knots in repeats |" in text
+    row = "| rope1 | 1 | robot | critical | 2.5 (2-3), 2 of 2 seeds tied | - | "
+    assert row + "none in 10 (2 seeds) | 2/2 (34-100 %) |" in text
+
+
 def test_a_directory_without_runs_is_one_line(tmp_path, capsys):
     assert main(["paper", "--out", str(tmp_path), "--table-only"]) == 2
     assert "holds no paper scenario's summary.json" in capsys.readouterr().err
@@ -86,3 +96,7 @@ def test_one_scenario_over_two_seeds_then_resumed(tmp_path, capsys):
     assert "use --resume" in capsys.readouterr().err
     assert main([*argv, "--resume"]) == 0
     assert ledger.read_text() == before
+    assert main([*argv, "--paper-settings", "--seeds", "0"]) == 0  # beside, in paper-settings/
+    theirs = json.loads((out / "paper-settings" / "04-success-rate" / "summary.json").read_text())
+    assert theirs["runs"][0]["gain"] == 1 and theirs["runs"][0]["weights"]["w_control"] == 0.5
+    assert "with the paper's learner settings" in (out / "results.md").read_text()
