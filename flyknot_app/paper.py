@@ -16,13 +16,12 @@ import datetime as dt
 import json
 import re
 import statistics
-import subprocess
 import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from flyknot.constants import REPO_ROOT, SCENARIOS_DIR
+from flyknot.constants import SCENARIOS_DIR
 from flyknot.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -182,25 +181,13 @@ def _transfer_section(summary: ScenarioSummary) -> list[str]:
     return [*lines, ""]
 
 
-def _commit() -> str:
-    try:
-        done = subprocess.run(
-            ["git", "-C", str(REPO_ROOT), "rev-parse", "--short", "HEAD"],
-            capture_output=True,
-            text=True,
-            check=True,
-        )
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-    return done.stdout.strip()
-
-
 def paper_table(out: str | Path, command: str) -> str:
     """The results document of a ``flyknot paper`` directory (module docstring).
 
     Raises:
         ConfigError: ``out`` holds no scenario's ``summary.json``.
     """
+    from flyknot_app.results import git_commit
     from flyknot_app.run_summary import ScenarioSummary
 
     out = Path(out)
@@ -230,7 +217,7 @@ def paper_table(out: str | Path, command: str) -> str:
         "",
         f"The paper's experiments in the simulated lab, lab seeds "
         f"{', '.join(str(s) for s in sorted(seeds, key=str))}; written "
-        f"{dt.date.today().isoformat()} at commit {_commit()} by `{command}`. A knot is a "
+        f"{dt.date.today().isoformat()} at commit {git_commit()} by `{command}`. A knot is a "
         "verdict `knot` of `flyknot.verdict` (an overhand knot in the hanging rope). Trials "
         "until the first knot: median (range) over the seeds that tied; knots in the repeats: "
         "pooled over the seeds, 95 % Wilson interval. Each run's report, with a picture of "

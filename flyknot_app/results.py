@@ -119,7 +119,8 @@ def rows_of(directory: str | Path) -> list[str]:
     return [f"| {kind} | `{d.name}` | - | - | - | - | {_rate(classes)} |"]
 
 
-def _commit() -> str:
+def git_commit() -> str:
+    """The repository's short commit id, or ``"unknown"`` outside a git checkout."""
     try:
         out = subprocess.run(
             ["git", "-C", str(REPO_ROOT), "rev-parse", "--short", "HEAD"],
@@ -140,7 +141,7 @@ def results_table(directories: Sequence[str | Path], command: str) -> str:
         "# Results",
         "",
         f"Measured in the simulated lab; written {dt.date.today().isoformat()} at commit "
-        f"{_commit()} by `{command}`. A knot is a verdict `knot` of `flyknot.verdict` (an "
+        f"{git_commit()} by `{command}`. A knot is a verdict `knot` of `flyknot.verdict` (an "
         "overhand knot in the hanging rope); intervals are 95 % Wilson.",
         "",
         "| what | run | rope | seed | settings | trials until the first knot | knots in the "
