@@ -66,12 +66,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from flyknot_app.runner import run_scenario
     from flyknot_app.scenario import load_scenario, parse_overrides
 
-    pairs = list(args.set or [])
-    if args.paper_settings:
-        from flyknot_app.scenario import PAPER_SETTINGS
-
-        pairs = [*PAPER_SETTINGS, *pairs]  # a later --set wins
-    overrides = parse_overrides(pairs)
+    overrides = parse_overrides(args.set, paper_settings=args.paper_settings)
     cell = None
     if args.cell is not None:
         cell = {"kind": "xarm", "lab": str(Path(args.cell).resolve()), "dry_run": args.dry_run}

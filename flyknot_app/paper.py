@@ -266,12 +266,7 @@ def _cmd_paper(args: argparse.Namespace) -> int:
     from flyknot_app.scenario import parse_overrides, parse_seeds
 
     seeds = parse_seeds(args.seeds)
-    pairs = list(args.set or [])
-    if args.paper_settings:
-        from flyknot_app.scenario import PAPER_SETTINGS
-
-        pairs = [*PAPER_SETTINGS, *pairs]  # a later --set wins
-    overrides = parse_overrides(pairs)
+    overrides = parse_overrides(args.set, paper_settings=args.paper_settings)
     out = Path(args.out)
     where = out / PAPER_SETTINGS_DIR if args.paper_settings else out
     if not args.table_only:

@@ -261,10 +261,11 @@ def option_path(key: str) -> list[str]:
     return parts
 
 
-def parse_overrides(pairs: list[str] | None) -> dict[str, Any]:
-    """``["max_trials=2", "rope_model.stiffness=1e3"]`` -> a nested dict of run options."""
+def parse_overrides(pairs: list[str] | None, *, paper_settings: bool = False) -> dict[str, Any]:
+    """``["max_trials=2", "rope_model.stiffness=1e3"]`` -> a nested dict of run options; with
+    ``paper_settings``, :data:`PAPER_SETTINGS` first (a later pair wins)."""
     out: dict[str, Any] = {}
-    for p in pairs or []:
+    for p in [*(PAPER_SETTINGS if paper_settings else ()), *(pairs or [])]:
         if "=" not in p:
             raise ConfigError("--set", f"expected key=value, got {p!r}")
         key, value = (part.strip() for part in p.split("=", 1))
