@@ -21,12 +21,20 @@ def elastic_rope(rope_id: int):
     return load_rope_table(path)[rope_id], load_sim_settings(path)
 
 
+LABS = ("before", "elastic", "pyramidal", "now")
+"""The labs ``flyknot bench sim`` times, in its order (:func:`_lab_variants`)."""
+
+
 def _lab_variants(rope_id: int):
-    """Three labs: ``before`` (a fixed 1.5 s settle, no air drag, 1 deg sway, the elastic
-    rope), ``elastic`` (the lab's defaults with the elastic rope table, :func:`elastic_rope`)
-    and ``now`` (the lab's defaults)."""
+    """Four labs: ``before`` (a fixed 1.5 s settle, no air drag, 1 deg sway, the elastic
+    rope), ``elastic`` (the lab's defaults with the elastic rope table, :func:`elastic_rope`),
+    ``pyramidal`` (the lab's defaults with MuJoCo's pyramidal friction cone instead of the
+    elliptic one) and ``now`` (the lab's defaults)."""
+    from dataclasses import replace
+
     from flyknot_sim.aero import AeroParams
     from flyknot_sim.lab import LabParams, VariationParams
+    from flyknot_sim.rope_table import load_sim_settings
 
     rope, settings = elastic_rope(rope_id)
     before = {
@@ -37,7 +45,14 @@ def _lab_variants(rope_id: int):
         "variation": VariationParams(sway_deg=1.0, rest_start=False),
     }
     elastic = {"rope": rope, "settings": settings}
-    return {"before": before, "elastic": elastic, "now": {"rope": rope_id}}, LabParams
+    pyramidal = {"rope": rope_id, "settings": replace(load_sim_settings(), cone="pyramidal")}
+    variants = {
+        "before": before,
+        "elastic": elastic,
+        "pyramidal": pyramidal,
+        "now": {"rope": rope_id},
+    }
+    return {name: variants[name] for name in LABS}, LabParams
 
 
 def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bool = True) -> dict:
@@ -46,9 +61,10 @@ def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bo
     The trial is the showcase swing (0.8 s, joint speeds up to 2.7 rad/s) and the settle,
     run by :class:`flyknot_sim.lab.SimLab` exactly as a learning trial is, in three labs
     measured in the same run: ``before`` (the fixed 1.5 s settle, no drag, the elastic rope),
-    ``elastic`` (the lab's defaults with the elastic rope table of ``assets/ropes_elastic.toml``)
-    and ``now`` (the lab's defaults: air drag, settle until the rope is at rest, capped, the
-    frictional bending couple and impratio 10 of ``assets/ropes.toml``). Each
+    ``elastic`` (the lab's defaults with the elastic rope table of ``assets/ropes_elastic.toml``),
+    ``pyramidal`` (the lab's defaults with the pyramidal friction cone) and ``now`` (the lab's
+    defaults: air drag, settle until the rope is at rest, capped, the frictional bending
+    couple, the elliptic cone and impratio 10 of ``assets/ropes.toml``). Each
     is timed ``repeats`` times per rope (trials 0, 1, ... of seed 0); the best wall time per
     simulated second is kept (least disturbed by other load), the simulated seconds are
     averaged.
@@ -162,14 +178,15 @@ def main(
                 f"{'sim s / trial':>14}"
             )
             for row in res["ropes"]:
-                for name in ("before", "elastic", "now"):
+                for name in LABS:
                     v = row[name]
                     print(
                         f"{row['rope']:>4} {name:>9} {v['wall_per_sim_s']:>15.3f} "
                         f"{v['realtime_factor']:>12.1f} {v['sim_s_per_trial']:>14.2f}"
                     )
-                ratio = row["now"]["wall_per_sim_s"] / row["elastic"]["wall_per_sim_s"]
-                print(f"{row['rope']:>4} now / elastic, wall s per sim s: {ratio:.2f}")
+                for base in ("elastic", "pyramidal"):
+                    ratio = row["now"]["wall_per_sim_s"] / row[base]["wall_per_sim_s"]
+                    print(f"{row['rope']:>4} now / {base}, wall s per sim s: {ratio:.2f}")
         return 0
     if what == "learner":
         from flyknot_app.bench_learner import bench_learner, format_learner

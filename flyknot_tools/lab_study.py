@@ -75,6 +75,7 @@ CANDIDATES: dict[str, Candidate] = {
         Candidate("friction 0.6", rope=(("friction", 0.6),)),
         # MuJoCo's friction settings
         Candidate("impratio 1", sim=(("impratio", 1.0),)),
+        Candidate("pyramidal cone", sim=(("cone", "pyramidal"),)),
         # switches of the lab
         Candidate("condim 4", rope=(("condim", 4),)),
         Candidate("C_D 1.2", rope=(("cd", 1.2),)),

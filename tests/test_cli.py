@@ -48,7 +48,7 @@ def test_bench_sim_json_shape(capsys):
     assert main(["bench", "sim", "--json", "--ropes", "6"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert list(out) == ["ropes"] and out["ropes"][0]["rope"] == 6
-    for lab in ("before", "elastic", "now"):
+    for lab in ("before", "elastic", "pyramidal", "now"):
         row = out["ropes"][0][lab]
         assert row["realtime_factor"] == pytest.approx(1 / row["wall_per_sim_s"])
         assert row["sim_s_per_trial"] > 0.8  # the swing itself lasts 0.8 s

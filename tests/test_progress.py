@@ -22,4 +22,5 @@ def test_no_bar_codes_in_a_log():
         check=True,
     )
     assert "\r" not in out.stderr and "\x1b" not in out.stderr
-    assert "before" in out.stdout and "elastic" in out.stdout and "now" in out.stdout
+    assert all(lab in out.stdout for lab in ("before", "elastic", "pyramidal", "now"))
+    assert "now / pyramidal" in out.stdout

@@ -544,21 +544,26 @@ def test_twist_hinges_do_not_change_bending():
 
 
 @pytest.mark.parametrize(
-    ("table", "rope", "depth"),
-    [("ropes_elastic.toml", 1, 0.02), ("ropes_elastic.toml", 4, 0.02), ("ropes.toml", 1, 0.005),
-     ("ropes.toml", 4, 0.005)],
+    ("table", "rope", "cone", "depth"),
+    [("ropes_elastic.toml", 1, None, 0.02), ("ropes_elastic.toml", 4, None, 0.02),
+     ("ropes.toml", 1, None, 0.005), ("ropes.toml", 4, None, 0.005),
+     ("ropes.toml", 1, "pyramidal", 0.005)],
 )  # fmt: skip
-def test_a_lowered_rope_lands_on_the_floor(table, rope, depth):
+def test_a_lowered_rope_lands_on_the_floor(table, rope, cone, depth):
     """The hand lowers 1 m in 1 s, piling the rope on the floor: it stays on it.
 
-    MuJoCo's elliptic friction cone lets it sink 0.4-0.5 m into the floor and jams the hand
-    (``docs/rope-model.md``): the rope table must not choose it.
+    The rope starts 1 mrad off the vertical (1 mm at its end). Started exactly vertical, its
+    segments stay in one line (nothing in the simulation breaks the symmetry), the column
+    does not buckle, and with the elliptic cone the hand drives it 0.4-0.5 m into the floor
+    (``docs/rope-model.md``); a real rope is never that straight.
     """
     path = ASSETS_DIR / table
     params, settings = load_rope_table(path)[rope], load_sim_settings(path)
+    if cone is not None:
+        settings = replace(settings, cone=cone)
     _, handle, model, data = hand_scene(params, settings=settings)
     mujoco.mj_kinematics(model, data)
-    handle.set_hanging(model, data)
+    handle.set_hanging(model, data, sway_angle=1e-3)
     dt = model.opt.timestep
     lowest = np.inf
     for k in range(round(2.0 / dt)):
@@ -566,4 +571,4 @@ def test_a_lowered_rope_lands_on_the_floor(table, rope, depth):
         mujoco.mj_step(model, data)
         lowest = min(lowest, handle.centreline(model, data)[:, 2].min())
     assert data.qpos[2] == pytest.approx(-1.0, abs=0.01)  # the hand got down
-    assert lowest > -depth  # impratio 1: 6-16 mm into the floor; 10: < 1 mm
+    assert lowest > -depth  # measured: elastic table 0-16 mm into the floor, the lab's < 1 mm

@@ -17,7 +17,7 @@ import numpy as np
 from flyknot_sim.aero import DRAG_HOLD_S, AeroParams, RopeDrag
 from flyknot_sim.bend_friction import RopeBendFriction
 from flyknot_sim.rope_table import RopeParams, SimSettings
-from flyknot_tools.rope_study.harness import Harness, build_harness, place_vertices
+from flyknot_tools.rope_study.harness import HOLDER_JOINTS, Harness, build_harness, place_vertices
 
 __all__ = ["Bench", "HolderPath", "RopeModel"]
 
@@ -129,8 +129,12 @@ class Bench:
             probe(self)
 
     def holder_force(self) -> np.ndarray:
-        """The force the holder's slide servos exert on it (3,) [N] (its weight is
-        gravity-compensated, so this is what holds the rope)."""
-        d = self.data
-        f = d.actuator_force[0:6:2] + d.actuator_force[1:6:2]
-        return np.asarray(f[:3], dtype=float)
+        """The force the holder exerts on the rope (3,) [N]: minus the constraint force the
+        rope's hold puts on the holder's slides.
+
+        Not the servos' force: a position servo tracking a moving target lags it by one step
+        under the discrete integrator, and its force then carries kp v dt (0.4 N at 2 cm/s,
+        1 ms) that the holder's own dynamics absorb and the rope never feels."""
+        m, d = self.model, self.data
+        dofs = [int(m.jnt_dofadr[m.joint(name).id]) for name in HOLDER_JOINTS[:3]]
+        return -np.asarray(d.qfrc_constraint[dofs], dtype=float)

@@ -80,7 +80,7 @@ def capstan(
         if bench.t < 1.0:
             return
         xs = bench.vertices()
-        f_hold = -bench.holder_force()[2]  # the rope pulls the holder up; the servo pulls down
+        f_hold = -bench.holder_force()[2]  # the holder pulls the rope down
         left = centre[2] - xs[0, 2]  # length below the rod on the holder's side
         load_side = xs[:, 0] > centre[0] + 0.5 * rod_radius
         right = max(0.0, centre[2] - float(xs[load_side, 2].min()))
