@@ -70,10 +70,9 @@ like a Coulomb-damped pendulum: the top joint slips at ~M_0, ~4 M_0 / K = 0.1 ra
 per cycle for M_0 = 0.01 N m (K = 0.42 N m/rad the rope's gravity stiffness about the hold).
 
 Magnitude. Kawabata's KES-FB2 pure-bending tester measures the hysteresis width 2HB = 2 M_0
-of fabrics; fabric values give 2HB / B ~ 0.5-1.5 1/cm (recalled, not verified for cords). For
-rope 1 B = EI = 3.2e-4 N m^2 (``assets/ropes.toml``), so M_0 = HB ~ B (0.25..0.75) 1/cm =
-8e-3..2.4e-2 N m if a cord behaved like a fabric. NO published value exists for cords, so the
-default is 0 (off) and the value is a lab switch.
+of fabrics. A rope's M_0 = (HB / B) EI comes from its ``bend_hysteresis`` HB / B
+(``assets/ropes.toml``: 54 1/m for cotton, bracket 23-54 1/m from cotton-type fabrics, no
+published value for cords); ropes without it (latex, the chain) have no couple.
 """
 
 from __future__ import annotations
