@@ -37,10 +37,10 @@ ROBOT_THROW = ASSETS_DIR / "demos" / "seeds" / "robot_command.npz"
 duration ``T`` [s]."""
 LIMIT_MARGIN = 0.05
 """Fraction of each joint limit kept free (the learner's ``limit_margin``)."""
-HAND_PACE = (4.13, 33.7, 42.0)
+HAND_PACE = (3.93, 33.4, 40.8)
 """A person's pace (speed [m/s], exit-axis rate [rad/s], acceleration [m/s^2]): the smallest
-peak value of each over the four shipped hand demonstrations (Fast 4.13, 40.2, 42.0; Slow
-4.20, 40.3, 43.4; Swipe 4.17, 33.7, 43.8; Inverse 4.22, 39.6, 44.7), measured on their
+peak value of each over the four shipped hand demonstrations (Fast 4.13, 40.2, 42.1; Slow
+4.20, 40.3, 43.4; Swipe 4.17, 33.7, 43.8; Inverse 3.93, 33.4, 40.8), measured on their
 motion curves."""
 
 
