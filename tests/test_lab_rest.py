@@ -109,12 +109,13 @@ def test_twist_and_torsional_friction_switches():
     assert str(e.value) == "condim: unknown value 6 (valid choices: 3, 4)"
 
 
-@pytest.mark.parametrize("seed", [10, 14])
+@pytest.mark.parametrize("seed", [10, 26])
 def test_a_set_knot_ends_the_trial_early_with_the_capped_trials_verdict(seed):
-    """Lab seeds 10 (wrapped at the grip) and 14 (a knot) of the robot demonstration's
-    command: the knot sets after ~5 s and ~5.5 s; without the knot-set rule both run to the
-    15 s cap. Same verdict, and the early record is the capped one's prefix bit for bit (the
-    physics is the same until the settle ends)."""
+    """Lab seeds 10 (a knot) and 26 (wrapped at the grip) of the robot demonstration's
+    command: the knot sets after ~5.0 s and ~7.8 s; without the knot-set rule the settle runs
+    on, to the 15 s cap (seed 10) or until the rope is at rest (seed 26, 12.1 s). Same
+    verdict, and the early record is the longer one's prefix bit for bit (the physics is the
+    same until the settle ends)."""
     from flyknot.constants import DEMOS_DIR
     from flyknot.demo import Demonstration
     from learner.bezier import BezierCommand
@@ -125,10 +126,10 @@ def test_a_set_knot_ends_the_trial_early_with_the_capped_trials_verdict(seed):
     full = SimLab(LabParams(rope=1, seed=seed, settle=SettleParams(knot_set_s=None))).run(cmd)
     st, st_full = early.metadata["settle"], full.metadata["settle"]
     assert st["knot_set"] is True and st["settled"] is False
-    assert st_full["knot_set"] is False and st_full["settle_s"] == pytest.approx(15.0, abs=0.01)
+    assert st_full["knot_set"] is False and st_full["settle_s"] > st["settle_s"] + 4.0
     assert st["settle_s"] < 10.0
     assert early.verdict.klass == full.verdict.klass
-    assert early.verdict.klass == ("wrapped_at_grip" if seed == 10 else "knot")
+    assert early.verdict.klass == ("knot" if seed == 10 else "wrapped_at_grip")
     n = len(early.t_joint)
     np.testing.assert_array_equal(early.q_meas, full.q_meas[:n])
     np.testing.assert_array_equal(early.fingertip_pos, full.fingertip_pos[:n])
