@@ -59,7 +59,7 @@ def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bo
     """Wall seconds per simulated second, and simulated seconds per trial, of a fast trial.
 
     The trial is the showcase swing (0.8 s, joint speeds up to 2.7 rad/s) and the settle,
-    run by :class:`flyknot_sim.lab.SimLab` exactly as a learning trial is, in three labs
+    run by :class:`flyknot_sim.lab.SimLab` exactly as a learning trial is, in four labs
     measured in the same run: ``before`` (the fixed 1.5 s settle, no drag, the elastic rope),
     ``elastic`` (the lab's defaults with the elastic rope table of ``assets/ropes_elastic.toml``),
     ``pyramidal`` (the lab's defaults with the pyramidal friction cone) and ``now`` (the lab's

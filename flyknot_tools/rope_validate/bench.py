@@ -132,9 +132,10 @@ class Bench:
         """The force the holder exerts on the rope (3,) [N]: minus the constraint force the
         rope's hold puts on the holder's slides.
 
-        Not the servos' force: a position servo tracking a moving target lags it by one step
-        under the discrete integrator, and its force then carries kp v dt (0.4 N at 2 cm/s,
-        1 ms) that the holder's own dynamics absorb and the rope never feels."""
+        Not the servos' force: while the holder moves, the position servo's reported force
+        carries kp v dt more (the holder is one step behind the moving target: 0.4 N at
+        2 cm/s and 1 ms) than the hold passes to the rope; over a frictionless rod it read
+        4.6x the load at 2 cm/s, this reads 0.99-1.00x at any speed."""
         m, d = self.model, self.data
         dofs = [int(m.jnt_dofadr[m.joint(name).id]) for name in HOLDER_JOINTS[:3]]
         return -np.asarray(d.qfrc_constraint[dofs], dtype=float)
