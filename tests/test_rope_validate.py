@@ -50,6 +50,8 @@ def test_peirce_bending_length():
     assert peirce_bending_length(0.2, math.radians(43.0)) == pytest.approx(0.1, rel=0.002)
     assert peirce_bending_length(0.2, math.radians(41.5)) == pytest.approx(0.1019, rel=0.002)
     assert peirce_bending_length(0.2, math.radians(10)) > peirce_bending_length(0.2, 0.5)
+    for outside in (0.0, math.pi / 2, math.radians(120), -0.1):  # no real c: NaN, not complex
+        assert math.isnan(peirce_bending_length(0.2, outside))
 
 
 def test_catenary_sag():

@@ -139,7 +139,10 @@ HYSTERESIS_SEEN = 0.05
 def peirce_bending_length(overhang: float, angle: float) -> float:
     """Peirce's cantilever: c = l (cos(theta / 2) / (8 tan theta))^(1/3) [m] for an overhang
     ``overhang`` [m] whose chord to the tip makes ``angle`` [rad] with the horizontal
-    (F. T. Peirce, J. Textile Inst. 21 (1930) T377)."""
+    (F. T. Peirce, J. Textile Inst. 21 (1930) T377); NaN outside the formula's range
+    0 < angle < pi / 2 (a tip hanging straight down or curling back up)."""
+    if not 0.0 < angle < math.pi / 2:
+        return math.nan
     return overhang * (math.cos(angle / 2) / (8 * math.tan(angle))) ** (1 / 3)
 
 
@@ -190,6 +193,7 @@ def cantilever(rope: RopeModel, seconds: float = 8.0) -> CaseResult:
         results[name] = (peirce_bending_length(n * p.segment_length, angle), angle * 2)
     c_up, c_down = results["up"][0], results["down"][0]
     spread = (c_up - c_down) / (0.5 * (c_up + c_down))
+    up_deg, down_deg = (math.degrees(results[k][1] / 2) for k in ("up", "down"))
     if p.material == "cotton":
         ok = spread >= HYSTERESIS_SEEN
         expected = "bending length from above exceeds that from below by >= 5 %"
@@ -211,7 +215,10 @@ def cantilever(rope: RopeModel, seconds: float = 8.0) -> CaseResult:
             "c_elastic_m": c_el,
         },
         f"c from above {c_up * 100:.1f} cm, from below {c_down * 100:.1f} cm "
-        f"({spread:+.0%}); elastic c {c_el * 100:.1f} cm",
+        f"({spread:+.0%}); elastic c {c_el * 100:.1f} cm"
+        if math.isfinite(spread)
+        else f"a tip chord outside Peirce's range (from above {up_deg:.0f} deg, from below "
+        f"{down_deg:.0f} deg below the horizontal)",
     )
 
 
