@@ -82,15 +82,10 @@ def test_knot_hold_in_the_labs_rope_and_lost_in_the_elastic_rope():
 @pytest.mark.parametrize("rope", [1, 2, 3, 4])
 def test_a_loose_knot_with_a_short_tail_holds_when_swung(rope):
     """0.1 m of tail and the end weight, swung +-0.3 m at 0.5 Hz for 8 s: held at the lab's
-    defaults on ropes 1-4."""
+    defaults on ropes 1-4. Rope 4's hold is chaotic: 4 of 9 variants around this case hold
+    (docs/rope-model.md), so a change of the physics may flip it either way."""
     r = knot_hold(_rope(rope), 0.1, Swing(0.3, 0.5))
     assert r.passed and r.measured["crossings"] == 0, r.detail
-
-
-def test_the_pyramidal_cone_lets_rope_4s_swung_knot_open():
-    """The same knot on rope 4 with MuJoCo's pyramidal cone (the lab's cone before): lost."""
-    r = knot_hold(_rope(4, cone="pyramidal"), 0.1, Swing(0.3, 0.5))
-    assert not r.passed and r.measured["final"] != "knot", r.detail
 
 
 def test_static_hold_in_the_labs_rope():
