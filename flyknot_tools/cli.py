@@ -185,6 +185,22 @@ def _cmd_robot(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_robot_rate(args: argparse.Namespace) -> int:
+    from flyknot_tools.robot_demo import RateSearchConfig, rate_search
+
+    config = RateSearchConfig(
+        rope=args.rope, generations=args.generations, popsize=args.popsize, trials=args.trials
+    )
+    knots0, T0 = _load_command(args.start, "--start")
+    res = rate_search(
+        knots0, T0, config, seed=args.seed, workers=args.workers, progress=not args.quiet
+    )
+    search = {"seed": args.seed, "start": args.start, **res.summary(timing=False)}
+    summary = _save_robot_demo(args, res.knots, res.T, {"rate_search": search})
+    _print_summary({**summary, "wall_s": round(res.wall_s, 1)}, args.json)
+    return 0
+
+
 def _cmd_record(args: argparse.Namespace) -> int:
     knots, T = _load_command(args.command)
     summary = _save_robot_demo(args, knots, T, {"command_file": str(args.command)})
@@ -361,6 +377,23 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
     rb.add_argument("--json", action="store_true", help="print a JSON summary")
     rb.add_argument("--quiet", action="store_true", help="no progress bar")
     rb.set_defaults(func=_cmd_robot)
+
+    rr_ = dsub.add_parser(
+        "robot-rate",
+        help="from a tying robot command, search one that ties in most varied trials; save "
+        "its nominal trial as a demo",
+    )
+    rr_.add_argument("--start", required=True, help="start command (.npz with knots, T)")
+    rr_.add_argument("--out", required=True, help="output file (.npz)")
+    rr_.add_argument("--generations", type=int, default=24, help="CMA-ES generations (24)")
+    rr_.add_argument("--popsize", type=int, default=8, help="candidates per generation (8)")
+    rr_.add_argument("--trials", type=int, default=8, help="varied trials per candidate (8)")
+    rr_.add_argument("--seed", type=int, default=0, help="search seed (default 0)")
+    rr_.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    rr_.add_argument("--rope", type=int, default=1, help="rope id 1..7 (default 1)")
+    rr_.add_argument("--json", action="store_true", help="print a JSON summary")
+    rr_.add_argument("--quiet", action="store_true", help="no progress bar")
+    rr_.set_defaults(func=_cmd_robot_rate)
 
     rc = dsub.add_parser("record", help="record a robot command's nominal trial as a demo")
     rc.add_argument("--command", required=True, help="command file (.npz with knots, T)")

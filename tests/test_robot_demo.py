@@ -16,9 +16,11 @@ from flyknot.errors import ConfigError
 from flyknot_tools import cli as tools_cli
 from flyknot_tools.robot_demo import (
     CommandSearchConfig,
+    RateSearchConfig,
     command_score,
     free_from_knots,
     knots_from_free,
+    rate_search,
     record_demonstration,
     search_command,
 )
@@ -146,3 +148,41 @@ def test_cli_robot_reports_a_search_without_a_knot(shipped, tmp_path, capsys):
         "knot in 1 evaluations; try another --seed or more --evaluations\n"
     )
     assert not (tmp_path / "d.npz").exists()
+
+
+def test_rate_search_config_messages():
+    with pytest.raises(ConfigError) as e:
+        RateSearchConfig(generations=2, trials=8, seed_base=40)
+    assert str(e.value) == "seed_base: the search's seeds 40..55 overlap the check's 10..49"
+    with pytest.raises(ConfigError) as e:
+        RateSearchConfig(check_seeds=(5, 5))
+    assert str(e.value) == "check_seeds: need 0 <= lo < hi, got (5, 5)"
+    with pytest.raises(ConfigError, match="popsize: must be an integer >= 2, got 1"):
+        RateSearchConfig(popsize=1)
+
+
+def test_rate_search_simulates_no_candidate_outside_the_limits_and_keeps_the_start(shipped):
+    _, knots, T = shipped
+    # Steps of 50 normalised units (6 rad on a knot) put every candidate outside the limits.
+    config = RateSearchConfig(generations=2, popsize=3, trials=1, sigma=50.0, check_seeds=(10, 11))
+    res = rate_search(knots, T, config)
+    assert res.simulated == 0 and res.history.shape == (2, 3)
+    assert np.all(res.history[:, 0] <= -30.0) and np.all(res.history[:, 1:] == 0.0)
+    np.testing.assert_array_equal(res.knots, knots)
+    assert res.T == T and res.ties == res.start_ties and res.n_check == 1
+    assert res.summary(timing=False) == {
+        "T": round(T, 4),
+        "start_ties": res.start_ties,
+        "ties": res.start_ties,
+        "n_check": 1,
+        "generations": 2,
+        "simulated": 0,
+    }
+
+
+def test_cli_robot_rate_names_a_missing_start(tmp_path, capsys):
+    args = ["demo", "robot-rate", "--start", str(tmp_path / "no.npz"), "--out", "x.npz"]
+    assert tools_cli.main(args) == 2
+    assert capsys.readouterr().err == (
+        f"flyknot-tools: error: --start: no command file {str(tmp_path / 'no.npz')!r}\n"
+    )
