@@ -52,6 +52,8 @@ WINDUP_SPEED_MIN = 0.1
 """Smallest wind-up speed r."""
 BLEND = 0.1
 """Half-width of the wind-up's smooth speed change, in units of T."""
+MIN_BLEND = 1e-9
+"""A shorter half-width is no wind-up (and pi / (2 d) would overflow)."""
 
 
 # ----------------------------------------------------------------------------------------
@@ -97,8 +99,8 @@ def windup_warp(u: np.ndarray, p: float, r: float, order: int = 0) -> np.ndarray
         (before, inside, after the step); s'' = B (1 - r) h'(u),
         h' = (pi / (4 d)) sin(pi (u - p + d) / (2 d)) inside the step, else 0.
 
-    s is monotone (s' >= B r > 0), s'(1) = B, s''(0) = s''(1) = 0; p = 0 or r = 1 gives
-    s(u) = u.
+    s is monotone (s' >= B r > 0), s'(1) = B, s''(0) = s''(1) = 0; r = 1, or a blend
+    d <= ``MIN_BLEND`` (p near 0 or 1), gives s(u) = u.
 
     Args:
         u: Normalised times, shape (k,) [-], in [0, 1].
@@ -114,7 +116,7 @@ def windup_warp(u: np.ndarray, p: float, r: float, order: int = 0) -> np.ndarray
     u = np.asarray(u, dtype=float).ravel()
     b = 1.0 / (1.0 - p * (1.0 - r))
     d = min(BLEND, p, 1.0 - p)
-    if d <= 0.0 or r >= 1.0:  # no wind-up: the identity
+    if d <= MIN_BLEND or r >= 1.0:  # no wind-up: the identity
         return u.copy() if order == 0 else np.full_like(u, 1.0 if order == 1 else 0.0)
     lo, hi = p - d, p + d
     inside = (u > lo) & (u < hi)

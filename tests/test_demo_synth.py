@@ -117,6 +117,14 @@ def test_windup_warp_is_monotone_with_exact_ends_and_derivatives(p, r):
         np.testing.assert_allclose(s0, u, atol=1e-15)
 
 
+@pytest.mark.parametrize("p", [1e-310, 1e-12, 1.0 - 1e-12])
+def test_windup_warp_of_a_vanishing_blend_is_the_identity_without_overflow(p):
+    u = np.linspace(0.0, 1.0, 101)
+    with np.errstate(all="raise"):  # a blend of 1e-310 overflowed pi / (2 d)
+        for order, want in enumerate((u, np.ones_like(u), np.zeros_like(u))):
+            np.testing.assert_array_equal(windup_warp(u, p, 0.2, order), want)
+
+
 def test_motion_curve_derivatives_match_finite_differences():
     m = load_reference_motion().with_windup(0.95, 0.2)
     t = np.linspace(0.01, m.duration - 0.01, 157)
