@@ -26,7 +26,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +47,9 @@ class Candidate:
             ``friction``, ...), values for rope 1 (the demonstrations' rope).
         lab: Lab fields replaced in both labs (``twist``, ``bend_friction`` moment [N m]).
         sim: ``[simulation]`` settings replaced in both labs (``cone``, ``impratio``).
+        variation: Trial-to-trial variation fields replaced, in each lab that has them
+            (``servo_gain_rel``, ``start_delay_max_s``, ``rest_start``; ``tempo_rel`` is the
+            hand's alone).
         table: ``lab`` (``assets/ropes.toml``) or ``elastic`` (:data:`ELASTIC`): the rope
             table the row starts from.
     """
@@ -55,12 +58,26 @@ class Candidate:
     rope: tuple[tuple[str, Any], ...] = ()
     lab: tuple[tuple[str, Any], ...] = ()
     sim: tuple[tuple[str, Any], ...] = ()
+    variation: tuple[tuple[str, Any], ...] = ()
     table: str = "lab"
 
 
 ELASTIC = "assets/ropes_elastic.toml"
 """The purely elastic rope table the lab used before the validation suite; the ``elastic
 table`` row starts from it, every other row from the lab's table."""
+
+_VARIATION_OFF = (
+    ("servo_gain_rel", 0.0),
+    ("start_delay_max_s", 0.0),
+    ("rest_start", False),
+    ("tempo_rel", 0.0),
+)
+
+
+def _variation_alone(keep: str | None) -> tuple[tuple[str, Any], ...]:
+    """Every part of the trial-to-trial variation off except ``keep`` (None: all off)."""
+    return tuple((k, v) for k, v in _VARIATION_OFF if k != keep)
+
 
 CANDIDATES: dict[str, Candidate] = {
     c.name: c
@@ -81,10 +98,16 @@ CANDIDATES: dict[str, Candidate] = {
         Candidate("C_D 1.2", rope=(("cd", 1.2),)),
         # the purely elastic table the lab used before (elastic cotton, impratio 1)
         Candidate("elastic table", table="elastic"),
+        # the lab's trial-to-trial variation, one part at a time
+        Candidate("no variation", variation=_variation_alone(None)),
+        Candidate("servo gains alone", variation=_variation_alone("servo_gain_rel")),
+        Candidate("start delay alone", variation=_variation_alone("start_delay_max_s")),
+        Candidate("rest start alone", variation=_variation_alone("rest_start")),
     )
 }
 """The rows, by name: the lab's model, each unmeasured value at an end of its bracket, a
-MuJoCo setting, two switches, and the elastic table the lab used before."""
+MuJoCo setting, two switches, the elastic table the lab used before, and the lab's
+trial-to-trial variation without any part, then with each part alone (at its default)."""
 
 
 def _labs(candidate: Candidate, rope_id: int, sway_deg: float):
@@ -102,10 +125,13 @@ def _labs(candidate: Candidate, rope_id: int, sway_deg: float):
     for key, value in candidate.lab:
         lab_kw[key] = BendFrictionParams(moment=value) if key == "bend_friction" else value
     lab_kw["settings"] = replace(load_sim_settings(path), **dict(candidate.sim))
-    arm = LabParams(rope=rope, variation=VariationParams(sway_deg=sway_deg), **lab_kw)
+    variation = {"sway_deg": sway_deg, **dict(candidate.variation)}
+    arm_fields = {f.name for f in fields(VariationParams)}
+    arm_variation = VariationParams(**{k: v for k, v in variation.items() if k in arm_fields})
+    arm = LabParams(rope=rope, variation=arm_variation, **lab_kw)
     swipe = Demonstration.load(DEMOS / "swipe.npz")
     hand = hand_from_demo(swipe, rope_id, vary=True)
-    hand = replace(hand, rope=rope, variation=replace(hand.variation, sway_deg=sway_deg), **lab_kw)
+    hand = replace(hand, rope=rope, variation=replace(hand.variation, **variation), **lab_kw)
     return arm, hand
 
 

@@ -71,3 +71,21 @@ def test_one_robot_trial_of_a_row_is_diagnosed_in_the_rows_lab():
     (row,) = _robot_trials(arm, 1)
     assert row["label"] in LABELS and row["settle"] in ("rest", "contact_free", "cap")
     assert row["sim_s"] > 1.0 and row["wall_s"] > 0
+
+
+def test_variation_rows_turn_off_every_part_but_one_in_both_labs():
+    from flyknot_sim.hand_params import HandVariation
+    from flyknot_sim.lab import VariationParams
+    from flyknot_tools.lab_study import _labs
+
+    arm, hand = _labs(CANDIDATES["no variation"], 1, 0.0)
+    assert arm.variation == VariationParams.none() and hand.variation == HandVariation.none()
+    arm, hand = _labs(CANDIDATES["start delay alone"], 1, 2.0)
+    assert arm.variation == VariationParams(2.0, 0.0, 0.004, False)
+    assert hand.variation == HandVariation(2.0, 0.0, 0.004, 0.0, False)
+    arm, hand = _labs(CANDIDATES["servo gains alone"], 1, 0.0)
+    assert (arm.variation.servo_gain_rel, hand.variation.servo_gain_rel) == (0.03, 0.03)
+    assert not arm.variation.rest_start and hand.variation.tempo_rel == 0.0
+    arm, hand = _labs(CANDIDATES["rest start alone"], 1, 0.0)
+    assert arm.variation == VariationParams(0.0, 0.0, 0.0, True)
+    assert hand.variation == HandVariation(0.0, 0.0, 0.0, 0.0, True)
