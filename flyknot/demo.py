@@ -102,7 +102,13 @@ class Demonstration:
         path = Path(path)
         if not path.is_file():
             raise RecordError(f"demonstration file {str(path)!r} does not exist")
-        with np.load(path, allow_pickle=False) as z:
+        try:
+            z = np.load(path, allow_pickle=False)
+        except (ValueError, OSError) as e:
+            raise RecordError(f"{str(path)!r} is not a demonstration file (.npz)") from e
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise RecordError(f"{str(path)!r} is not a demonstration file (.npz): a single array")
+        with z:
             need = ("t", "hand_pos", "hand_quat", "markers", "meta")
             missing = [k for k in need if k not in z.files]
             if missing:

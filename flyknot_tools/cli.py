@@ -219,7 +219,13 @@ def _cmd_lab_study(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from flyknot.progress import bar_disable
-    from flyknot_tools.lab_study import CANDIDATES, run_study, table_markdown, write_outputs
+    from flyknot_tools.lab_study import (
+        CANDIDATES,
+        ROBOT_DEMO,
+        run_study,
+        table_markdown,
+        write_outputs,
+    )
 
     names = list(CANDIDATES) if not args.candidates else args.candidates
     sways = [float(s) for s in args.sway]
@@ -233,6 +239,7 @@ def _cmd_lab_study(args: argparse.Namespace) -> int:
         seed=args.seed,
         rope=args.rope,
         workers=args.workers,
+        robot_demo=args.robot_demo or ROBOT_DEMO,
         on_cell=lambda _cell: bar.update(1),
     )
     bar.close()
@@ -492,6 +499,12 @@ def build_parser() -> argparse.ArgumentParser:
     ls.add_argument("--seed", type=int, default=0, help="lab seed")
     ls.add_argument("--rope", type=int, default=1, help="rope id")
     ls.add_argument("--workers", type=int, default=1, help="worker processes")
+    ls.add_argument(
+        "--robot-demo",
+        default=None,
+        metavar="FILE",
+        help="robot demonstration whose stored command the arm plays (default the shipped one)",
+    )
     ls.add_argument("--out", default=None, help="directory for lab_study.json / .md")
     ls.set_defaults(func=_cmd_lab_study)
     rv = sub.add_parser(

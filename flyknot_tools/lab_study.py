@@ -35,6 +35,7 @@ import numpy as np
 from flyknot.errors import ConfigError, check_int, check_nonnegative
 
 DEMOS = Path(__file__).resolve().parents[1] / "assets" / "demos"
+ROBOT_DEMO = DEMOS / "robot.npz"
 
 
 @dataclass(frozen=True)
@@ -150,14 +151,15 @@ def _settle_kind(settle: dict | None) -> str:
     return "cap"
 
 
-def _robot_trials(arm, n: int) -> list[dict[str, Any]]:
-    """The robot command's trials ``0 .. n - 1`` in the arm's lab, diagnosed."""
+def _robot_trials(arm, n: int, demo_path: Path = ROBOT_DEMO) -> list[dict[str, Any]]:
+    """The robot command's trials ``0 .. n - 1`` in the arm's lab, diagnosed (the command
+    stored in the robot demonstration ``demo_path``)."""
     from flyknot.demo import Demonstration
     from flyknot_app.anatomy import diagnose
     from flyknot_sim.lab import SimLab
     from learner.bezier import BezierCommand
 
-    demo = Demonstration.load(DEMOS / "robot.npz")
+    demo = Demonstration.load(demo_path)
     meta = demo.metadata
     command = BezierCommand(
         np.asarray(meta["command_knots"], dtype=float), float(meta["command_T"])
@@ -218,11 +220,11 @@ def _hand_trials(hand, n: int, seed: int) -> list[dict[str, Any]]:
     return rows
 
 
-def _measure(job: tuple[str, float, str, int, int, int]) -> dict[str, Any]:
+def _measure(job: tuple[str, float, str, int, int, int, Path]) -> dict[str, Any]:
     """One (row, sway, demonstration) cell of the table, in a worker process."""
-    name, sway, which, n, seed, rope_id = job
+    name, sway, which, n, seed, rope_id, robot_demo = job
     arm, hand = _labs(CANDIDATES[name], rope_id, sway)
-    trials = _robot_trials(arm, n) if which == "robot" else _hand_trials(hand, n, seed)
+    trials = _robot_trials(arm, n, robot_demo) if which == "robot" else _hand_trials(hand, n, seed)
     return {"candidate": name, "sway_deg": sway, "demo": which, "trials": trials}
 
 
@@ -249,6 +251,7 @@ def run_study(
     seed: int = 0,
     rope: int = 1,
     workers: int = 1,
+    robot_demo: str | Path = ROBOT_DEMO,
     on_cell: Callable[[dict[str, Any]], None] | None = None,
 ) -> list[dict[str, Any]]:
     """Measure every (candidate, sway) row with both demonstrations.
@@ -260,6 +263,7 @@ def run_study(
         seed: Lab seed.
         rope: Rope id.
         workers: Worker processes, >= 1.
+        robot_demo: The robot demonstration whose stored command the arm plays.
         on_cell: Called with each finished cell (for progress).
 
     Returns:
@@ -275,8 +279,10 @@ def run_study(
         check_nonnegative("sway_deg", s)
     check_int("n", n, 1)
     check_int("workers", workers, 1)
+    if not Path(robot_demo).is_file():
+        raise ConfigError("robot_demo", f"no file {str(robot_demo)!r}")
     jobs = [
-        (c, float(s), w, n, seed, rope)
+        (c, float(s), w, n, seed, rope, Path(robot_demo))
         for c in candidates
         for s in sways
         for w in ("robot", "hand")

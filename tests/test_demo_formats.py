@@ -195,6 +195,16 @@ def test_csv_errors(tmp_path: Path) -> None:
         load_demo_csv(tmp_path / "nope.csv")
 
 
+def test_a_file_that_is_not_a_demonstration_is_named(tmp_path):
+    text, single = tmp_path / "notes.npz", tmp_path / "q.npy"
+    text.write_text("not a demonstration")
+    np.save(single, np.zeros(3))
+    for path in (text, single):
+        with pytest.raises(RecordError) as e:
+            Demonstration.load(path)
+        assert str(e.value).startswith(f"{str(path)!r} is not a demonstration file (.npz)")
+
+
 # --- hand pose from four markers ----------------------------------------------------------
 
 

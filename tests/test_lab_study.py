@@ -68,7 +68,7 @@ def test_one_robot_trial_of_a_row_is_diagnosed_in_the_rows_lab():
     lab, lab_hand = _labs(CANDIDATES["elastic table"], 1, 0)
     assert lab.rope_params.frictional_couple == 0.0 and lab.settings.impratio == 1.0
     assert lab_hand.settings.impratio == 1.0 and lab_hand.rope_params.bend_modulus == 1e6
-    (row,) = _robot_trials(arm, 1)
+    (row,) = _robot_trials(arm, 1)  # the shipped demonstration's command
     assert row["label"] in LABELS and row["settle"] in ("rest", "contact_free", "cap")
     assert row["sim_s"] > 1.0 and row["wall_s"] > 0
 
@@ -89,3 +89,20 @@ def test_variation_rows_turn_off_every_part_but_one_in_both_labs():
     arm, hand = _labs(CANDIDATES["rest start alone"], 1, 0.0)
     assert arm.variation == VariationParams(0.0, 0.0, 0.0, True)
     assert hand.variation == HandVariation(0.0, 0.0, 0.0, 0.0, True)
+
+
+def test_a_missing_robot_demo_is_named(tmp_path):
+    with pytest.raises(ConfigError) as e:
+        run_study(["lab"], [0.0], n=1, robot_demo=tmp_path / "none.npz")
+    assert str(e.value) == f"robot_demo: no file {str(tmp_path / 'none.npz')!r}"
+
+
+def test_the_robot_rows_play_the_given_demonstration(tmp_path):
+    from flyknot.errors import RecordError
+    from flyknot_tools.lab_study import _labs, _robot_trials
+
+    arm, _ = _labs(CANDIDATES["no variation"], 1, 0.0)
+    bad = tmp_path / "robot.npz"
+    bad.write_text("not a demonstration")
+    with pytest.raises(RecordError, match="is not a demonstration file"):
+        _robot_trials(arm, 1, bad)
