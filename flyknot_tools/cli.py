@@ -186,7 +186,7 @@ def _cmd_robot(args: argparse.Namespace) -> int:
 
 
 def _cmd_robot_rate(args: argparse.Namespace) -> int:
-    from flyknot_tools.robot_demo import RateSearchConfig, rate_search
+    from flyknot_tools.robot_rate import RateSearchConfig, rate_search
 
     config = RateSearchConfig(
         rope=args.rope, generations=args.generations, popsize=args.popsize, trials=args.trials

@@ -49,6 +49,7 @@ import numpy as np
 from flyknot.constants import GRAVITY, MARKER_SPACING, MODEL_DT, N_MARKERS
 from flyknot.errors import ConfigError, SolverError, check_nonnegative, check_positive
 from flyknot.geometry import readonly
+from learner.rope_kernel import CONVERGED, newton_step
 
 NEWTON_TOL = 1e-10  # [m], scaled residuals (see module docstring)
 NEWTON_MAX_ITER = 25
@@ -244,11 +245,15 @@ def rope_energy(
 class _StepSolver:
     """Newton on the scaled KKT system of one step; keeps work arrays between steps."""
 
+    compiled = True  # False: NumPy alone (the reference of tests/test_rope_kernel.py)
+
     def __init__(self, params: RopeModelParams, tol: float, max_iter: int):
         self.params = params
         self.ops = _ops(params)
         self.tol = tol
         self.max_iter = max_iter
+        ops = self.ops
+        self.kernel_args = (ops.H0, ops.m, params.link_length, tol, max_iter, _MIN_ALPHA)
         n = params.n_links
         self.n = n
         self.K = np.zeros((4 * n, 4 * n))
@@ -345,13 +350,27 @@ class _StepSolver:
     ) -> tuple[np.ndarray, np.ndarray, int]:
         """One step from (p_k, v_k) with inputs A_k -> A_next; returns (p', mu', iterations).
 
-        Converged when max(|R1s_i| / m_i, |R2s|) <= tol [m].
+        Converged when max(|R1s_i| / m_i, |R2s|) <= tol [m]. With ``compiled`` the iteration
+        is :func:`learner.rope_kernel.newton_step`; a step it cannot finish is run again in
+        NumPy (the reference), which raises the :class:`SolverError` naming the failure.
         """
-        n, dt = self.n, self.params.dt
-        m = self.ops.m[:, None]
-        p_tip = A_next[1]
+        p = p_k + self.params.dt * v_k if p_guess is None else p_guess
         c = self.constant(p_k, v_k, A_k, A_next)
-        p = p_k + dt * v_k if p_guess is None else p_guess
+        p, mu, tip = (np.ascontiguousarray(a, dtype=float) for a in (p, mu0, A_next[1]))
+        if self.compiled:
+            try:
+                out = newton_step(p, mu, c, tip, *self.kernel_args)
+            except np.linalg.LinAlgError:
+                out = None
+            if out is not None and out[3] == CONVERGED:
+                return out[0], out[1], int(out[2])
+        return self._solve_numpy(k, c, p, mu, tip)
+
+    def _solve_numpy(
+        self, k: int, c: np.ndarray, p: np.ndarray, mu0: np.ndarray, p_tip: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, int]:
+        """Newton in NumPy from the guess (p, mu0), with the step's constant c."""
+        n, m = self.n, self.ops.m[:, None]
         mu = mu0.copy()
         res = np.inf
         r1, r2 = self.residual(p, mu, c, p_tip)

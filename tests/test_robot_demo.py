@@ -16,14 +16,13 @@ from flyknot.errors import ConfigError
 from flyknot_tools import cli as tools_cli
 from flyknot_tools.robot_demo import (
     CommandSearchConfig,
-    RateSearchConfig,
     command_score,
     free_from_knots,
     knots_from_free,
-    rate_search,
     record_demonstration,
     search_command,
 )
+from flyknot_tools.robot_rate import RateSearchConfig, rate_search
 from tests.knot_curves import verdict
 
 ROBOT_DEMO = DEMOS_DIR / "robot.npz"

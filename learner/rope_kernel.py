@@ -1,0 +1,157 @@
+"""Newton on one step of the learner's rope model, compiled (numba).
+
+:class:`learner.rope_model._StepSolver` assembles the scaled KKT system of a step from NumPy
+arrays; for the model's 11 links (a 44 x 44 system, a few iterations a step, ~100 steps a
+rollout) NumPy's per-call overhead is most of a rollout's time. :func:`newton_step` runs the
+same iteration (residuals, KKT matrix, LAPACK solve, backtracking on the squared residual) in
+one compiled call. Sums run in a fixed loop order rather than BLAS's, so iterates agree with
+the NumPy path to rounding (``tests/test_rope_kernel.py`` checks them against it).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+__all__ = ["CONVERGED", "MAX_ITER", "NON_FINITE", "newton_step"]
+
+CONVERGED, NON_FINITE, MAX_ITER = 0, 1, 2
+"""Status codes of :func:`newton_step`."""
+
+
+@numba.njit(cache=True)
+def _residual(p, mu, c, p_tip, H0, ell, r1, r2, dvec):
+    """R1s = H0 p' + c - Ghat^T mu' into r1 (N, 3); R2s = g / (2 l) into r2 (N,) [m]."""
+    n = p.shape[0]
+    for j in range(n):
+        for a in range(3):
+            dvec[j, a] = p[j, a] - (p_tip[a] if j == 0 else p[j - 1, a])
+        r2[j] = (dvec[j, 0] ** 2 + dvec[j, 1] ** 2 + dvec[j, 2] ** 2 - ell * ell) / (2.0 * ell)
+    for i in range(n):
+        for a in range(3):
+            s = 0.0
+            for j in range(n):
+                s += H0[i, j] * p[j, a]
+            g = dvec[i, a] * (mu[i] / ell)
+            if i < n - 1:
+                g -= dvec[i + 1, a] * (mu[i + 1] / ell)
+            r1[i, a] = s + c[i, a] - g
+
+
+@numba.njit(cache=True)
+def _merit(r1, r2, m):
+    """phi = |R1s / m|^2 + |R2s|^2 (non-finite: +inf)."""
+    phi = 0.0
+    for i in range(r1.shape[0]):
+        for a in range(3):
+            x = r1[i, a] / m[i]
+            phi += x * x
+        phi += r2[i] * r2[i]
+    return phi if np.isfinite(phi) else np.inf
+
+
+@numba.njit(cache=True)
+def _kkt(p, mu, p_tip, H0, ell, K, dvec):
+    """The scaled KKT matrix (4N, 4N) into K (see ``_StepSolver.kkt``); K's other entries
+    must be zero."""
+    n = p.shape[0]
+    for j in range(n):
+        for a in range(3):
+            dvec[j, a] = p[j, a] - (p_tip[a] if j == 0 else p[j - 1, a])
+    for i in range(n):
+        for j in range(n):
+            h = H0[i, j]
+            if i == j:
+                h -= mu[i] / ell
+                if i < n - 1:
+                    h -= mu[i + 1] / ell
+            elif i == j + 1:
+                h += mu[i] / ell
+            elif j == i + 1:
+                h += mu[j] / ell
+            for a in range(3):
+                K[3 * i + a, 3 * j + a] = h
+    for j in range(n):
+        for a in range(3):
+            g = dvec[j, a] / ell
+            K[3 * n + j, 3 * j + a] = g
+            K[3 * j + a, 3 * n + j] = -g
+            if j > 0:
+                K[3 * n + j, 3 * (j - 1) + a] = -g
+                K[3 * (j - 1) + a, 3 * n + j] = g
+
+
+@numba.njit(cache=True)
+def newton_step(p, mu, c, p_tip, H0, m, ell, tol, max_iter, min_alpha):
+    """Newton with backtracking on one model step, from the guess (p, mu).
+
+    Iterates (p', mu') <- (p', mu') + alpha delta with K delta = -(R1s, R2s), alpha the first
+    of 1, 1/2, ... with phi(alpha) <= (1 - 2e-4 alpha) phi(0), or ``min_alpha``; stops when
+    max(|R1s_i| / m_i, |R2s_j|) <= tol [m].
+
+    Args:
+        p: Guess of the new positions, shape (N, 3) [m] (not modified).
+        mu: Guess of the scaled multipliers, shape (N,) [m] (not modified).
+        c: The step's constant part of R1s, shape (N, 3) [kg m].
+        p_tip: Fingertip at the new step, shape (3,) [m].
+        H0: diag(m) + (kappa + beta) Df^T Df, shape (N, N).
+        m: Point masses, shape (N,) [kg].
+        ell: Link length [m].
+        tol: Tolerance on the scaled residuals [m].
+        max_iter: Most Newton iterations.
+        min_alpha: Smallest step fraction.
+
+    Returns:
+        (p', mu', iterations, status, residual): status :data:`CONVERGED`, :data:`NON_FINITE`
+        or :data:`MAX_ITER`; a singular KKT matrix raises ``numpy.linalg.LinAlgError``.
+    """
+    n = p.shape[0]
+    p = p.copy()
+    mu = mu.copy()
+    K = np.zeros((4 * n, 4 * n))
+    dvec = np.empty((n, 3))
+    r1, r2 = np.empty((n, 3)), np.empty(n)
+    r1_t, r2_t = np.empty((n, 3)), np.empty(n)
+    p_t, mu_t = np.empty((n, 3)), np.empty(n)
+    rhs = np.empty(4 * n)
+    _residual(p, mu, c, p_tip, H0, ell, r1, r2, dvec)
+    phi = _merit(r1, r2, m)
+    res = np.inf
+    for it in range(max_iter + 1):
+        res = 0.0
+        for i in range(n):
+            for a in range(3):
+                x = abs(r1[i, a] / m[i])
+                if not np.isfinite(x):
+                    return p, mu, it, NON_FINITE, x
+                res = max(res, x)
+            if not np.isfinite(r2[i]):
+                return p, mu, it, NON_FINITE, r2[i]
+            res = max(res, abs(r2[i]))
+        if res <= tol:
+            return p, mu, it, CONVERGED, res
+        if it == max_iter:
+            break
+        _kkt(p, mu, p_tip, H0, ell, K, dvec)
+        for i in range(n):
+            for a in range(3):
+                rhs[3 * i + a] = -r1[i, a]
+            rhs[3 * n + i] = -r2[i]
+        delta = np.linalg.solve(K, rhs)
+        alpha = 1.0
+        while True:
+            for i in range(n):
+                for a in range(3):
+                    p_t[i, a] = p[i, a] + alpha * delta[3 * i + a]
+                mu_t[i] = mu[i] + alpha * delta[3 * n + i]
+            _residual(p_t, mu_t, c, p_tip, H0, ell, r1_t, r2_t, dvec)
+            phi_t = _merit(r1_t, r2_t, m)
+            if phi_t <= (1.0 - 2e-4 * alpha) * phi or alpha <= min_alpha:
+                break
+            alpha *= 0.5
+        p[:] = p_t
+        mu[:] = mu_t
+        r1[:] = r1_t
+        r2[:] = r2_t
+        phi = phi_t
+    return p, mu, max_iter, MAX_ITER, res
