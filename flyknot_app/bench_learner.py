@@ -9,6 +9,9 @@ only. The QP has the paper's weights, the follow-through terms and the paper's l
 
 Reported (each the best of ``repeats`` runs, in seconds):
     rollout_s       model rollout driven by the measured joints, up to t_c
+    rollout_numpy_s the same with the step's Newton iteration in NumPy instead of compiled
+    compiled_over_numpy  rollout_numpy_s / rollout_s (measured in the same run)
+    compiled_max_dx |x_compiled - x_numpy| over the rollout's states [m, m/s]
     linearise_s     M = dx(t_c)/dkappa by the implicit function theorem (80 columns)
     qp_build_s      follow-through terms + all limit rows + the QP of the first round
     qp_osqp_s       solving that QP with OSQP
@@ -34,7 +37,7 @@ from learner.follow_through import follow_through_terms
 from learner.inverse_qp import InverseModelWeights, build_inverse_qp, solve_qp
 from learner.kinematics import RobotModel
 from learner.limit_rows import initial_active_rows, limit_rows, subset_rows
-from learner.rope_model import RopeModelParams
+from learner.rope_model import RopeModelParams, _StepSolver
 from learner.system_model import (
     critical_step,
     linearise,
@@ -56,6 +59,9 @@ FD_EPS = 1e-6  # [rad or m] central-difference step
 
 KEYS = (
     "rollout_s",
+    "rollout_numpy_s",
+    "compiled_over_numpy",
+    "compiled_max_dx",
     "linearise_s",
     "qp_build_s",
     "qp_osqp_s",
@@ -98,7 +104,7 @@ def bench_learner(repeats: int = 1, progress: bool = True) -> dict:
 
     if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
         raise ConfigError("repeats", f"must be an integer >= 1, got {repeats!r}")
-    bar = tqdm(total=8, desc="bench learner", disable=bar_disable(progress), unit="stage")
+    bar = tqdm(total=9, desc="bench learner", disable=bar_disable(progress), unit="stage")
     robot = RobotModel.from_mjcf()
     params = RopeModelParams()
     weights = InverseModelWeights()
@@ -121,6 +127,18 @@ def bench_learner(repeats: int = 1, progress: bool = True) -> dict:
         ),
         repeats,
     )
+    _StepSolver.compiled = False
+    try:
+        res["rollout_numpy_s"], ro_np = _best(
+            lambda: rollout_from_joints(
+                record.t_joint, record.q_meas, command.base_offset, robot, params, T, n_steps=k_c
+            ),
+            repeats,
+        )
+    finally:
+        _StepSolver.compiled = True
+    res["compiled_over_numpy"] = res["rollout_numpy_s"] / res["rollout_s"]
+    res["compiled_max_dx"] = float(np.abs(ro.traj.x - ro_np.traj.x).max())
     bar.update()
     res["linearise_s"], M = _best(lambda: linearise(ro, T, [k_c])[0], repeats)
     bar.update()
@@ -179,6 +197,7 @@ def format_learner(res: dict) -> str:
     """A small text table of :func:`bench_learner`'s result."""
     labels = {
         "rollout_s": "rollout to t_c",
+        "rollout_numpy_s": "rollout, NumPy Newton",
         "linearise_s": "linearise (IFT)",
         "qp_build_s": "QP build",
         "qp_osqp_s": "QP solve, OSQP",
@@ -189,6 +208,8 @@ def format_learner(res: dict) -> str:
     lines = [f"{'step':<26} {'ms':>10}"]
     for key, label in labels.items():
         lines.append(f"{label:<26} {1e3 * res[key]:>10.1f}")
+    lines.append(f"{'compiled over NumPy':<26} {res['compiled_over_numpy']:>9.1f}x")
+    lines.append(f"{'compiled vs NumPy max dx':<26} {res['compiled_max_dx']:>10.1e}")
     lines.append(f"{'IFT speed-up over FD':<26} {res['ift_over_fd']:>9.0f}x")
     lines.append(f"{'IFT vs FD rel. error':<26} {res['fd_rel_err']:>10.1e}")
     prob = res.get("problem", {})
