@@ -13,7 +13,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["CONVERGED", "MAX_ITER", "NON_FINITE", "newton_step"]
+__all__ = ["CONVERGED", "MAX_ITER", "NON_FINITE", "kkt_into", "newton_step"]
 
 CONVERGED, NON_FINITE, MAX_ITER = 0, 1, 2
 """Status codes of :func:`newton_step`."""
@@ -51,9 +51,9 @@ def _merit(r1, r2, m):
 
 
 @numba.njit(cache=True)
-def _kkt(p, mu, p_tip, H0, ell, K, dvec):
-    """The scaled KKT matrix (4N, 4N) into K (see ``_StepSolver.kkt``); K's other entries
-    must be zero."""
+def kkt_into(p, mu, p_tip, H0, ell, K, dvec):
+    """The scaled KKT matrix (4N, 4N) of ``_StepSolver.kkt`` into K, the link vectors into
+    dvec (N, 3); K's other entries must be zero (they are never written)."""
     n = p.shape[0]
     for j in range(n):
         for a in range(3):
@@ -132,7 +132,7 @@ def newton_step(p, mu, c, p_tip, H0, m, ell, tol, max_iter, min_alpha):
             return p, mu, it, CONVERGED, res
         if it == max_iter:
             break
-        _kkt(p, mu, p_tip, H0, ell, K, dvec)
+        kkt_into(p, mu, p_tip, H0, ell, K, dvec)
         for i in range(n):
             for a in range(3):
                 rhs[3 * i + a] = -r1[i, a]

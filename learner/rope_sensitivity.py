@@ -30,12 +30,11 @@ from collections.abc import Iterable
 import numpy as np
 
 from flyknot.errors import ConfigError
+from learner.rope_kernel import kkt_into
 from learner.rope_model import (
-    NEWTON_MAX_ITER,
     RopeModelParams,
     RopeTrajectory,
     _ops,
-    _StepSolver,
     hanging_state,
     link_vectors,
     rollout,
@@ -107,7 +106,7 @@ def state_sensitivity(
     if dx0.shape != (6 * n, nth):
         raise ConfigError("dx0", f"must have shape ({6 * n}, {nth}), got {dx0.shape}")
     ops = _ops(params)
-    solver = _StepSolver(params, 1.0, NEWTON_MAX_ITER)
+    kkt, dvec = np.zeros((4 * n, 4 * n)), np.empty((n, 3))  # kkt_into's buffers
     m = ops.m[:, None, None]
     # dA_k / dtheta, shape (K+1, 2, 3, n_theta): (dp_tip - l dd_tip, dp_tip).
     dA = np.stack([dU[:, :3] - ell * dU[:, 3:], dU[:, :3]], axis=1)
@@ -133,7 +132,7 @@ def state_sensitivity(
         r1[0] += (mu[k + 1, 0] / ell) * dtip1
         r2 = np.zeros((n, nth))
         r2[0] = -(link_vectors(p1, tip1)[0] / ell) @ dtip1
-        kkt = solver.kkt(p1, mu[k + 1], tip1)
+        kkt_into(p1, mu[k + 1], tip1, ops.H0, ell, kkt, dvec)
         dz = -np.linalg.solve(kkt, np.concatenate([r1.reshape(3 * n, nth), r2]))
         dp_new = dz[: 3 * n].reshape(n, 3, nth)
         dv = (dp_new - dp) / dt

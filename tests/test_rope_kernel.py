@@ -65,3 +65,17 @@ def test_a_failed_step_raises_the_numpy_paths_error(monkeypatch):
         solver.solve(3, nan, np.zeros_like(nan), A[3], A[4], np.zeros(params.n_links))
     assert e.value.status == "non-finite"
     assert str(e.value) == "rope Newton failed with status 'non-finite': step 3, iteration 0"
+
+
+@given(st.integers(0, 10_000), st.integers(1, 12))
+@settings(max_examples=30, deadline=None)
+def test_the_compiled_kkt_matrix_is_the_numpy_one_bit_for_bit(seed, n):
+    from learner.rope_kernel import kkt_into
+
+    params = RopeModelParams(n_links=n, stiffness=1e3, damping=5.0)
+    rng = np.random.default_rng(seed)
+    p, mu, tip = rng.normal(size=(n, 3)), rng.normal(size=n), rng.normal(size=3)
+    solver = _StepSolver(params, 1e-10, 25)
+    K, dvec = np.zeros((4 * n, 4 * n)), np.empty((n, 3))
+    kkt_into(p, mu, tip, solver.ops.H0, params.link_length, K, dvec)
+    np.testing.assert_array_equal(K, solver.kkt(p, mu, tip))
