@@ -13,6 +13,7 @@ Reported (each the best of ``repeats`` runs, in seconds):
     compiled_over_numpy  rollout_numpy_s / rollout_s (measured in the same run)
     compiled_max_dx |x_compiled - x_numpy| over the rollout's states [m, m/s]
     linearise_s     M = dx(t_c)/dkappa by the implicit function theorem (80 columns)
+    linearise_numpy_s  the same with the propagation in NumPy instead of compiled
     qp_build_s      follow-through terms + all limit rows + the QP of the first round
     qp_osqp_s       solving that QP with OSQP
     qp_clarabel_s   solving that QP with Clarabel
@@ -32,6 +33,7 @@ import numpy as np
 
 from flyknot.errors import ConfigError
 from flyknot.progress import bar_disable
+from learner import rope_sensitivity
 from learner.bezier import BezierCommand
 from learner.follow_through import follow_through_terms
 from learner.inverse_qp import InverseModelWeights, build_inverse_qp, solve_qp
@@ -63,6 +65,7 @@ KEYS = (
     "compiled_over_numpy",
     "compiled_max_dx",
     "linearise_s",
+    "linearise_numpy_s",
     "qp_build_s",
     "qp_osqp_s",
     "qp_clarabel_s",
@@ -141,6 +144,11 @@ def bench_learner(repeats: int = 1, progress: bool = True) -> dict:
     res["compiled_max_dx"] = float(np.abs(ro.traj.x - ro_np.traj.x).max())
     bar.update()
     res["linearise_s"], M = _best(lambda: linearise(ro, T, [k_c])[0], repeats)
+    rope_sensitivity.COMPILED = False
+    try:
+        res["linearise_numpy_s"], _ = _best(lambda: linearise(ro, T, [k_c])[0], repeats)
+    finally:
+        rope_sensitivity.COMPILED = True
     bar.update()
     err = np.zeros(66)  # values do not change the timing; the update below uses the real one
 
@@ -199,6 +207,7 @@ def format_learner(res: dict) -> str:
         "rollout_s": "rollout to t_c",
         "rollout_numpy_s": "rollout, NumPy Newton",
         "linearise_s": "linearise (IFT)",
+        "linearise_numpy_s": "linearise, NumPy loop",
         "qp_build_s": "QP build",
         "qp_osqp_s": "QP solve, OSQP",
         "qp_clarabel_s": "QP solve, Clarabel",

@@ -155,3 +155,79 @@ def newton_step(p, mu, c, p_tip, H0, m, ell, tol, max_iter, min_alpha):
         r2[:] = r2_t
         phi = phi_t
     return p, mu, max_iter, MAX_ITER, res
+
+
+@numba.njit(cache=True)
+def propagate_sensitivity(
+    P, P_tip, MU, dA, dU_tip, dp, dv, m, DtD, DtDin, H0, ell, dt, beta, c_next, slot, out
+):
+    """Forward propagation of dx_k through each step's KKT system (``state_sensitivity``).
+
+    For k = 0 .. K-1: K_{k+1} dz = -(r1, r2) with
+    r1 = -M dp - dt M dv - beta DtD dp + DtDin (c_next dA_{k+1} - beta dA_k)
+    + [i = 0] (mu_{k+1,0} / l) dtip_{k+1},  r2 = -[i = 0] (p_{k+1,0} - tip_{k+1}) . dtip_{k+1} / l,
+    then dp' = dz[:3N], dv' = (dp' - dp) / dt.
+
+    Args:
+        P: Positions (K+1, N, 3) [m].
+        P_tip: Fingertip (K+1, 3) [m].
+        MU: Scaled multipliers (K+1, N) [m].
+        dA: Input point derivatives (K+1, 2, 3, n_theta).
+        dU_tip: Fingertip derivatives (K+1, 3, n_theta).
+        dp: d p_0 / d theta (N, 3, n_theta) (overwritten).
+        dv: d v_0 / d theta (N, 3, n_theta) (overwritten).
+        m: Masses (N,) [kg].
+        DtD: Df^T Df (N, N).
+        DtDin: Df^T Din (N, 2).
+        H0: diag(m) + (kappa + beta) DtD (N, N).
+        ell: Link length [m].
+        dt: Model step [s].
+        beta: b dt / l^2.
+        c_next: kappa + beta (kappa = k dt^2 / l^2).
+        slot: Row of ``out`` for each step 0..K, or -1 (K+1,).
+        out: dX rows (len(steps), 6N, n_theta), filled at the steps with a slot (step 0 not
+            written here).
+    """
+    n, nth = P.shape[1], dp.shape[2]
+    K = np.zeros((4 * n, 4 * n))
+    dvec = np.empty((n, 3))
+    rhs = np.empty((4 * n, nth))
+    last = -1
+    for k in range(slot.shape[0]):
+        if slot[k] >= 0:
+            last = k
+    for k in range(last):
+        for i in range(n):
+            for a in range(3):
+                for t in range(nth):
+                    s = -m[i] * dp[i, a, t] - dt * m[i] * dv[i, a, t]
+                    for j in range(n):
+                        s -= beta * DtD[i, j] * dp[j, a, t]
+                    for b in range(2):
+                        s += DtDin[i, b] * (c_next * dA[k + 1, b, a, t] - beta * dA[k, b, a, t])
+                    if i == 0:
+                        s += (MU[k + 1, 0] / ell) * dU_tip[k + 1, a, t]
+                    rhs[3 * i + a, t] = -s
+        for i in range(n):
+            for t in range(nth):
+                rhs[3 * n + i, t] = 0.0
+        for t in range(nth):
+            s = 0.0
+            for a in range(3):
+                s -= (P[k + 1, 0, a] - P_tip[k + 1, a]) / ell * dU_tip[k + 1, a, t]
+            rhs[3 * n, t] = -s
+        kkt_into(P[k + 1], MU[k + 1], P_tip[k + 1], H0, ell, K, dvec)
+        dz = np.linalg.solve(K, rhs)
+        for i in range(n):
+            for a in range(3):
+                for t in range(nth):
+                    new = dz[3 * i + a, t]
+                    dv[i, a, t] = (new - dp[i, a, t]) / dt
+                    dp[i, a, t] = new
+        r = slot[k + 1]
+        if r >= 0:
+            for i in range(n):
+                for a in range(3):
+                    for t in range(nth):
+                        out[r, 3 * i + a, t] = dp[i, a, t]
+                        out[r, 3 * n + 3 * i + a, t] = dv[i, a, t]

@@ -30,7 +30,7 @@ from collections.abc import Iterable
 import numpy as np
 
 from flyknot.errors import ConfigError
-from learner.rope_kernel import kkt_into
+from learner.rope_kernel import kkt_into, propagate_sensitivity
 from learner.rope_model import (
     RopeModelParams,
     RopeTrajectory,
@@ -41,6 +41,9 @@ from learner.rope_model import (
 )
 
 N_INPUTS = 6  # d p_tip (3) [m], d d_tip (3) [unit]
+COMPILED = True
+"""Propagate with :func:`learner.rope_kernel.propagate_sensitivity` (False: the NumPy
+reference, :func:`_propagate_numpy`)."""
 
 
 def check_steps(steps: Iterable[int] | None, n_steps: int) -> list[int]:
@@ -106,40 +109,49 @@ def state_sensitivity(
     if dx0.shape != (6 * n, nth):
         raise ConfigError("dx0", f"must have shape ({6 * n}, {nth}), got {dx0.shape}")
     ops = _ops(params)
-    kkt, dvec = np.zeros((4 * n, 4 * n)), np.empty((n, 3))  # kkt_into's buffers
-    m = ops.m[:, None, None]
     # dA_k / dtheta, shape (K+1, 2, 3, n_theta): (dp_tip - l dd_tip, dp_tip).
-    dA = np.stack([dU[:, :3] - ell * dU[:, 3:], dU[:, :3]], axis=1)
-    mu = traj.lam * (2.0 * ell * dt**2)
-    c_next = ops.kappa + ops.beta
-    want = {s: i for i, s in enumerate(steps)}
+    dA = np.ascontiguousarray(np.stack([dU[:, :3] - ell * dU[:, 3:], dU[:, :3]], axis=1))
+    slot = np.full(K + 1, -1, dtype=np.int64)
+    slot[np.asarray(steps)] = np.arange(len(steps))
     out = np.empty((len(steps), 6 * n, nth))
-    dp = dx0[: 3 * n].reshape(n, 3, nth)
-    dv = dx0[3 * n :].reshape(n, 3, nth)
-    if 0 in want:
-        out[want[0]] = dx0
-    for k in range(max(steps)):
-        p1, tip1 = traj.p[k + 1], traj.p_tip[k + 1]
+    if slot[0] >= 0:
+        out[slot[0]] = dx0
+    dp = dx0[: 3 * n].reshape(n, 3, nth).copy()
+    dv = dx0[3 * n :].reshape(n, 3, nth).copy()
+    propagate = propagate_sensitivity if COMPILED else _propagate_numpy
+    propagate(
+        np.ascontiguousarray(traj.p), np.ascontiguousarray(traj.p_tip),
+        traj.lam * (2.0 * ell * dt**2), dA, np.ascontiguousarray(dU[:, :3]), dp, dv, ops.m,
+        ops.DtD, ops.DtDin, ops.H0, ell, dt, ops.beta, ops.kappa + ops.beta, slot, out,
+    )  # fmt: skip
+    return out
+
+
+def _propagate_numpy(
+    P, P_tip, MU, dA, dU_tip, dp, dv, m, DtD, DtDin, H0, ell, dt, beta, c_next, slot, out
+) -> None:
+    """:func:`learner.rope_kernel.propagate_sensitivity` in NumPy (the reference)."""
+    n, nth = P.shape[1], dp.shape[2]
+    kkt, dvec = np.zeros((4 * n, 4 * n)), np.empty((n, 3))  # kkt_into's buffers
+    mm = m[:, None, None]
+    for k in range(int(np.flatnonzero(slot >= 0).max())):
+        p1, tip1 = P[k + 1], P_tip[k + 1]
         r1 = (
-            -m * dp
-            - dt * m * dv
-            - ops.beta * (ops.DtD @ dp.reshape(n, -1)).reshape(n, 3, nth)
-            + (ops.DtDin @ (c_next * dA[k + 1] - ops.beta * dA[k]).reshape(2, -1)).reshape(
-                n, 3, nth
-            )
+            -mm * dp
+            - dt * mm * dv
+            - beta * (DtD @ dp.reshape(n, -1)).reshape(n, 3, nth)
+            + (DtDin @ (c_next * dA[k + 1] - beta * dA[k]).reshape(2, -1)).reshape(n, 3, nth)
         )
-        dtip1 = dU[k + 1, :3]  # (3, n_theta)
-        r1[0] += (mu[k + 1, 0] / ell) * dtip1
+        r1[0] += (MU[k + 1, 0] / ell) * dU_tip[k + 1]
         r2 = np.zeros((n, nth))
-        r2[0] = -(link_vectors(p1, tip1)[0] / ell) @ dtip1
-        kkt_into(p1, mu[k + 1], tip1, ops.H0, ell, kkt, dvec)
+        r2[0] = -(link_vectors(p1, tip1)[0] / ell) @ dU_tip[k + 1]
+        kkt_into(p1, MU[k + 1], tip1, H0, ell, kkt, dvec)
         dz = -np.linalg.solve(kkt, np.concatenate([r1.reshape(3 * n, nth), r2]))
         dp_new = dz[: 3 * n].reshape(n, 3, nth)
         dv = (dp_new - dp) / dt
         dp = dp_new
-        if k + 1 in want:
-            out[want[k + 1]] = np.concatenate([dp.reshape(3 * n, nth), dv.reshape(3 * n, nth)])
-    return out
+        if slot[k + 1] >= 0:
+            out[slot[k + 1]] = np.concatenate([dp.reshape(3 * n, nth), dv.reshape(3 * n, nth)])
 
 
 def fd_sensitivity(

@@ -79,3 +79,19 @@ def test_the_compiled_kkt_matrix_is_the_numpy_one_bit_for_bit(seed, n):
     K, dvec = np.zeros((4 * n, 4 * n)), np.empty((n, 3))
     kkt_into(p, mu, tip, solver.ops.H0, params.link_length, K, dvec)
     np.testing.assert_array_equal(K, solver.kkt(p, mu, tip))
+
+
+def test_compiled_sensitivity_matches_the_numpy_propagation(monkeypatch):
+    from learner import rope_sensitivity
+    from learner.rope_sensitivity import state_sensitivity
+
+    params = RopeModelParams()
+    p_tip, d_tip = _motion(80, params.dt, seed=7, scale=1.5)
+    tr = rollout(p_tip, d_tip, params)
+    dU = np.random.default_rng(1).normal(size=(81, 6, 9))
+    steps = [0, 17, 40, 80]
+    fast = state_sensitivity(tr, dU, steps=steps)
+    monkeypatch.setattr(rope_sensitivity, "COMPILED", False)
+    ref = state_sensitivity(tr, dU, steps=steps)
+    np.testing.assert_array_equal(fast[0], 0.0)
+    np.testing.assert_allclose(fast, ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
