@@ -619,6 +619,7 @@ def test_demo_commands_are_split_between_flyknot_and_flyknot_tools(capsys):
     assert _actions(_help(tools_cli.main, ["demo", "--help"], capsys)) == {
         "synthesize",
         "robot",
+        "robot-rate",
         "record",
         "rerecord",
     }
