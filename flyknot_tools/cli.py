@@ -7,6 +7,8 @@
 * ``flyknot-tools demo robot --out FILE [--start COMMAND.npz] [--seed S]`` searches a command
   the simulated arm ties the knot with and saves its nominal trial as a demonstration;
   ``docs/robot-feasibility.md``.
+* ``flyknot-tools demo robot-rate --start COMMAND.npz --out FILE`` searches, from a robot
+  command that ties, one that ties in more varied trials (:mod:`flyknot_tools.robot_rate`).
 * ``flyknot-tools demo record --command COMMAND.npz --out FILE`` records a robot command's
   nominal trial as a demonstration.
 * ``flyknot-tools rope-study [ARGS...]`` prints the rope-model comparison table of
@@ -14,7 +16,7 @@
 * ``flyknot-tools rope-validate [--ropes ...] [--table FILE] [--quick]`` runs the rope
   validation suite (:mod:`flyknot_tools.rope_validate`); exit 1 when a case fails.
 * ``flyknot-tools lab-study`` plays the robot command and Swipe over the rope model's brackets
-  (:mod:`flyknot_tools.lab_study`).
+  and over the parts of the trial-to-trial variation (:mod:`flyknot_tools.lab_study`).
 * ``flyknot-tools settle-compare [--demo NAME] [--trials A-B] [--rope R]`` plays a
   demonstration's trials with and without the knot-set end of the settle
   (:mod:`flyknot_tools.settle_compare`).
