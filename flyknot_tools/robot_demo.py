@@ -44,8 +44,10 @@ from flyknot.progress import bar_disable
 from flyknot.record import TrialRecord
 
 __all__ = [
+    "CommandCoding",
     "CommandSearchConfig",
     "CommandSearchResult",
+    "check_duration",
     "command_score",
     "free_from_knots",
     "knots_from_free",
@@ -82,6 +84,61 @@ def knots_from_free(free: np.ndarray, base: np.ndarray) -> np.ndarray:
     k[:7, 6] = free[:, -1]
     k[7:] = base
     return k
+
+
+def check_duration(duration: tuple[float, float]) -> tuple[float, float]:
+    """A search's allowed command duration (lo, hi) [s], 0.1 <= lo < hi <= 5.
+
+    Raises:
+        ConfigError: Outside those bounds (named ``duration``).
+    """
+    lo, hi = (float(v) for v in duration)
+    if not 0.1 <= lo < hi <= 5.0:
+        raise ConfigError("duration", f"need 0.1 <= lo < hi <= 5 s, got {duration}")
+    return lo, hi
+
+
+@dataclass(frozen=True)
+class CommandCoding:
+    """The searches' decision vector y (37,) [normalised units] and the command it codes.
+
+    For joints 1-6 the free knots of ``start_knots`` are offset by ``knot_scale`` y[:36] [rad];
+    T = T0 + ``duration_scale`` y[36] [s]; joint 7 and the base rows stay (module docstring).
+
+    Attributes:
+        start_knots: Knots of the start command (10, 8).
+        T0: Its duration [s].
+        knot_scale: Knot offset per unit [rad].
+        duration_scale: Duration change per unit [s].
+        duration: Allowed duration (lo, hi) [s].
+    """
+
+    start_knots: np.ndarray
+    T0: float
+    knot_scale: float
+    duration_scale: float
+    duration: tuple[float, float]
+
+    def decode(self, y: np.ndarray) -> tuple[np.ndarray, float]:
+        """The command (knots (10, 8), T [s]) of decision vector y (37,)."""
+        free = free_from_knots(self.start_knots)
+        y = np.asarray(y, dtype=float)
+        free[:N_SEARCHED_JOINTS] += self.knot_scale * y[:-1].reshape(N_SEARCHED_JOINTS, -1)
+        base = np.asarray(self.start_knots, dtype=float)[7:]
+        return knots_from_free(free, base), float(self.T0 + self.duration_scale * y[-1])
+
+    def limit_score(self, knots: np.ndarray, T: float, robot, limits) -> float | None:
+        """The score of a command outside its duration or the joint limits on its 250 Hz
+        samples (-30 - 100 |T - T_clipped|, or -30 - 20 min(v, 5) with v the largest violation
+        as a fraction of the half range); None inside them."""
+        from learner.bezier import BezierCommand
+        from learner.limit_rows import sampled_violation
+
+        lo, hi = self.duration
+        if not lo <= T <= hi:
+            return -30.0 - 100.0 * abs(T - min(max(T, lo), hi))
+        v = sampled_violation(knots, T, BezierCommand(knots, T).sample_times(), robot, limits)
+        return -30.0 - 20.0 * min(v, 5.0) if v > 0 else None
 
 
 @dataclass(frozen=True)
@@ -126,10 +183,7 @@ class CommandSearchConfig:
             raise ConfigError("target_rate", f"must lie in (0, 1], got {self.target_rate!r}")
         for f in ("sigma0", "knot_scale", "duration_scale", "frame_s", "local_sigma"):
             check_positive(f, getattr(self, f))
-        lo, hi = (float(v) for v in self.duration)
-        if not 0.1 <= lo < hi <= 5.0:
-            raise ConfigError("duration", f"need 0.1 <= lo < hi <= 5 s, got {self.duration}")
-        object.__setattr__(self, "duration", (lo, hi))
+        object.__setattr__(self, "duration", check_duration(self.duration))
 
 
 @dataclass(frozen=True)
@@ -247,31 +301,23 @@ def search_command(
     from flyknot_sim.lab import LabParams, SimLab, VariationParams
     from learner.bezier import BezierCommand
     from learner.kinematics import RobotModel
-    from learner.limit_rows import sampled_violation
 
     check_int("seed", seed, 0)
     tic = time.perf_counter()
-    x0 = free_from_knots(start_knots)
-    base = np.asarray(start_knots, dtype=float)[7:]
+    coding = CommandCoding(
+        np.asarray(start_knots, dtype=float), T0, config.knot_scale, config.duration_scale,
+        config.duration,
+    )  # fmt: skip
     robot, limits = RobotModel.from_mjcf(), JointLimits()
     lab = SimLab(LabParams(rope=config.rope, variation=VariationParams.none()))
-    lo, hi = config.duration
-
-    def decode(y: np.ndarray) -> tuple[np.ndarray, float]:
-        free = x0.copy()
-        free[:N_SEARCHED_JOINTS] += config.knot_scale * y[:-1].reshape(N_SEARCHED_JOINTS, -1)
-        return knots_from_free(free, base), float(T0 + config.duration_scale * y[-1])
-
     state = {"evals": 0, "simulated": 0}
 
     def evaluate(y: np.ndarray) -> tuple[float, np.ndarray, float]:
-        knots, T = decode(y)
+        knots, T = coding.decode(y)
         state["evals"] += 1
-        if not lo <= T <= hi:
-            return -30.0 - 100.0 * abs(T - min(max(T, lo), hi)), knots, T
-        v = sampled_violation(knots, T, BezierCommand(knots, T).sample_times(), robot, limits)
-        if v > 0:
-            return -30.0 - 20.0 * min(v, 5.0), knots, T
+        out_of_limits = coding.limit_score(knots, T, robot, limits)
+        if out_of_limits is not None:
+            return out_of_limits, knots, T
         state["simulated"] += 1
         rec = lab.run(BezierCommand(knots, T).joint_command())
         return command_score(rec, T, config.frame_s), knots, T

@@ -20,13 +20,7 @@ import numpy as np
 from flyknot.errors import ConfigError, check_int, check_positive
 from flyknot.limits import JointLimits
 from flyknot.progress import bar_disable
-from flyknot_tools.robot_demo import (
-    N_DECISION,
-    N_SEARCHED_JOINTS,
-    command_score,
-    free_from_knots,
-    knots_from_free,
-)
+from flyknot_tools.robot_demo import N_DECISION, CommandCoding, check_duration, command_score
 
 __all__ = ["RateSearchConfig", "RateSearchResult", "rate_search"]
 
@@ -82,10 +76,7 @@ class RateSearchConfig:
                 f"{lo}..{hi - 1}",
             )
         object.__setattr__(self, "check_seeds", (lo, hi))
-        lo_t, hi_t = (float(v) for v in self.duration)
-        if not 0.1 <= lo_t < hi_t <= 5.0:
-            raise ConfigError("duration", f"need 0.1 <= lo < hi <= 5 s, got {self.duration}")
-        object.__setattr__(self, "duration", (lo_t, hi_t))
+        object.__setattr__(self, "duration", check_duration(self.duration))
 
 
 @dataclass(frozen=True)
@@ -158,29 +149,20 @@ def rate_search(
     import cma
     from tqdm import tqdm
 
-    from learner.bezier import BezierCommand
     from learner.kinematics import RobotModel
-    from learner.limit_rows import sampled_violation
 
     check_int("seed", seed, 0)
     check_int("workers", workers, 1)
     tic = time.perf_counter()
-    x0 = free_from_knots(start_knots)
-    base = np.asarray(start_knots, dtype=float)[7:]
+    coding = CommandCoding(
+        np.asarray(start_knots, dtype=float), T0, config.knot_scale, config.duration_scale,
+        config.duration,
+    )  # fmt: skip
     robot, limits = RobotModel.from_mjcf(), JointLimits()
-    lo, hi = config.duration
-
-    def decode(y: np.ndarray) -> tuple[np.ndarray, float]:
-        free = x0.copy()
-        free[:N_SEARCHED_JOINTS] += config.knot_scale * y[:-1].reshape(N_SEARCHED_JOINTS, -1)
-        return knots_from_free(free, base), float(T0 + config.duration_scale * y[-1])
+    decode = coding.decode
 
     def violation(knots: np.ndarray, T: float) -> float | None:
-        """The limit score of a command outside the limits, None inside them."""
-        if not lo <= T <= hi:
-            return -30.0 - 100.0 * abs(T - min(max(T, lo), hi))
-        v = sampled_violation(knots, T, BezierCommand(knots, T).sample_times(), robot, limits)
-        return -30.0 - 20.0 * min(v, 5.0) if v > 0 else None
+        return coding.limit_score(knots, T, robot, limits)
 
     n_check = config.check_seeds[1] - config.check_seeds[0]
     bar = tqdm(
