@@ -39,7 +39,7 @@ LIMIT_MARGIN = 0.05
 """Fraction of each joint limit kept free (the learner's ``limit_margin``)."""
 HAND_PACE = (3.93, 33.4, 40.8)
 """A person's pace (speed [m/s], exit-axis rate [rad/s], acceleration [m/s^2]): the smallest
-peak value of each over the four shipped hand demonstrations (Fast 4.13, 40.2, 42.1; Slow
+peak value of each over the four shipped hand demonstrations (Fast 4.44, 41.9, 45.9; Slow
 4.20, 40.3, 43.4; Swipe 4.17, 33.7, 43.8; Inverse 3.93, 33.4, 40.8), measured on their
 motion curves."""
 
