@@ -17,6 +17,7 @@ Output layout of ``flyknot run SCENARIO --out DIR``::
 
 from __future__ import annotations
 
+import hashlib
 import json
 import platform
 import time
@@ -97,8 +98,9 @@ def initial_knots(
     from learner.initial_guess import InitialGuessParams, initial_guess
 
     cache = out_dir / "initial_guess" / guess_cache_name(demo_name, window, base_height)
+    digest = hashlib.sha256(demo_path(demo_name).read_bytes()).hexdigest()
     cached = _cached_guess(cache)
-    if cached is not None:
+    if cached is not None and cached[1].get("demo_sha256") == digest:
         return cached
     trimmed, target = prepare_target(demo_name, rope_dt, window)
     t = trimmed.t - trimmed.t[0]
@@ -133,6 +135,7 @@ def initial_knots(
         "solve_time": float(res.solve_time),
         "T": float(target.T),
         "t_c": float(target.t_c),
+        "demo_sha256": digest,  # a guess cached for another version of the file is made again
     }
     if not res.success:
         raise FlyknotError(f"initial guess for demo {demo_name!r} failed: {res.status}")
@@ -142,7 +145,8 @@ def initial_knots(
 
 
 def _cached_guess(path: Path) -> tuple[np.ndarray, dict] | None:
-    """A cached initial guess, or None when it is absent or unreadable (made again)."""
+    """A cached initial guess, or None when it is absent or unreadable (made again); the
+    caller checks that it was made from the same demonstration file (``demo_sha256``)."""
     try:
         with np.load(path, allow_pickle=False) as z:
             return z["knots"], json.loads(str(z["info"]))

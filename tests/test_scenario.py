@@ -204,6 +204,37 @@ def test_a_lab_with_another_base_height_gets_its_own_initial_guess(tmp_path, mon
     assert a[0, 0] == again[0, 0] == 1.3 and b[0, 0] == 0.8
 
 
+def test_a_changed_demonstration_file_gets_a_new_initial_guess(tmp_path, monkeypatch):
+    """The cache is named by the demonstration's stem; a guess made from another version of
+    the file (another content) is made again, not reused."""
+    import shutil
+
+    import flyknot_app.runner as runner
+    from flyknot.constants import DEMOS_DIR
+    from learner import initial_guess as ig
+
+    made = []
+
+    def fake_guess(t, p, R, T, robot, params, on_iteration=None):
+        from types import SimpleNamespace
+
+        made.append(T)
+        return SimpleNamespace(
+            success=True, status="ok", cost=0.0, solve_time=0.0, max_errors={}, rms_errors={},
+            knots=np.full((10, 8), float(len(made))),
+        )  # fmt: skip
+
+    monkeypatch.setattr(ig, "initial_guess", fake_guess)
+    demo = tmp_path / "mine.npz"
+    shutil.copy(DEMOS_DIR / "slow.npz", demo)
+    a, _ = runner.initial_knots(str(demo), tmp_path, None, 0.005, 1.0)
+    again, _ = runner.initial_knots(str(demo), tmp_path, None, 0.005, 1.0)
+    shutil.copy(DEMOS_DIR / "fast.npz", demo)  # same name, another demonstration
+    other, info = runner.initial_knots(str(demo), tmp_path, None, 0.005, 1.0)
+    assert len(made) == 2 and a[0, 0] == again[0, 0] == 1.0 and other[0, 0] == 2.0
+    assert info["demo_sha256"] == runner.hashlib.sha256(demo.read_bytes()).hexdigest()
+
+
 def test_bad_override():
     with pytest.raises(ConfigError, match="--set: expected key=value, got 'max_trials'"):
         parse_overrides(["max_trials"])
