@@ -129,6 +129,30 @@ def _varied_trial(job: tuple[np.ndarray, float, int, int, float]) -> tuple[float
     return command_score(rec, T, frame_s), bool(rec.succeeded)
 
 
+def _play_generation(
+    pool, cands: list, limit: list, seeds: range, config: RateSearchConfig
+) -> tuple[list[float], list[float], int]:
+    """Scores and tie fractions of one generation's candidates (a candidate outside the limits
+    keeps its limit score and ties nothing) and the number of trials played."""
+    jobs = [
+        (k, T, config.rope, s, config.frame_s)
+        for (k, T), v in zip(cands, limit, strict=True)
+        if v is None
+        for s in seeds
+    ]
+    results = iter(pool.map(_varied_trial, jobs))
+    scores, rates = [], []
+    for v in limit:
+        if v is not None:
+            scores.append(v)
+            rates.append(0.0)
+            continue
+        played = [next(results) for _ in seeds]
+        scores.append(float(np.mean([s for s, _ in played])))
+        rates.append(float(np.mean([t for _, t in played])))
+    return scores, rates, len(jobs)
+
+
 def rate_search(
     start_knots: np.ndarray,
     T0: float,
@@ -159,10 +183,6 @@ def rate_search(
         config.duration,
     )  # fmt: skip
     robot, limits = RobotModel.from_mjcf(), JointLimits()
-    decode = coding.decode
-
-    def violation(knots: np.ndarray, T: float) -> float | None:
-        return coding.limit_score(knots, T, robot, limits)
 
     n_check = config.check_seeds[1] - config.check_seeds[0]
     bar = tqdm(
@@ -190,31 +210,17 @@ def rate_search(
             seeds = range(
                 config.seed_base + g * config.trials, config.seed_base + (g + 1) * config.trials
             )
-            cands = [decode(y) for y in ys]
-            limit = [violation(k, T) for k, T in cands]
-            jobs = [
-                (k, T, config.rope, s, config.frame_s)
-                for (k, T), v in zip(cands, limit, strict=True)
-                if v is None
-                for s in seeds
-            ]
-            results = iter(pool.map(_varied_trial, jobs))
-            simulated += len(jobs)
-            scores, rates = [], []
-            for v in limit:
-                if v is not None:
-                    scores.append(v)
-                    rates.append(0.0)
-                    continue
-                played = [next(results) for _ in seeds]
-                scores.append(float(np.mean([s for s, _ in played])))
-                rates.append(float(np.mean([t for _, t in played])))
+            cands = [coding.decode(y) for y in ys]
+            limit = [coding.limit_score(k, T, robot, limits) for k, T in cands]
+            scores, rates, n = _play_generation(pool, cands, limit, seeds, config)
+            simulated += n
             es.tell(ys, [-s for s in scores])
             history.append((float(np.mean(scores)), max(rates), float(np.mean(rates))))
             bar.update(1)
             bar.set_postfix(best=f"{max(rates):.2f}", mean=f"{np.mean(rates):.2f}")
-        knots, T = decode(np.asarray(es.result.xfavorite))
-        ties = ties_on_check(knots, T) if violation(knots, T) is None else -1
+        knots, T = coding.decode(np.asarray(es.result.xfavorite))
+        inside = coding.limit_score(knots, T, robot, limits) is None
+        ties = ties_on_check(knots, T) if inside else -1
     bar.close()
     if ties <= start_ties:
         knots, T, ties = np.asarray(start_knots, dtype=float), float(T0), start_ties
