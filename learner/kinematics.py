@@ -29,6 +29,7 @@ rotated into the base frame.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -41,6 +42,7 @@ from flyknot.constants import JOINT_NAMES, XARM7_XML
 from flyknot.errors import ConfigError
 from flyknot.geometry import skew
 from learner.mjcf_chain import read_chain
+from learner.native import NativeBatch, NativeUnavailableError, compile_batch
 
 FINGERTIP_SITE = "fingertip"
 
@@ -168,7 +170,9 @@ class RobotModel:
     * ``torque_jac(q, qd, qdd) -> (dtau/dq, dtau/dqd, dtau/dqdd)``, each (n, n)
 
     The numpy methods :meth:`tip_states`, :meth:`tip_jacobians`, :meth:`torques` and
-    :meth:`torque_jacobians` evaluate batches (m, n) through ``Function.map``.
+    :meth:`torque_jacobians` evaluate batches (m, n): compiled to native code once per machine
+    (:mod:`learner.native`, the same numbers bit for bit) when ``native`` is set and a C
+    compiler is there, otherwise through ``Function.map`` in CasADi's interpreter.
 
     Attributes:
         joint_names: Chain joints, base to tip.
@@ -180,6 +184,8 @@ class RobotModel:
         stiffness: Joint spring stiffness (n,) [N m/rad] (0 when not included).
         q_range: Joint ranges from the MJCF (n, 2) [rad] (the learner's limits are the
             paper's, see ``flyknot.constants``).
+        native: Evaluate batches in compiled code (:mod:`learner.native`); off, or without a
+            C compiler (a warning says why), in CasADi's interpreter.
     """
 
     joint_names: tuple[str, ...]
@@ -197,9 +203,11 @@ class RobotModel:
     inverse_dynamics: ca.Function
     torque_jac: ca.Function
     _flat: dict[str, ca.Function] = field(repr=False, compare=False)
+    native: bool = True
     _maps: dict[tuple[str, int], ca.Function] = field(
         default_factory=dict, repr=False, compare=False
     )
+    _native: dict[str, NativeBatch | None] = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def n_joints(self) -> int:
@@ -217,6 +225,7 @@ class RobotModel:
         include_armature: bool = True,
         include_damping: bool = True,
         include_stiffness: bool = True,
+        native: bool = True,
     ) -> RobotModel:
         """Read the chain from an MJCF file and build the CasADi Functions.
 
@@ -233,6 +242,7 @@ class RobotModel:
             include_armature: Add ``armature * qdd`` to the torque.
             include_damping: Add ``damping * qd`` to the torque.
             include_stiffness: Add ``stiffness * (q - q_spring)`` to the torque.
+            native: Evaluate batches in compiled code (see the class).
 
         Returns:
             The model.
@@ -314,6 +324,7 @@ class RobotModel:
             tip_jac=tip_jac,
             inverse_dynamics=inv,
             torque_jac=tjac,
+            native=native,
             _flat=flat,
         )
 
@@ -325,6 +336,23 @@ class RobotModel:
             fun = self._flat[key].map(m, "serial")
             self._maps[(key, m)] = fun
         return fun
+
+    def _compiled(self, key: str) -> NativeBatch | None:
+        if key not in self._native:
+            try:
+                self._native[key] = compile_batch(self._flat[key])
+            except NativeUnavailableError as exc:
+                warnings.warn(f"robot model in CasADi's interpreter: {exc}", stacklevel=3)
+                self._native[key] = None
+        return self._native[key]
+
+    def _eval(self, key: str, *inputs: np.ndarray) -> list[np.ndarray]:
+        """The flat function ``key`` on a batch: inputs (m, n_i), outputs (m, k_j)."""
+        native = self._compiled(key) if self.native else None
+        if native is not None:
+            return native(*inputs)
+        out = self._mapped(key, inputs[0].shape[0])(*(x.T for x in inputs))
+        return [np.asarray(o).T for o in (out if isinstance(out, tuple) else (out,))]
 
     def _batch(self, name: str, x: np.ndarray, m: int | None = None) -> np.ndarray:
         x = np.asarray(x, dtype=float)
@@ -351,8 +379,8 @@ class RobotModel:
         q = self._batch("q", q)
         qd = self._batch("qd", qd, q.shape[0])
         m = q.shape[0]
-        p, R, v = self._mapped("tip", m)(q.T, qd.T)
-        return TipStates(np.asarray(p).T, np.asarray(R).T.reshape(m, 3, 3), np.asarray(v).T)
+        p, R, v = self._eval("tip", q, qd)
+        return TipStates(p, R.reshape(m, 3, 3), v)
 
     def tip_jacobians(self, q: np.ndarray, qd: np.ndarray) -> TipJacobians:
         """Jacobians of the fingertip states for a batch.
@@ -370,11 +398,8 @@ class RobotModel:
         q = self._batch("q", q)
         qd = self._batch("qd", qd, q.shape[0])
         m, n = q.shape
-        Jp, Jd, Jv = self._mapped("tip_jac", m)(q.T, qd.T)
-        Jp = np.asarray(Jp).T.reshape(m, 3, n)
-        return TipJacobians(
-            Jp, np.asarray(Jd).T.reshape(m, 3, n), np.asarray(Jv).T.reshape(m, 3, n), Jp.copy()
-        )
+        Jp, Jd, Jv = (J.reshape(m, 3, n) for J in self._eval("tip_jac", q, qd))
+        return TipJacobians(Jp, Jd, Jv, Jp.copy())
 
     def torques(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray:
         """Inverse dynamics for a batch, ``tau = ID(q, qd, qdd)`` (see the module docstring).
@@ -391,7 +416,7 @@ class RobotModel:
         m = q.shape[0]
         qd = self._batch("qd", qd, m)
         qdd = self._batch("qdd", qdd, m)
-        return np.asarray(self._mapped("tau", m)(q.T, qd.T, qdd.T)).T
+        return self._eval("tau", q, qd, qdd)[0]
 
     def torque_jacobians(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> TorqueJacobians:
         """Jacobians of the inverse dynamics for a batch.
@@ -410,8 +435,8 @@ class RobotModel:
         m, n = q.shape
         qd = self._batch("qd", qd, m)
         qdd = self._batch("qdd", qdd, m)
-        a, b, c = self._mapped("tau_jac", m)(q.T, qd.T, qdd.T)
-        return TorqueJacobians(*(np.asarray(x).T.reshape(m, n, n) for x in (a, b, c)))
+        a, b, c = self._eval("tau_jac", q, qd, qdd)
+        return TorqueJacobians(*(x.reshape(m, n, n) for x in (a, b, c)))
 
     def torque_jvp(
         self,
@@ -442,5 +467,4 @@ class RobotModel:
         m = q.shape[0]
         args = [self._batch(name, x, m) for name, x in (("qd", qd), ("qdd", qdd))]
         dirs = [self._batch(name, x, m) for name, x in (("dq", dq), ("dqd", dqd), ("dqdd", dqdd))]
-        out = self._mapped("tau_jvp", m)(q.T, *(x.T for x in args), *(x.T for x in dirs))
-        return np.asarray(out).T
+        return self._eval("tau_jvp", q, *args, *dirs)[0]
