@@ -19,6 +19,10 @@ Reported (each the best of ``repeats`` runs, in seconds):
     qp_clarabel_s   solving that QP with Clarabel
     update_s        the whole :func:`learner.update.ilc_update` call (error, rollout,
                     linearise, follow-through, limit rows, build, Clarabel solve, checks)
+    update_interpreted_s  the same with the robot model in CasADi's interpreter instead of
+                    compiled C (:mod:`learner.native`)
+    native_over_interpreted  update_interpreted_s / update_s (measured in the same run)
+    native_max_dknots  |new knots compiled - new knots interpreted| (0: bit for bit)
     fd_jacobian_s   the same M by central differences of 160 model rollouts up to t_c
     ift_over_fd     fd_jacobian_s / linearise_s (how many times faster the IFT is)
     fd_rel_err      ||M_ift - M_fd|| / ||M_fd||
@@ -70,6 +74,9 @@ KEYS = (
     "qp_osqp_s",
     "qp_clarabel_s",
     "update_s",
+    "update_interpreted_s",
+    "native_over_interpreted",
+    "native_max_dknots",
     "fd_jacobian_s",
     "ift_over_fd",
     "fd_rel_err",
@@ -112,7 +119,7 @@ def bench_learner(repeats: int = 1, progress: bool = True) -> dict:
 
     if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
         raise ConfigError("repeats", f"must be an integer >= 1, got {repeats!r}")
-    bar = tqdm(total=9, desc="bench learner", disable=bar_disable(progress), unit="stage")
+    bar = tqdm(total=10, desc="bench learner", disable=bar_disable(progress), unit="stage")
     robot = RobotModel.from_mjcf()
     params = RopeModelParams()
     weights = InverseModelWeights()
@@ -175,6 +182,16 @@ def bench_learner(repeats: int = 1, progress: bool = True) -> dict:
         repeats,
     )
     bar.update()
+    interpreted = RobotModel.from_mjcf(native=False)
+    res["update_interpreted_s"], upd_i = _best(
+        lambda: ilc_update(
+            record, command, target, interpreted, params, UpdateSettings(weights=weights)
+        ),
+        repeats,
+    )
+    res["native_over_interpreted"] = res["update_interpreted_s"] / res["update_s"]
+    res["native_max_dknots"] = float(np.abs(upd.new_knots - upd_i.new_knots).max())
+    bar.update()
 
     def fd():
         out = np.empty((66, 80))
@@ -217,6 +234,7 @@ def format_learner(res: dict) -> str:
         "qp_osqp_s": "QP solve, OSQP",
         "qp_clarabel_s": "QP solve, Clarabel",
         "update_s": "full update",
+        "update_interpreted_s": "update, CasADi interpreter",
         "fd_jacobian_s": "M by finite differences",
     }
     lines = [f"{'step':<26} {'ms':>10}"]
@@ -224,6 +242,8 @@ def format_learner(res: dict) -> str:
         lines.append(f"{label:<26} {1e3 * res[key]:>10.1f}")
     lines.append(f"{'compiled over NumPy':<26} {res['compiled_over_numpy']:>9.1f}x")
     lines.append(f"{'compiled vs NumPy max dx':<26} {res['compiled_max_dx']:>10.1e}")
+    lines.append(f"{'native over interpreter':<26} {res['native_over_interpreted']:>9.1f}x")
+    lines.append(f"{'native vs interp. max dk':<26} {res['native_max_dknots']:>10.1e}")
     lines.append(f"{'IFT speed-up over FD':<26} {res['ift_over_fd']:>9.0f}x")
     lines.append(f"{'IFT vs FD rel. error':<26} {res['fd_rel_err']:>10.1e}")
     prob = res.get("problem", {})

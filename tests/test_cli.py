@@ -69,12 +69,14 @@ def test_bench_learner_json_keys(capsys):
         "qp_osqp_s",
         "qp_clarabel_s",
         "update_s",
+        "update_interpreted_s",
         "fd_jacobian_s",
     ):
         assert out[key] > 0, key
     # (the speed-ups are reported, not asserted: no test asserts a time)
     assert out["ift_over_fd"] > 0 and out["compiled_over_numpy"] > 0
     assert out["fd_rel_err"] < 1e-4 and out["compiled_max_dx"] < 1e-8
+    assert out["native_over_interpreted"] > 0 and out["native_max_dknots"] == 0.0
 
 
 def test_default_run_dir_never_overwrites(tmp_path, monkeypatch):
