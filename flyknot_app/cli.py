@@ -322,7 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="A-B",
         help="run every run once per lab seed (A-B or A,B,...); runs are named NAME-seedS",
     )
-    from flyknot_app.runner import EXECUTORS
+    from flyknot_app.schedule import EXECUTORS
 
     r.add_argument(
         "--executor",

@@ -2,7 +2,9 @@
 
 Each paper scenario (``scenarios/0*.toml``) runs once per lab seed (``flyknot run SCENARIO
 --seeds ...``: run ``r`` becomes ``r-seedS``) into ``OUT/<scenario>``, sharing one cache of
-initial guesses (``OUT/initial_guess``); ``--resume`` continues where a run stopped. Then
+initial guesses (``OUT/initial_guess``); all their runs share one pool of workers, so a
+scenario's last long run does not leave a worker idle; ``--resume`` continues where a run
+stopped. Then
 :func:`paper_table` reads every ``summary.json`` back and writes ``OUT/results.md``: per
 experiment, each run over the seeds (trials until the first knot: median, range and how many
 seeds tied within the budget; knots in the repeats pooled over the seeds with a 95 % Wilson
@@ -16,7 +18,6 @@ import datetime as dt
 import json
 import re
 import statistics
-import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -45,9 +46,10 @@ def run_paper(
     scenarios: Sequence[str] = PAPER_SCENARIOS,
     progress: bool = True,
 ) -> dict[str, float]:
-    """Run ``scenarios`` over ``seeds`` into ``out`` (module docstring); wall seconds per
-    scenario."""
-    from flyknot_app.runner import run_scenario
+    """Run ``scenarios`` over ``seeds`` into ``out`` (module docstring), every run of them on
+    one pool of ``workers`` (:func:`flyknot_app.runner.run_scenarios`); per scenario, the
+    seconds from the start until its report was written."""
+    from flyknot_app.runner import run_scenarios
     from flyknot_app.scenario import expand_seeds, load_scenario
 
     out = Path(out)
@@ -56,23 +58,24 @@ def run_paper(
             raise ConfigError("--scenarios", f"unknown paper scenario {name!r}", PAPER_SCENARIOS)
     guesses = out / "initial_guess"
     guesses.mkdir(parents=True, exist_ok=True)
-    walls: dict[str, float] = {}
+    items, again = [], []
     for name in scenarios:
         scen = expand_seeds(load_scenario(name, dict(overrides or {})), list(seeds))
         where = out / name
-        again = resume and (where / "manifest.json").is_file()
+        again.append(resume and (where / "manifest.json").is_file())
         where.mkdir(parents=True, exist_ok=True)
         if not (where / "initial_guess").exists():
             (where / "initial_guess").symlink_to(guesses.resolve(), target_is_directory=True)
         if progress:
             print(f"{name}: {len(scen.runs)} runs -> {where}", flush=True)
-        t0 = time.perf_counter()
-        run_scenario(
-            scen, where, workers=workers, resume=again, overrides=overrides, progress=progress
-        )
-        walls[name] = time.perf_counter() - t0
-        if progress:
-            print(f"{name}: {walls[name]:.0f} s", flush=True)
+        items.append((scen, where))
+    done = run_scenarios(
+        items, workers=workers, resume=again, overrides=overrides, progress=progress
+    )
+    walls = {name: d.done_s for name, d in zip(scenarios, done, strict=True)}
+    if progress:
+        for name, d in zip(scenarios, done, strict=True):
+            print(f"{name}: its runs {d.run_s:.0f} s in the workers, done at {d.done_s:.0f} s")
     return walls
 
 

@@ -22,9 +22,9 @@ import json
 import platform
 import time
 import zipfile
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -381,9 +381,13 @@ def make_initial_guesses(scen: Scenario, out_dir: Path, *, progress: bool = Fals
         initial_knots(demo, out_dir, robot, dt, z, window, progress=progress)
 
 
-def _worker(args):
-    spec, out_dir, knots0, resume, figure = args
-    return execute_run(spec, out_dir, knots0, resume=resume, progress=False, figure=figure)
+class ScenarioDone(NamedTuple):
+    """A finished scenario: its summary, the wall seconds its runs took in the workers (their
+    sum) and the seconds from the start of :func:`run_scenarios` until its report was written."""
+
+    summary: ScenarioSummary
+    run_s: float
+    done_s: float
 
 
 def run_scenario(
@@ -397,27 +401,107 @@ def run_scenario(
     executor: str = "process",
     address: str | None = None,
 ) -> ScenarioSummary:
-    """Run every run of a scenario (waves in order, runs of a wave in parallel).
+    """Run every run of a scenario on ``workers`` (:func:`run_scenarios` with one scenario).
 
     ``executor``: ``"process"`` (a local process pool of ``workers``) or ``"ray"`` (Ray tasks
     on a local Ray with ``workers`` CPUs, or on the existing cluster at ``address``; each
     task writes its run into ``out_dir`` as it finishes, so the cluster's workers must see
     that directory).
     """
-    import mujoco
+    done = run_scenarios(
+        [(scen, Path(out_dir))],
+        workers=workers,
+        resume=resume,
+        overrides=overrides,
+        progress=progress,
+        executor=executor,
+        address=address,
+    )
+    return done[0].summary
+
+
+def run_scenarios(
+    items: Sequence[tuple[Scenario, Path]],
+    *,
+    workers: int = 1,
+    resume: bool | Sequence[bool] = False,
+    overrides: dict | None = None,
+    progress: bool = True,
+    executor: str = "process",
+    address: str | None = None,
+) -> list[ScenarioDone]:
+    """Run several scenarios' runs on one pool of ``workers`` (:mod:`flyknot_app.schedule`:
+    each run as soon as the run it starts from has finished, the longest remaining chain of
+    work first), and write each scenario's summary and report as soon as its last run ends.
+
+    ``items``: (scenario, its output directory) pairs, the directories distinct. ``resume``:
+    continue the scenarios in their directories (each must hold a manifest); one flag for all,
+    or one per item.
+    """
     from tqdm import tqdm
 
-    out_dir = Path(out_dir)
+    from flyknot_app.report import CRITICAL_FIGURES
+    from flyknot_app.schedule import EXECUTORS, RunJob, run_jobs
+
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ConfigError("--workers", f"must be an integer >= 1, got {workers!r}")
     if executor not in EXECUTORS:
         raise ConfigError("--executor", f"unknown executor {executor!r}", EXECUTORS)
+    keys = [str(Path(d)) for _, d in items]
+    if len(set(keys)) != len(keys):
+        raise ConfigError("out_dir", "two scenarios would write into the same directory")
+    again = [resume] * len(items) if isinstance(resume, bool) else list(resume)
+    if len(again) != len(items):
+        raise ConfigError("resume", f"needs one flag per scenario ({len(items)}), got {len(again)}")
+    jobs: list[RunJob] = []
+    for (scen, out_dir), more in zip(items, again, strict=True):
+        prepare_scenario(scen, Path(out_dir), resume=more, overrides=overrides, progress=progress)
+        drawn = {r.name for r in scen.runs[:CRITICAL_FIGURES]}  # the report's figures
+        jobs += [
+            RunJob(str(Path(out_dir)), spec, Path(out_dir), more, spec.name in drawn)
+            for spec in scen.runs
+        ]
+    one = len(items) == 1
+    desc = items[0][0].name if one else f"{len(items)} scenarios"
+    overall = tqdm(total=len(jobs), desc=desc, unit="run", disable=bar_disable(progress))
+    results: dict[str, dict[str, RunSummary]] = {k: {} for k in keys}
+    run_s = dict.fromkeys(keys, 0.0)
+    done: dict[str, ScenarioDone] = {}
+    t0 = time.perf_counter()
+    for job, res, wall in run_jobs(
+        jobs, executor=executor, workers=workers, address=address, progress=progress
+    ):
+        results[job.scenario][job.spec.name] = res
+        run_s[job.scenario] += wall
+        overall.update(1)
+        _print_run(res, overall, "" if one else f"{Path(job.scenario).name}/")
+        for (scen, out_dir), key in zip(items, keys, strict=True):
+            if key not in done and len(results[key]) == len(scen.runs):
+                summary = finish_scenario(scen, Path(out_dir), results[key], workers)
+                done[key] = ScenarioDone(summary, run_s[key], time.perf_counter() - t0)
+    overall.close()
+    return [done[k] for k in keys]
+
+
+def prepare_scenario(
+    scen: Scenario,
+    out_dir: Path,
+    *,
+    resume: bool = False,
+    overrides: dict | None = None,
+    progress: bool = True,
+) -> None:
+    """Check the output directory, write the scenario's manifest and make its initial
+    guesses (cached)."""
+    import mujoco
+
     if resume and not (out_dir / "manifest.json").is_file():
         raise ConfigError(
             "--resume", f"{str(out_dir)!r} holds no run to resume (no manifest.json there)"
         )
     if not resume and (out_dir / "manifest.json").is_file():
         raise ConfigError("--out", f"{str(out_dir)!r} already holds a run; use --resume")
+    scen.order()  # runs that wait on each other in a cycle fail here, before any work
     out_dir.mkdir(parents=True, exist_ok=True)
     manifest = {
         "scenario": scen.name,
@@ -438,76 +522,25 @@ def run_scenario(
     if not (resume and (out_dir / "manifest.json").is_file()):
         atomic_write_text(out_dir / "manifest.json", json.dumps(manifest, indent=2))
     make_initial_guesses(scen, out_dir, progress=progress)
-    results: dict[str, RunSummary] = {}
-    overall = tqdm(total=len(scen.runs), desc=scen.name, unit="run", disable=bar_disable(progress))
-    from flyknot_app.report import CRITICAL_FIGURES
 
-    drawn = {r.name for r in scen.runs[:CRITICAL_FIGURES]}  # the report's figures
-    for wave in scen.order():
-        jobs = []
-        for spec in wave:
-            knots0 = None
-            if spec.start_from is not None:
-                knots0 = np.load(out_dir / "runs" / spec.start_from / "final_knots.npy")
-            jobs.append((spec, out_dir, knots0, resume, spec.name in drawn))
-        for name, res in _wave_results(jobs, executor, workers, address, progress):
-            results[name] = res
-            overall.update(1)
-            _print_run(res, overall)
-    overall.close()
+
+def finish_scenario(
+    scen: Scenario, out_dir: Path, results: dict[str, RunSummary], workers: int
+) -> ScenarioSummary:
+    """Every run has finished: write the scenario's summary and report."""
+    from flyknot_app.report import write_report
+
     runs = tuple(results[r.name] for r in scen.runs)
     summary = ScenarioSummary(scen.name, scen.kind, runs, scen.paper)
     atomic_write_text(out_dir / "summary.json", json.dumps(summary.to_json(), indent=2))
-    from flyknot_app.report import write_report
-
     write_report(out_dir, summary, workers=max(1, workers))
     return summary
 
 
-EXECUTORS = ("process", "ray")
-
-
-def _wave_results(jobs: list, executor: str, workers: int, address: str | None, progress: bool):
-    """Run one wave's ``jobs`` (independent runs); yield (run name, summary) as they finish:
-    Ray tasks, a process pool of ``workers``, or one after the other in this process."""
-    if executor == "ray":
-        yield from _ray_results(jobs, workers, address)
-    elif workers == 1 or len(jobs) == 1:
-        for spec, out_dir, knots0, resume, figure in jobs:
-            run = execute_run(
-                spec, out_dir, knots0, resume=resume, progress=progress, figure=figure
-            )
-            yield spec.name, run
-    else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            futs = {pool.submit(_worker, j): j[0].name for j in jobs}
-            for fut in as_completed(futs):
-                yield futs[fut], fut.result()
-
-
-def _ray_results(jobs: list, workers: int, address: str | None):
-    """Run ``jobs`` as Ray tasks; yield (run name, result) as they finish."""
-    try:
-        import ray
-    except ImportError:
-        raise ConfigError("--executor", "ray is not installed: pip install -e '.[ray]'") from None
-    if not ray.is_initialized():
-        kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False}
-        if address is None:
-            kwargs["num_cpus"] = workers
-        ray.init(address=address, **kwargs)
-    task = ray.remote(num_cpus=1)(_worker)
-    names = {task.remote(j): j[0].name for j in jobs}
-    pending = list(names)
-    while pending:
-        done, pending = ray.wait(pending, num_returns=1)
-        yield names[done[0]], ray.get(done[0])
-
-
-def _print_run(res: RunSummary, bar) -> None:
+def _print_run(res: RunSummary, bar, prefix: str = "") -> None:
     n = res.trials_to_success
     msg = (
-        f"{res.name}: rope {res.rope}, "
+        f"{prefix}{res.name}: rope {res.rope}, "
         + (f"knot at trial {n}" if n is not None else "no knot")
         + f" ({len(res.costs)} trials)"
     )

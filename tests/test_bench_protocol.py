@@ -26,25 +26,29 @@ def test_the_protocol_is_every_paper_scenario_and_quick_is_a_subset_of_it():
     assert {c.scenario for c in QUICK} <= set(PAPER_SCENARIOS)
 
 
-def test_quick_times_the_same_trials_with_and_without_the_knot_set_end(capsys, tmp_path):
+def test_quick_times_the_same_trials_three_ways(capsys, tmp_path):
     res = bench_protocol(workers=1, quick=True, progress=False, cases=TINY, keep=tmp_path / "b")
-    for lab in ("now", "no_knot_set"):  # kept: the run directories of both labs
+    labs = ("now", "no_knot_set", "by_scenario")
+    for lab in labs:  # kept: the run directories of every lab
         assert (tmp_path / "b" / lab / "01-tracking" / "summary.json").is_file()
     assert capsys.readouterr().out == ""  # the runner's lines do not reach a JSON reader
-    assert set(res["labs"]) == {"now", "no_knot_set"}
+    assert tuple(res["labs"]) == labs
     for rows in res["labs"].values():
         tracking, total = rows
         assert tracking["scenario"] == "01-tracking" and total["scenario"] == "total"
         assert tracking["trials"] == total["trials"] == 2  # the initial command + 1 repeat
         assert tracking["sim_s_per_trial"] > 0.3  # the command and the fixed 0.3 s settle
-        assert total["wall_s"] == pytest.approx(tracking["wall_s"])
-    assert res["speedup"] == pytest.approx(
-        res["labs"]["no_knot_set"][-1]["wall_s"] / res["labs"]["now"][-1]["wall_s"]
-    )
+        assert 0 < tracking["run_s"] <= tracking["done_s"] <= total["wall_s"]
+        assert total["run_s"] == tracking["run_s"]
+    for lab in ("no_knot_set", "by_scenario"):
+        assert res[f"{lab}_over_now"] == pytest.approx(
+            res["labs"][lab][-1]["wall_s"] / res["labs"]["now"][-1]["wall_s"]
+        )
     assert res["memory"]["main_mb"] > 50
     json.dumps(res)
     text = format_protocol(res)
     assert "no_knot_set / now, total wall time" in text and "01-tracking" in text
+    assert "by_scenario / now, total wall time" in text
 
 
 def test_workers_must_be_a_positive_integer_and_out_a_new_directory(tmp_path):
