@@ -469,7 +469,7 @@ def run_scenarios(
     done: dict[str, ScenarioDone] = {}
     t0 = time.perf_counter()
     for job, res, wall in run_jobs(
-        jobs, executor=executor, workers=workers, address=address, progress=progress
+        jobs, execute_run, executor=executor, workers=workers, address=address, progress=progress
     ):
         results[job.scenario][job.spec.name] = res
         run_s[job.scenario] += wall

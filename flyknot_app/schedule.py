@@ -14,7 +14,7 @@ Three executors: this process (one worker), a local process pool, Ray tasks (a l
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
@@ -100,20 +100,25 @@ def _knots0(job: RunJob) -> np.ndarray | None:
     return np.load(job.out_dir / "runs" / job.spec.start_from / "final_knots.npy")
 
 
-def _play(job: RunJob, knots0: np.ndarray | None, progress: bool) -> tuple[RunSummary, float]:
-    """Execute one run; its summary and wall seconds."""
-    from flyknot_app.runner import execute_run
+Play = Callable[..., RunSummary]
+"""Executes one run: ``play(spec, out_dir, knots0, resume=, progress=, figure=)`` (the
+runner's ``execute_run``; a module-level function, so that it reaches worker processes)."""
 
+
+def _play(
+    play: Play, job: RunJob, knots0: np.ndarray | None, progress: bool
+) -> tuple[RunSummary, float]:
+    """Execute one run; its summary and wall seconds."""
     t0 = time.perf_counter()
-    summary = execute_run(
+    summary = play(
         job.spec, job.out_dir, knots0, resume=job.resume, progress=progress, figure=job.figure
     )
     return summary, time.perf_counter() - t0
 
 
-def _worker(args: tuple[RunJob, np.ndarray | None]) -> tuple[RunSummary, float]:
-    job, knots0 = args
-    return _play(job, knots0, progress=False)
+def _worker(args: tuple[Play, RunJob, np.ndarray | None]) -> tuple[RunSummary, float]:
+    play, job, knots0 = args
+    return _play(play, job, knots0, progress=False)
 
 
 class _Ready:
@@ -166,13 +171,14 @@ class _Ready:
 
 def run_jobs(
     jobs: Sequence[RunJob],
+    play: Play,
     *,
     executor: str = "process",
     workers: int = 1,
     address: str | None = None,
     progress: bool = False,
 ) -> Iterator[tuple[RunJob, RunSummary, float]]:
-    """Run every job; yield ``(job, summary, wall seconds)`` as each finishes.
+    """Run every job with ``play``; yield ``(job, summary, wall seconds)`` as each finishes.
 
     A job starts once the run it starts from has finished (its learned command is read from
     disk then); of the jobs that can start, the highest :func:`ranks` goes first. At most
@@ -187,11 +193,11 @@ def run_jobs(
         raise ConfigError("--workers", f"must be an integer >= 1, got {workers!r}")
     ready = _Ready(jobs)
     if executor == "ray":
-        yield from _on_ray(ready, len(jobs), workers, address)
+        yield from _on_ray(play, ready, len(jobs), workers, address)
     elif workers == 1 or len(jobs) == 1:
-        yield from _in_process(ready, progress)
+        yield from _in_process(play, ready, progress)
     else:
-        yield from _on_pool(ready, len(jobs), workers)
+        yield from _on_pool(play, ready, len(jobs), workers)
 
 
 def _check_stuck(ready: _Ready) -> None:
@@ -199,20 +205,20 @@ def _check_stuck(ready: _Ready) -> None:
         raise ConfigError("start_from", "runs depend on each other in a cycle")
 
 
-def _in_process(ready: _Ready, progress: bool):
+def _in_process(play: Play, ready: _Ready, progress: bool):
     while (job := ready.pop()) is not None:
-        summary, wall = _play(job, _knots0(job), progress)
+        summary, wall = _play(play, job, _knots0(job), progress)
         ready.finished(job)
         yield job, summary, wall
     _check_stuck(ready)
 
 
-def _on_pool(ready: _Ready, n_jobs: int, workers: int):
+def _on_pool(play: Play, ready: _Ready, n_jobs: int, workers: int):
     with ProcessPoolExecutor(max_workers=min(workers, n_jobs)) as pool:
         running: dict[Any, RunJob] = {}
         while True:
             while len(running) < workers and (job := ready.pop()) is not None:
-                running[pool.submit(_worker, (job, _knots0(job)))] = job
+                running[pool.submit(_worker, (play, job, _knots0(job)))] = job
             if not running:
                 break
             done, _ = wait(running, return_when=FIRST_COMPLETED)
@@ -224,7 +230,7 @@ def _on_pool(ready: _Ready, n_jobs: int, workers: int):
     _check_stuck(ready)
 
 
-def _on_ray(ready: _Ready, n_jobs: int, workers: int, address: str | None):
+def _on_ray(play: Play, ready: _Ready, n_jobs: int, workers: int, address: str | None):
     try:
         import ray
     except ImportError:
@@ -239,7 +245,7 @@ def _on_ray(ready: _Ready, n_jobs: int, workers: int, address: str | None):
     running: dict[Any, RunJob] = {}
     while True:
         while len(running) < limit and (job := ready.pop()) is not None:
-            running[task.remote((job, _knots0(job)))] = job
+            running[task.remote((play, job, _knots0(job)))] = job
         if not running:
             break
         done, _ = ray.wait(list(running), num_returns=1)

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from flyknot.errors import ConfigError
-from flyknot_app.runner import run_scenario, run_scenarios
+from flyknot_app.runner import execute_run, run_scenario, run_scenarios
 from flyknot_app.scenario import parse_scenario
 from flyknot_app.schedule import RunJob, _Ready, expected_trials, ranks, run_jobs
 
@@ -78,7 +78,7 @@ def test_runs_start_highest_rank_first_and_only_after_the_run_they_start_from():
 def test_runs_that_wait_on_each_other_are_refused_before_any_plays():
     jobs = _jobs({"run": [{"name": "a", "start_from": "b"}, {"name": "b", "start_from": "a"}]})
     with pytest.raises(ConfigError, match=r"^start_from: runs depend on each other in a cycle$"):
-        list(run_jobs(jobs))
+        list(run_jobs(jobs, execute_run))
 
 
 def test_a_run_cannot_start_from_another_scenarios_run():
@@ -99,7 +99,7 @@ def test_a_run_cannot_start_from_another_scenarios_run():
 )
 def test_bad_executor_settings_are_named(kwargs, message):
     with pytest.raises(ConfigError) as err:
-        list(run_jobs(_jobs({"run": [{"name": "a"}]}), **kwargs))
+        list(run_jobs(_jobs({"run": [{"name": "a"}]}), execute_run, **kwargs))
     assert str(err.value) == message
 
 
