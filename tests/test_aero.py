@@ -129,3 +129,36 @@ def test_terminal_velocity_of_a_rope_falling_broadside():
         cd = float(cylinder_cd(v * rope.diameter / AIR_KINEMATIC_VISCOSITY))
         v = math.sqrt(rope.density * 9.81 / (0.5 * AIR_DENSITY * cd * rope.diameter))
     assert np.median(vz) == pytest.approx(v, rel=0.02)
+
+
+def test_the_compiled_drag_is_the_numpy_drag_bit_for_bit():
+    """The lab uses the compiled kernels only where they match; on this machine they must."""
+    from flyknot_sim.aero import _drag_compiled, compiled_drag_matches
+
+    assert compiled_drag_matches()
+    rng = np.random.default_rng(7)
+    for k in range(40):  # other states than the check's own
+        x = np.cumsum(0.04 * rng.standard_normal((31, 3)), axis=0)
+        v = 3.0 * rng.standard_normal((31, 3))
+        params = AeroParams(cd=None if k % 2 else 0.9, tangential_ct=0.02)
+        out = np.empty_like(x)
+        _drag_compiled(x, v, 0.007, 0.005 * (k % 3), params, out)
+        ref = rope_drag_forces(x, v, 0.007, 0.005 * (k % 3), params)
+        np.testing.assert_array_equal(out, ref)
+
+
+def test_a_trial_is_the_same_with_the_compiled_drag(monkeypatch):
+    import flyknot_sim.aero as aero
+    from flyknot_sim.commands import swing_command
+    from flyknot_sim.lab import LabParams, SimLab
+
+    records = []
+    for compiled in (True, False):
+        monkeypatch.setattr(aero, "COMPILED", compiled)
+        records.append(SimLab(LabParams(rope=4, settle_s=0.3)).run(swing_command()))
+    a, b = records
+    assert set(a.truth) == set(b.truth) and "centreline" in a.truth
+    for key in a.truth:
+        np.testing.assert_array_equal(a.truth[key], b.truth[key])
+    np.testing.assert_array_equal(a.q_meas, b.q_meas)
+    np.testing.assert_array_equal(a.markers, b.markers)
