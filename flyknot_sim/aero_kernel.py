@@ -1,13 +1,13 @@
-"""The rope's air drag, compiled (numba): :func:`flyknot_sim.aero.rope_drag_forces` in one call.
+"""The rope's air drag, compiled (numba): :func:`flyknot_sim.aero.rope_drag_forces` in two calls.
 
 The lab recomputes the drag every command tick; the NumPy function's ~25 small array
 operations cost ~60 us a call. :func:`segment_flow` and :func:`drag_into` do the same
 operations, element by element, in the same order and without fast-math (the dot products
 summed as NumPy's ``einsum`` sums three terms); the drag coefficient's power and the end
 weight's speed stay NumPy's own (its SIMD power and BLAS dot product round differently from
-the C library's), so the forces are the NumPy function's bit for bit. The summation order is NumPy's choice, so
-:func:`flyknot_sim.aero.compiled_drag_matches` checks the two on random states once per
-process and the lab uses the kernel only when they agree bit for bit;
+the C library's), so the forces are the NumPy function's bit for bit. The summation order is
+NumPy's choice, so :func:`flyknot_sim.aero.compiled_drag_matches` checks the two on random
+states once per process and the lab uses the kernel only when they agree bit for bit;
 :func:`flyknot_sim.aero.rope_drag_forces` stays the readable reference.
 """
 
