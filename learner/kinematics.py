@@ -214,6 +214,14 @@ class RobotModel:
         """Number of chain joints."""
         return len(self.joint_names)
 
+    def __getstate__(self) -> dict:
+        """Pickled without the mapped and compiled batches (a loaded library cannot be
+        pickled); the copy builds its own on first use."""
+        return {**self.__dict__, "_maps": {}, "_native": {}}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+
     @classmethod
     def from_mjcf(
         cls,

@@ -119,3 +119,13 @@ def test_the_cache_directory_follows_the_environment(monkeypatch, tmp_path):
     monkeypatch.delenv("XDG_CACHE_HOME")
     monkeypatch.setenv("HOME", str(tmp_path / "c"))
     assert cache_dir() == tmp_path / "c" / ".cache" / "flyknot" / "native"
+
+
+def test_a_model_that_has_compiled_its_batches_pickles(xarm):
+    import pickle
+
+    q = np.full((3, 7), 0.2)
+    tau = xarm.torques(q, q, q)
+    copy = pickle.loads(pickle.dumps(xarm))
+    assert copy._native == {} and copy.native
+    np.testing.assert_array_equal(copy.torques(q, q, q), tau)
