@@ -17,7 +17,7 @@ from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -32,6 +32,9 @@ from flyknot_app.anatomy_trials import (
     load_replay,
     require_trials,
 )
+
+if TYPE_CHECKING:
+    from flyknot_app.render import RendererCache
 
 FAULT = "fault"
 """The class column of a faulted trial (no verdict)."""
@@ -222,13 +225,25 @@ def picture_name(row: Rejudged) -> str:
     return f"{row.name.replace('/', '__')}.{row.new_class}.png"
 
 
-def verdict_picture(record: TrialRecord, verdict: Verdict, out: Path, *, arm: bool = True) -> Path:
+def verdict_picture(
+    record: TrialRecord,
+    verdict: Verdict,
+    out: Path,
+    *,
+    arm: bool = True,
+    renderers: RendererCache | None = None,
+) -> Path:
     """The rope at the end of a trial for a person to check ``verdict``: the rope and the
     fingertip, and beside it a zoom on the knot's core when the verdict has one; captioned
-    with the verdict. Written as ``out`` (.png)."""
+    with the verdict. Written as ``out`` (.png). ``renderers``: open renderers to draw with
+    (many pictures: set up once); None: opened and closed here."""
     import imageio.v2 as imageio
 
-    from flyknot_app.render import RenderParams, TrialRenderer, rope_radius_of, trial_end
+    from flyknot_app.render import RendererCache, RenderParams, rope_radius_of, trial_end
+
+    if renderers is None:
+        with RendererCache() as own:
+            return verdict_picture(record, verdict, out, arm=arm, renderers=own)
 
     radius = rope_radius_of(record) or RenderParams().rope_radius  # drawn at its true size
     views = [RenderParams(close_up=True, show_arm=arm, rope_radius=radius)]
@@ -241,8 +256,7 @@ def verdict_picture(record: TrialRecord, verdict: Verdict, out: Path, *, arm: bo
     images = []
     for k, params in enumerate(views):
         caption = verdict.describe() if k == 0 else "the knot's core"
-        with TrialRenderer(record, params) as renderer:
-            images.append(renderer.render(trial_end(record), caption))
+        images.append(renderers.get(record, params).render(trial_end(record), caption))
     out.parent.mkdir(parents=True, exist_ok=True)
     imageio.imwrite(out, np.hstack(images))
     return out
@@ -254,12 +268,18 @@ def write_pictures(rows: Sequence[Rejudged], out: str | Path) -> list[Path]:
     Returns:
         The files written, in the order of :func:`picture_rows`.
     """
+    from flyknot_app.render import RendererCache
+
     out = Path(out)
     written = []
-    for r in picture_rows(rows):
-        replay = r.kind == "replay"
-        record = _replay_record(r.path) if replay else load_record(r.path)
-        written.append(verdict_picture(record, r.new, out / picture_name(r), arm=not replay))
+    with RendererCache() as renderers:
+        for r in picture_rows(rows):
+            replay = r.kind == "replay"
+            record = _replay_record(r.path) if replay else load_record(r.path)
+            path = out / picture_name(r)
+            written.append(
+                verdict_picture(record, r.new, path, arm=not replay, renderers=renderers)
+            )
     return written
 
 

@@ -132,6 +132,15 @@ def _nearest(t: np.ndarray, tk: float) -> int:
     return int(np.clip(np.searchsorted(t, tk), 0, t.size - 1))
 
 
+def pedestal_height(record: TrialRecord) -> float:
+    """The scene's pedestal height for ``record`` [m]: its base pose's height when that is a
+    plausible one (0.05-5 m), else the scene's default."""
+    from flyknot_sim.scene import SceneParams
+
+    base = np.asarray(record.base_pose, dtype=float)
+    return float(base[2]) if 0.05 < base[2] < 5.0 else SceneParams().pedestal_height
+
+
 class TrialRenderer:
     """Draws one trial record's frames with MuJoCo (offscreen; close it when done).
 
@@ -143,23 +152,17 @@ class TrialRenderer:
     def __init__(self, record: TrialRecord, params: RenderParams = RenderParams()):
         from flyknot_sim.scene import SceneParams, scene_spec
 
-        self.record = record
-        self.params = params
-        base = np.asarray(record.base_pose, dtype=float)
-        h = float(base[2]) if 0.05 < base[2] < 5.0 else SceneParams().pedestal_height
-        self._R_b = quat_to_matrix(base[3:])
-        self._shift = np.array([0.0, 0.0, h]) - base[:3] @ self._R_b
-        self.model = scene_spec(SceneParams(pedestal_height=h)).compile()
+        self.pedestal = pedestal_height(record)
+        self.size = (params.width, params.height)
+        self.model = scene_spec(SceneParams(pedestal_height=self.pedestal)).compile()
         self.model.vis.global_.offwidth = max(params.width, self.model.vis.global_.offwidth)
         self.model.vis.global_.offheight = max(params.height, self.model.vis.global_.offheight)
         self.data = mujoco.MjData(self.model)
         self._qadr = [self.model.joint(f"xarm7/joint{i}").qposadr[0] for i in range(1, 8)]
-        if not params.show_arm:
-            names = (self.model.body(b).name for b in range(self.model.nbody))
-            arm = [b for b, name in enumerate(names) if name.startswith("xarm7/")]
-            self.model.geom_rgba[np.isin(self.model.geom_bodyid, arm), 3] = 0.0
-        self.has_truth = "centreline" in record.truth and "t_truth" in record.truth
-        self.camera = self._frame_camera()
+        names = (self.model.body(b).name for b in range(self.model.nbody))
+        arm = [b for b, name in enumerate(names) if name.startswith("xarm7/")]
+        self._arm_geoms = np.isin(self.model.geom_bodyid, arm)
+        self._arm_alpha = self.model.geom_rgba[self._arm_geoms, 3].copy()
         self._gl = _gl_context(params.width, params.height)
         self._gl.make_current()
         self._context = mujoco.MjrContext(self.model, mujoco.mjtFontScale.mjFONTSCALE_150)
@@ -167,6 +170,39 @@ class TrialRenderer:
         self.scene = mujoco.MjvScene(self.model, maxgeom=2000)
         self._option = mujoco.MjvOption()
         self._rect = mujoco.MjrRect(0, 0, params.width, params.height)
+        self.view(record, params)
+
+    def fits(self, record: TrialRecord, params: RenderParams) -> bool:
+        """Whether :meth:`view` can take ``record`` and ``params``: the same pedestal height
+        (the compiled scene) and image size (the OpenGL buffer)."""
+        return pedestal_height(record) == self.pedestal and (params.width, params.height) == (
+            self.size
+        )
+
+    def view(self, record: TrialRecord, params: RenderParams) -> None:
+        """Draw ``record`` with ``params`` from now on, on the same scene and OpenGL context
+        (setting them up costs more than drawing a frame).
+
+        Raises:
+            ConfigError: ``record`` stands on another pedestal height, or ``params`` asks
+                for another image size (:meth:`fits`).
+        """
+        if not self.fits(record, params):
+            raise ConfigError(
+                "record",
+                f"needs a renderer for pedestal {pedestal_height(record):g} m and "
+                f"{params.width}x{params.height} px; this one draws {self.pedestal:g} m and "
+                f"{self.size[0]}x{self.size[1]} px",
+            )
+        self.record = record
+        self.params = params
+        base = np.asarray(record.base_pose, dtype=float)
+        self._R_b = quat_to_matrix(base[3:])
+        self._shift = np.array([0.0, 0.0, self.pedestal]) - base[:3] @ self._R_b
+        alpha = self._arm_alpha if params.show_arm else 0.0
+        self.model.geom_rgba[self._arm_geoms, 3] = alpha
+        self.has_truth = "centreline" in record.truth and "t_truth" in record.truth
+        self.camera = self._frame_camera()
 
     def to_scene(self, p: np.ndarray) -> np.ndarray:
         """Lab-frame points (..., 3) in the rendered scene's frame."""
@@ -284,6 +320,37 @@ class TrialRenderer:
             self._gl.free()
 
     def __enter__(self) -> TrialRenderer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class RendererCache:
+    """Open :class:`TrialRenderer` s, one per scene and image size, re-bound to each record
+    asked for (:meth:`TrialRenderer.view`): many pictures pay the scene's and the OpenGL
+    context's set-up once. Close it when done (or use it as a context manager)."""
+
+    def __init__(self) -> None:
+        self._open: list[TrialRenderer] = []
+
+    def get(self, record: TrialRecord, params: RenderParams) -> TrialRenderer:
+        """A renderer drawing ``record`` with ``params``."""
+        for renderer in self._open:
+            if renderer.fits(record, params):
+                renderer.view(record, params)
+                return renderer
+        renderer = TrialRenderer(record, params)
+        self._open.append(renderer)
+        return renderer
+
+    def close(self) -> None:
+        """Close every renderer."""
+        for renderer in self._open:
+            renderer.close()
+        self._open.clear()
+
+    def __enter__(self) -> RendererCache:
         return self
 
     def __exit__(self, *exc) -> None:

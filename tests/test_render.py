@@ -113,3 +113,36 @@ def test_bad_requests_name_the_flag(stem, tmp_path, capsys):
     assert main(["render", str(stem), "--out", str(tmp_path / "x.jpg")]) == 2
     err = capsys.readouterr().err
     assert "--out" in err and ".png, .mp4" in err
+
+
+def test_a_renderer_bound_again_draws_what_a_new_one_draws(record):
+    from flyknot_app.render import RendererCache
+
+    moved = dataclasses.replace(record, q_meas=record.q_meas + np.array([0.6, 0, 0, 0, 0, 0, 0]))
+    bare = dataclasses.replace(moved, truth={})
+    views = [
+        (record, SMALL),
+        (moved, dataclasses.replace(SMALL, show_arm=False)),
+        (bare, dataclasses.replace(SMALL, close_up=True)),
+        (record, dataclasses.replace(SMALL, focus=(3, 9))),
+    ]
+    t = trial_end(record)
+    with RendererCache() as cache:
+        again = [cache.get(rec, params).render(t, "caption") for rec, params in views]
+        assert len(cache._open) == 1  # one scene and image size: one renderer
+    for (rec, params), img in zip(views, again, strict=True):
+        with TrialRenderer(rec, params) as fresh:
+            np.testing.assert_array_equal(img, fresh.render(t, "caption"))
+
+
+def test_a_renderer_names_what_it_cannot_draw(record):
+    raised = dataclasses.replace(record, base_pose=np.r_[0.0, 0.0, 1.4, 1.0, 0.0, 0.0, 0.0])
+    with TrialRenderer(record, SMALL) as r:
+        assert not r.fits(raised, SMALL)
+        assert not r.fits(record, dataclasses.replace(SMALL, width=200))
+        with pytest.raises(ConfigError) as err:
+            r.view(raised, SMALL)
+    assert str(err.value) == (
+        "record: needs a renderer for pedestal 1.4 m and 160x120 px; this one draws 1 m and "
+        "160x120 px"
+    )
