@@ -15,7 +15,7 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -273,29 +273,13 @@ class TrialRecord:
     @classmethod
     def load(cls, stem: str | Path, *, with_truth: bool = False) -> TrialRecord:
         """Read a record written by :meth:`save` (``stem`` may end in .json or .npz)."""
-        stem = Path(stem)
-        for suffix in (".truth.npz", ".json", ".npz"):
-            if stem.name.endswith(suffix):
-                stem = stem.with_name(stem.name[: -len(suffix)])
+        stem = _record_stem(stem)
         npz_path = stem.with_name(stem.name + ".npz")
         json_path = stem.with_name(stem.name + ".json")
         for p in (npz_path, json_path):
             if not p.is_file():
                 raise RecordError(f"trial record file {str(p)!r} does not exist")
-        try:
-            meta = json.loads(json_path.read_text())
-        except (OSError, UnicodeDecodeError, ValueError) as e:
-            raise RecordError(f"{str(json_path)!r} is not a readable record ({e})") from e
-        if not isinstance(meta, dict) or not set(meta) >= _RECORD_KEYS:
-            raise RecordError(
-                f"{str(json_path)!r} is not a trial record: it needs the keys "
-                f"{', '.join(sorted(_RECORD_KEYS))}"
-            )
-        if meta.get("format_version") != RECORD_FORMAT_VERSION:
-            raise RecordError(
-                f"{str(json_path)!r}: format_version {meta.get('format_version')!r} is not "
-                f"supported (valid choices: {RECORD_FORMAT_VERSION})"
-            )
+        meta = _read_meta(json_path)
         arrays = _read_npz(npz_path, cls._ARRAYS)
         truth: dict[str, np.ndarray] = {}
         truth_path = stem.with_name(stem.name + ".truth.npz")
@@ -311,6 +295,59 @@ class TrialRecord:
             metadata=meta["metadata"],
             truth=truth,
         )
+
+
+class RecordOutcome(NamedTuple):
+    """What a record's JSON says of its trial's end, read without its arrays
+    (:func:`read_outcome`)."""
+
+    fault: str | None
+    knot: str
+    verdict: Verdict | None
+
+
+def read_outcome(stem: str | Path) -> RecordOutcome:
+    """The fault, knot and stored verdict of the record at ``stem`` (.json, .npz or the stem)
+    from its JSON alone, checked as :meth:`TrialRecord.load` checks it.
+
+    Raises:
+        RecordError: The JSON is missing, unreadable or not a record of this format.
+    """
+    stem = _record_stem(stem)
+    json_path = stem.with_name(stem.name + ".json")
+    if not json_path.is_file():
+        raise RecordError(f"trial record file {str(json_path)!r} does not exist")
+    meta = _read_meta(json_path)
+    verdict = Verdict.from_json(meta["verdict"]) if meta.get("verdict") else None
+    return RecordOutcome(meta["fault"], meta["knot"], verdict)
+
+
+def _record_stem(stem: str | Path) -> Path:
+    """A record's stem from its stem or one of its files."""
+    stem = Path(stem)
+    for suffix in (".truth.npz", ".json", ".npz"):
+        if stem.name.endswith(suffix):
+            return stem.with_name(stem.name[: -len(suffix)])
+    return stem
+
+
+def _read_meta(json_path: Path) -> dict:
+    """A record's JSON, checked for its keys and format version."""
+    try:
+        meta = json.loads(json_path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise RecordError(f"{str(json_path)!r} is not a readable record ({e})") from e
+    if not isinstance(meta, dict) or not set(meta) >= _RECORD_KEYS:
+        raise RecordError(
+            f"{str(json_path)!r} is not a trial record: it needs the keys "
+            f"{', '.join(sorted(_RECORD_KEYS))}"
+        )
+    if meta.get("format_version") != RECORD_FORMAT_VERSION:
+        raise RecordError(
+            f"{str(json_path)!r}: format_version {meta.get('format_version')!r} is not "
+            f"supported (valid choices: {RECORD_FORMAT_VERSION})"
+        )
+    return meta
 
 
 def atomic_write_text(path: Path, text: str) -> None:

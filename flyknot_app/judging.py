@@ -23,7 +23,7 @@ import numpy as np
 
 from flyknot.errors import FlyknotError
 from flyknot.judge import MarkerJudge
-from flyknot.record import TrialRecord
+from flyknot.record import TrialRecord, read_outcome
 from flyknot.verdict import KNOT, JudgeParams, Verdict, judge_centreline, tube_axis_of
 from flyknot_app.anatomy_trials import (
     TrialFile,
@@ -115,11 +115,15 @@ def rejudge(f: TrialFile, *, keep_stored: bool = False) -> Rejudged:
         return Rejudged(
             f.name, f.path, f.kind, None, ev.knot, None if old is None else old.klass, new
         )
+    if keep_stored:  # a stored verdict or a fault: the record's JSON says all
+        end = read_outcome(f.path)
+        if end.fault is not None or end.verdict is not None:
+            old_class = None if end.verdict is None else end.verdict.klass
+            new = end.verdict if end.fault is None else None
+            return Rejudged(f.name, f.path, f.kind, end.fault, end.knot, old_class, new)
     rec = load_record(f.path)
     new = None
-    if rec.fault is None and keep_stored and rec.verdict is not None:
-        new = rec.verdict
-    elif rec.fault is None:
+    if rec.fault is None:
         frame = final_frame(rec.truth["centreline"]) if "centreline" in rec.truth else None
         if frame is not None:
             new = judge_centreline(frame, tube_axis_of(rec.fingertip_quat[-1]))

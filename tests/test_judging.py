@@ -214,3 +214,21 @@ def test_a_record_without_truth_is_judged_and_pictured_from_its_markers(tmp_path
     (trial,) = data["trials"]
     assert trial["new"]["source"] == "markers"
     assert len(data["pictures"]) == 1 and Path(data["pictures"][0]).is_file()
+
+
+def test_kept_verdicts_come_from_the_records_json_and_match_the_full_load(run_dir):
+    from flyknot.verdict import judge_centreline
+    from flyknot_app.judging import rejudge_directory
+
+    learning = run_dir / "runs" / "rope1" / "learning"
+    stored = _record("knot_rope1_repeat", "trefoil")
+    stored = dataclasses.replace(stored, verdict=judge_centreline(stored.truth["centreline"][-1]))
+    stored.save(learning / "trial_0004_a0")
+    full = rejudge_directory(run_dir, keep_stored=True)
+    (learning / "trial_0004_a0.npz").write_bytes(b"cut")  # a kept verdict needs no arrays
+    (learning / "trial_0003_a0.npz").write_bytes(b"cut")  # nor does a fault
+    fast = rejudge_directory(run_dir, keep_stored=True)
+    assert [(r.name, r.fault, r.old_class, r.new) for r in fast] == [
+        (r.name, r.fault, r.old_class, r.new) for r in full
+    ]
+    assert fast[-1].new == stored.verdict and fast[-2].fault == "joint 4 torque limit"

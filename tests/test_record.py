@@ -155,3 +155,25 @@ def test_a_ledger_line_cut_short_is_dropped(tmp_path):
     (tmp_path / "ledger.jsonl").write_text('{"trial": 1}\n' + "x\n")
     with pytest.raises(RecordError, match=r"ledger\.jsonl' line 1 is not a ledger line"):
         rd.ledger()
+
+
+def test_a_records_outcome_is_read_from_its_json_alone(tmp_path):
+    from flyknot.record import read_outcome
+
+    stem = tmp_path / "trial_0001"
+    rec = _record(fault="joint 2 velocity 4 rad/s exceeds limit", verdict=None)
+    rec.save(stem)
+    (tmp_path / "trial_0001.npz").unlink()  # the arrays are not read
+    assert read_outcome(stem) == (rec.fault, "trefoil", None)
+    _record().save(tmp_path / "trial_0002")
+    for name in ("trial_0002", "trial_0002.json", "trial_0002.npz"):
+        assert read_outcome(tmp_path / name) == (None, "trefoil", verdict("knot"))
+    with pytest.raises(RecordError) as err:
+        read_outcome(tmp_path / "nope")
+    assert str(err.value) == f"trial record file {str(tmp_path / 'nope.json')!r} does not exist"
+    (tmp_path / "old.json").write_text(
+        '{"format_version": 0, "fault": null, "fault_time": null, "first_contact_time": null,'
+        ' "knot": "unknot", "metadata": {}}'
+    )
+    with pytest.raises(RecordError, match=r"format_version 0 is not supported \(valid choices"):
+        read_outcome(tmp_path / "old")
