@@ -46,6 +46,10 @@ from learner.native import NativeBatch, NativeUnavailableError, compile_batch
 
 FINGERTIP_SITE = "fingertip"
 
+_NATIVE: dict[tuple, dict] = {}
+"""Compiled batches per MJCF file (path, modification time) and chain options, shared by the
+models read from it in this process (loading them costs more than building the model)."""
+
 
 # --------------------------------------------------------------------------------------------
 # symbolic model
@@ -334,6 +338,12 @@ class RobotModel:
             torque_jac=tjac,
             native=native,
             _flat=flat,
+            _native=_NATIVE.setdefault(
+                (str(path.resolve()), path.stat().st_mtime_ns, joint_names, site, base_body, flags),
+                {},
+            )
+            if native
+            else {},
         )
 
     # ---------------------------------------------------------------------------- batches

@@ -77,6 +77,9 @@ def test_a_compiled_library_is_built_once_and_reused(xarm, tmp_path):
 
 
 def test_without_a_compiler_the_model_warns_and_interprets(monkeypatch, tmp_path):
+    import learner.kinematics
+
+    monkeypatch.setattr(learner.kinematics, "_NATIVE", {})  # nothing compiled in this process
     monkeypatch.setenv("CC", "no-such-cc")
     monkeypatch.setenv("FLYKNOT_CACHE", str(tmp_path))
     robot = RobotModel.from_mjcf(CHAIN7)
@@ -129,3 +132,14 @@ def test_a_model_that_has_compiled_its_batches_pickles(xarm):
     copy = pickle.loads(pickle.dumps(xarm))
     assert copy._native == {} and copy.native
     np.testing.assert_array_equal(copy.torques(q, q, q), tau)
+
+
+def test_models_of_one_chain_share_their_compiled_batches():
+    a, b = RobotModel.from_mjcf(CHAIN7), RobotModel.from_mjcf(CHAIN7)
+    q = np.full((2, 7), 0.1)
+    a.torques(q, q, q)
+    assert b._native is a._native and b._native["tau"] is not None
+    other = RobotModel.from_mjcf(CHAIN7, include_armature=False)  # another inverse dynamics
+    assert other._native is not a._native
+    np.testing.assert_array_equal(other.torques(q, q, q), other.torques(q, q, q))
+    assert not np.array_equal(other.torques(q, q, q), a.torques(q, q, q))
