@@ -140,7 +140,7 @@ def rope_drag_forces(
     Returns:
         Forces on the vertices, shape (n + 1, 3) [N].
     """
-    rho, nu = params.air_density, params.air_viscosity
+    rho = params.air_density
     seg = x[1:] - x[:-1]
     length = np.sqrt(np.einsum("ij,ij->i", seg, seg))
     t = seg / np.maximum(length, 1e-12)[:, None]
@@ -149,11 +149,7 @@ def rope_drag_forces(
     vt = vt_mag[:, None] * t
     vn = vs - vt
     vn_mag = np.sqrt(np.einsum("ij,ij->i", vn, vn))
-    if params.cd is None:
-        re = np.maximum(vn_mag * (diameter / nu), _RE_FLOOR)
-        cd = 1.0 + 10.0 * re ** (-2.0 / 3.0)  # cylinder_cd, inlined (hot path)
-    else:
-        cd = params.cd
+    cd = _cross_flow_cd(vn_mag, diameter, params)
     kn = (0.5 * rho * diameter) * length * cd * vn_mag
     kt = (0.5 * rho * params.tangential_ct * math.pi * diameter) * length * np.abs(vt_mag)
     f_seg = -0.5 * (kn[:, None] * vn + kt[:, None] * vt)
@@ -161,12 +157,24 @@ def rope_drag_forces(
     f[1:] += f_seg
     f[:-1] += f_seg
     if end_radius > 0:
-        ve = v[-1]
-        speed = math.sqrt(float(ve @ ve))
-        re_s = max(speed * 2 * end_radius / nu, _RE_FLOOR)
-        cds = 24.0 / re_s + 6.0 / (1.0 + math.sqrt(re_s)) + 0.4  # sphere_cd, inlined
-        f[-1] -= (0.5 * rho * cds * math.pi * end_radius**2 * speed) * ve
+        f[-1] -= _end_coef(v[-1], end_radius, params) * v[-1]
     return f
+
+
+def _cross_flow_cd(vn_mag: np.ndarray, diameter: float, params: AeroParams):
+    """C_D per segment: ``params.cd``, else cylinder_cd(Re_n) inlined (hot path)."""
+    if params.cd is not None:
+        return params.cd
+    re = np.maximum(vn_mag * (diameter / params.air_viscosity), _RE_FLOOR)
+    return 1.0 + 10.0 * re ** (-2.0 / 3.0)
+
+
+def _end_coef(ve: np.ndarray, end_radius: float, params: AeroParams) -> float:
+    """1/2 rho C_D,s(Re_s) pi R^2 |v| of the end sphere [kg/s] (sphere_cd inlined)."""
+    speed = math.sqrt(float(ve @ ve))
+    re_s = max(speed * 2 * end_radius / params.air_viscosity, _RE_FLOOR)
+    cds = 24.0 / re_s + 6.0 / (1.0 + math.sqrt(re_s)) + 0.4
+    return 0.5 * params.air_density * cds * math.pi * end_radius**2 * speed
 
 
 DRAG_HOLD_S = 0.004
@@ -217,21 +225,12 @@ def _drag_compiled(x, v, diameter, end_radius, params: AeroParams, out: np.ndarr
     and the end weight's speed by NumPy, as there."""
     from flyknot_sim.aero_kernel import drag_into, segment_flow
 
-    rho, nu = params.air_density, params.air_viscosity
+    rho = params.air_density
     flow = np.empty((x.shape[0] - 1, 9))
     segment_flow(x, v, flow)
-    if params.cd is None:
-        re = np.maximum(flow[:, 1] * (diameter / nu), _RE_FLOOR)
-        cd = 1.0 + 10.0 * re ** (-2.0 / 3.0)
-    else:
-        cd = np.full(flow.shape[0], params.cd)
-    end_coef = 0.0
+    cd = np.broadcast_to(_cross_flow_cd(flow[:, 1], diameter, params), flow.shape[:1])
     ve = v[-1]
-    if end_radius > 0:
-        speed = math.sqrt(float(ve @ ve))
-        re_s = max(speed * 2 * end_radius / nu, _RE_FLOOR)
-        cds = 24.0 / re_s + 6.0 / (1.0 + math.sqrt(re_s)) + 0.4
-        end_coef = 0.5 * rho * cds * math.pi * end_radius**2 * speed
+    end_coef = _end_coef(ve, end_radius, params) if end_radius > 0 else 0.0
     c_n = 0.5 * rho * diameter
     c_t = 0.5 * rho * params.tangential_ct * math.pi * diameter
     drag_into(flow, cd, c_n, c_t, np.ascontiguousarray(ve), end_coef, out)
