@@ -111,17 +111,16 @@ def test_twist_and_torsional_friction_switches():
 
 @pytest.mark.parametrize("seed", [10, 26])
 def test_a_set_knot_ends_the_trial_early_with_the_capped_trials_verdict(seed):
-    """Lab seeds 10 (a knot) and 26 (wrapped at the grip) of the robot demonstration's
-    command: the knot sets after ~5.0 s and ~7.8 s; without the knot-set rule the settle runs
-    on, to the 15 s cap (seed 10) or until the rope is at rest (seed 26, 12.1 s). Same
-    verdict, and the early record is the longer one's prefix bit for bit (the physics is the
-    same until the settle ends)."""
+    """Lab seeds 10 (a knot) and 26 (wrapped at the grip) of the knot search's command
+    (``seeds/robot_knot.npz``, the robot demonstration's start): the knot sets after ~5.0 s
+    and ~7.8 s; without the knot-set rule the settle runs on, to the 15 s cap (seed 10) or
+    until the rope is at rest (seed 26, 12.1 s). Same verdict, and the early record is the
+    longer one's prefix bit for bit (the physics is the same until the settle ends)."""
     from flyknot.constants import DEMOS_DIR
-    from flyknot.demo import Demonstration
     from learner.bezier import BezierCommand
 
-    meta = Demonstration.load(DEMOS_DIR / "robot.npz").metadata
-    cmd = BezierCommand(np.asarray(meta["command_knots"]), meta["command_T"]).joint_command()
+    with np.load(DEMOS_DIR / "seeds" / "robot_knot.npz") as z:
+        cmd = BezierCommand(z["knots"], float(z["T"])).joint_command()
     early = SimLab(LabParams(rope=1, seed=seed)).run(cmd)
     full = SimLab(LabParams(rope=1, seed=seed, settle=SettleParams(knot_set_s=None))).run(cmd)
     st, st_full = early.metadata["settle"], full.metadata["settle"]
