@@ -232,7 +232,10 @@ def _cmd_lab_study(args: argparse.Namespace) -> int:
     names = list(CANDIDATES) if not args.candidates else args.candidates
     sways = [float(s) for s in args.sway]
     bar = tqdm(
-        total=2 * len(names) * len(sways), desc="lab study", unit="cell", disable=bar_disable(True)
+        total=len(args.demos) * len(names) * len(sways),
+        desc="lab study",
+        unit="cell",
+        disable=bar_disable(True),
     )
     rows = run_study(
         names,
@@ -242,6 +245,7 @@ def _cmd_lab_study(args: argparse.Namespace) -> int:
         rope=args.rope,
         workers=args.workers,
         robot_demo=args.robot_demo or ROBOT_DEMO,
+        demos=args.demos,
         on_cell=lambda _cell: bar.update(1),
     )
     bar.close()
@@ -506,6 +510,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="FILE",
         help="robot demonstration whose stored command the arm plays (default the shipped one)",
+    )
+    ls.add_argument(
+        "--demos",
+        nargs="+",
+        default=["robot", "hand"],
+        metavar="KIND",
+        help="which to play: robot (the arm's command), hand (Swipe); default both",
     )
     ls.add_argument("--out", default=None, help="directory for lab_study.json / .md")
     ls.set_defaults(func=_cmd_lab_study)

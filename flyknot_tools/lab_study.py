@@ -36,6 +36,7 @@ from flyknot.errors import ConfigError, check_int, check_nonnegative
 
 DEMOS = Path(__file__).resolve().parents[1] / "assets" / "demos"
 ROBOT_DEMO = DEMOS / "robot.npz"
+DEMO_KINDS = ("robot", "hand")  # the arm's command in the arm's lab; Swipe in the hand lab
 
 
 @dataclass(frozen=True)
@@ -252,9 +253,10 @@ def run_study(
     rope: int = 1,
     workers: int = 1,
     robot_demo: str | Path = ROBOT_DEMO,
+    demos: Sequence[str] = DEMO_KINDS,
     on_cell: Callable[[dict[str, Any]], None] | None = None,
 ) -> list[dict[str, Any]]:
-    """Measure every (candidate, sway) row with both demonstrations.
+    """Measure every (candidate, sway) row with the chosen demonstrations.
 
     Args:
         candidates: Names in :data:`CANDIDATES`.
@@ -264,13 +266,16 @@ def run_study(
         rope: Rope id.
         workers: Worker processes, >= 1.
         robot_demo: The robot demonstration whose stored command the arm plays.
+        demos: Which of :data:`DEMO_KINDS` to play (the other's summary is None): a new robot
+            command is compared without playing Swipe again.
         on_cell: Called with each finished cell (for progress).
 
     Returns:
         One dict per row: ``candidate``, ``sway_deg``, ``robot`` and ``hand`` summaries.
 
     Raises:
-        ConfigError: An unknown candidate (valid ones listed), or a bad count or sway.
+        ConfigError: An unknown candidate or demonstration kind (valid ones listed), or a bad
+            count or sway.
     """
     for c in candidates:
         if c not in CANDIDATES:
@@ -279,13 +284,19 @@ def run_study(
         check_nonnegative("sway_deg", s)
     check_int("n", n, 1)
     check_int("workers", workers, 1)
-    if not Path(robot_demo).is_file():
+    for d in demos:
+        if d not in DEMO_KINDS:
+            raise ConfigError("demos", f"unknown demonstration kind {d!r}", DEMO_KINDS)
+    if not demos:
+        raise ConfigError("demos", "empty", DEMO_KINDS)
+    if "robot" in demos and not Path(robot_demo).is_file():
         raise ConfigError("robot_demo", f"no file {str(robot_demo)!r}")
     jobs = [
         (c, float(s), w, n, seed, rope, Path(robot_demo))
         for c in candidates
         for s in sways
-        for w in ("robot", "hand")
+        for w in DEMO_KINDS
+        if w in demos
     ]
     cells: dict[tuple[str, float, str], dict[str, Any]] = {}
     with ProcessPoolExecutor(max_workers=workers) as pool:
@@ -297,8 +308,10 @@ def run_study(
         {
             "candidate": c,
             "sway_deg": float(s),
-            "robot": _summary(cells[(c, float(s), "robot")]["trials"]),
-            "hand": _summary(cells[(c, float(s), "hand")]["trials"]),
+            **{
+                w: _summary(cells[(c, float(s), w)]["trials"]) if w in demos else None
+                for w in DEMO_KINDS
+            },
         }
         for c in candidates
         for s in sways
@@ -310,6 +323,19 @@ def _failures_text(f: dict[str, int]) -> str:
     return ", ".join(f"{v} {k}" for k, v in f.items()) or "-"
 
 
+def _columns(summary: dict[str, Any] | None) -> dict[str, str]:
+    """One demonstration's cells of a table line (``-`` for a demonstration not played)."""
+    if summary is None:
+        return dict.fromkeys(("ties", "failures", "settle", "sim", "wall"), "-")
+    return {
+        "ties": f"{summary['ties']}/{summary['n']}",
+        "failures": _failures_text(summary["failures"]),
+        "settle": "/".join(str(summary["settle"].get(k, 0)) for k in SETTLE_KINDS),
+        "sim": f"{summary['sim_s_per_trial']:.1f}",
+        "wall": f"{summary['wall_per_sim_s']:.2f}",
+    }
+
+
 def table_markdown(rows: Sequence[dict[str, Any]]) -> str:
     """The study as a markdown table (one line per row)."""
     head = (
@@ -319,16 +345,12 @@ def table_markdown(rows: Sequence[dict[str, Any]]) -> str:
     )
     lines = []
     for r in rows:
-        a, h = r["robot"], r["hand"]
+        a, h = _columns(r["robot"]), _columns(r["hand"])
         start = "settled" if r["sway_deg"] == 0 else f"+{r['sway_deg']:g} deg sway"
-        rest = "/".join(str(a["settle"].get(k, 0)) for k in SETTLE_KINDS)
-        rest_h = "/".join(str(h["settle"].get(k, 0)) for k in SETTLE_KINDS)
         lines.append(
-            f"| {r['candidate']} | {start} | {a['ties']}/{a['n']} | "
-            f"{_failures_text(a['failures'])} | {h['ties']}/{h['n']} | "
-            f"{_failures_text(h['failures'])} | {rest}; {rest_h} | "
-            f"{a['sim_s_per_trial']:.1f}; {h['sim_s_per_trial']:.1f} | "
-            f"{a['wall_per_sim_s']:.2f}; {h['wall_per_sim_s']:.2f} |"
+            f"| {r['candidate']} | {start} | {a['ties']} | {a['failures']} | {h['ties']} | "
+            f"{h['failures']} | {a['settle']}; {h['settle']} | {a['sim']}; {h['sim']} | "
+            f"{a['wall']}; {h['wall']} |"
         )
     return head + "\n".join(lines) + "\n"
 

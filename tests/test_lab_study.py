@@ -106,3 +106,48 @@ def test_the_robot_rows_play_the_given_demonstration(tmp_path):
     bad.write_text("not a demonstration")
     with pytest.raises(RecordError, match="is not a demonstration file"):
         _robot_trials(arm, 1, bad)
+
+
+def test_a_demonstration_not_played_is_a_dash_in_the_table():
+    a = _summary([_trial("success", "rest")])
+    md = table_markdown([{"candidate": "lab", "sway_deg": 0.0, "robot": a, "hand": None}])
+    assert md.strip().splitlines()[2] == (
+        "| lab | settled | 1/1 | - | - | - | 1/0/0/0; - | 2.0; - | 0.50; - |"
+    )
+
+
+def test_an_unknown_demonstration_kind_lists_the_valid_ones():
+    with pytest.raises(ConfigError) as e:
+        run_study(["lab"], [0.0], n=1, demos=("robot", "swipe"))
+    assert str(e.value) == (
+        "demos: unknown demonstration kind 'swipe' (valid choices: robot, hand)"
+    )
+
+
+def test_the_robot_alone_is_played_without_swipe(monkeypatch):
+    import flyknot_tools.lab_study as ls
+
+    played = []
+
+    def fake_measure(job):
+        played.append(job[2])
+        return {"candidate": job[0], "sway_deg": job[1], "demo": job[2],
+                "trials": [_trial("success", "rest")]}  # fmt: skip
+
+    class SerialPool:
+        def __init__(self, max_workers):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def map(self, fn, jobs):
+            return map(fn, jobs)
+
+    monkeypatch.setattr(ls, "_measure", fake_measure)
+    monkeypatch.setattr(ls, "ProcessPoolExecutor", SerialPool)
+    (row,) = run_study(["lab"], [0.0], n=1, demos=("robot",))
+    assert played == ["robot"] and row["hand"] is None and row["robot"]["ties"] == 1
