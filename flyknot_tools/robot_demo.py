@@ -9,10 +9,11 @@ motion the arm can make. It is made in two steps:
    (usually the initial guess of a hand demonstration), in the lab without trial-to-trial
    variation. Decision: 37 numbers, y in normalised units. For joints 1-6 the 6 free knots
    (knot 1 copies knot 0 and knot 6 copies knot 7: rest at both ends) are offset by
-   ``knot_scale`` y [rad]; joint 7 (it only twists the rope, which has no torsion) and the
-   base rows stay; T = T0 + ``duration_scale`` y_37, kept in ``duration``. A command that
-   breaks a limit on its 250 Hz samples scores -30 - 20 min(v, 5) without being simulated
-   (v: largest violation as a fraction of the half range). Otherwise
+   ``space.knot_scale`` y [rad]; joint 7 (it only twists the rope, which has no torsion)
+   and the base rows stay; T = T0 + ``space.duration_scale`` y_37, kept in
+   ``space.duration`` (:class:`CommandSpace`). A command that breaks a limit on its 250 Hz
+   samples scores -30 - 20 min(v, 5) without being simulated (v: largest violation as a
+   fraction of the half range). Otherwise
    :func:`command_score`. The search stops at the first command whose trial ends tied.
 2. :func:`record_demonstration`: that command's nominal trial as the motion capture sees it:
    the fingertip pose (hand frame = fingertip frame), the 11 markers at 200 Hz (noise, loss
@@ -47,6 +48,7 @@ __all__ = [
     "CommandCoding",
     "CommandSearchConfig",
     "CommandSearchResult",
+    "CommandSpace",
     "check_duration",
     "command_score",
     "free_from_knots",
@@ -99,33 +101,50 @@ def check_duration(duration: tuple[float, float]) -> tuple[float, float]:
 
 
 @dataclass(frozen=True)
+class CommandSpace:
+    """How the searches' decision vector moves a command (shared by both searches).
+
+    Attributes:
+        knot_scale: Knot offset per normalised unit [rad].
+        duration_scale: Duration change per normalised unit [s].
+        duration: Allowed command duration (lo, hi) [s].
+    """
+
+    knot_scale: float = 0.12
+    duration_scale: float = 0.036
+    duration: tuple[float, float] = (0.6, 1.1)
+
+    def __post_init__(self) -> None:
+        for f in ("knot_scale", "duration_scale"):
+            check_positive(f, getattr(self, f))
+        object.__setattr__(self, "duration", check_duration(self.duration))
+
+
+@dataclass(frozen=True)
 class CommandCoding:
     """The searches' decision vector y (37,) [normalised units] and the command it codes.
 
-    For joints 1-6 the free knots of ``start_knots`` are offset by ``knot_scale`` y[:36] [rad];
-    T = T0 + ``duration_scale`` y[36] [s]; joint 7 and the base rows stay (module docstring).
+    For joints 1-6 the free knots of ``start_knots`` are offset by ``space.knot_scale``
+    y[:36] [rad]; T = T0 + ``space.duration_scale`` y[36] [s]; joint 7 and the base rows stay
+    (module docstring).
 
     Attributes:
         start_knots: Knots of the start command (10, 8).
         T0: Its duration [s].
-        knot_scale: Knot offset per unit [rad].
-        duration_scale: Duration change per unit [s].
-        duration: Allowed duration (lo, hi) [s].
+        space: Scales and the allowed duration.
     """
 
     start_knots: np.ndarray
     T0: float
-    knot_scale: float
-    duration_scale: float
-    duration: tuple[float, float]
+    space: CommandSpace
 
     def decode(self, y: np.ndarray) -> tuple[np.ndarray, float]:
         """The command (knots (10, 8), T [s]) of decision vector y (37,)."""
         free = free_from_knots(self.start_knots)
         y = np.asarray(y, dtype=float)
-        free[:N_SEARCHED_JOINTS] += self.knot_scale * y[:-1].reshape(N_SEARCHED_JOINTS, -1)
+        free[:N_SEARCHED_JOINTS] += self.space.knot_scale * y[:-1].reshape(N_SEARCHED_JOINTS, -1)
         base = np.asarray(self.start_knots, dtype=float)[7:]
-        return knots_from_free(free, base), float(self.T0 + self.duration_scale * y[-1])
+        return knots_from_free(free, base), float(self.T0 + self.space.duration_scale * y[-1])
 
     def limit_score(self, knots: np.ndarray, T: float, robot, limits) -> float | None:
         """The score of a command outside its duration or the joint limits on its 250 Hz
@@ -134,7 +153,7 @@ class CommandCoding:
         from learner.bezier import BezierCommand
         from learner.limit_rows import sampled_violation
 
-        lo, hi = self.duration
+        lo, hi = self.space.duration
         if not lo <= T <= hi:
             return -30.0 - 100.0 * abs(T - min(max(T, lo), hi))
         v = sampled_violation(knots, T, BezierCommand(knots, T).sample_times(), robot, limits)
@@ -149,9 +168,7 @@ class CommandSearchConfig:
         rope: Rope id of the lab.
         evaluations: Most candidate commands evaluated.
         sigma0: CMA-ES initial step [normalised units].
-        knot_scale: Knot offset per normalised unit [rad].
-        duration_scale: Duration change per normalised unit [s].
-        duration: Allowed command duration (lo, hi) [s].
+        space: How the decision vector moves the command.
         frame_s: Spacing of the judged truth frames [s].
         confirm: Varied trials (seeds 0..confirm-1) that confirm a tying command.
         local_evaluations: Most candidates of the local phase (0: stop at the first knot).
@@ -165,9 +182,7 @@ class CommandSearchConfig:
     rope: int = 1
     evaluations: int = 1500
     sigma0: float = 1.0
-    knot_scale: float = 0.12
-    duration_scale: float = 0.036
-    duration: tuple[float, float] = (0.6, 1.1)
+    space: CommandSpace = field(default_factory=CommandSpace)
     frame_s: float = 0.05
     confirm: int = 10
     local_evaluations: int = 300
@@ -181,9 +196,8 @@ class CommandSearchConfig:
             check_int(f, getattr(self, f), 0)
         if not (isinstance(self.target_rate, (int, float)) and 0 < self.target_rate <= 1):
             raise ConfigError("target_rate", f"must lie in (0, 1], got {self.target_rate!r}")
-        for f in ("sigma0", "knot_scale", "duration_scale", "frame_s", "local_sigma"):
+        for f in ("sigma0", "frame_s", "local_sigma"):
             check_positive(f, getattr(self, f))
-        object.__setattr__(self, "duration", check_duration(self.duration))
 
 
 @dataclass(frozen=True)
@@ -304,10 +318,7 @@ def search_command(
 
     check_int("seed", seed, 0)
     tic = time.perf_counter()
-    coding = CommandCoding(
-        np.asarray(start_knots, dtype=float), T0, config.knot_scale, config.duration_scale,
-        config.duration,
-    )  # fmt: skip
+    coding = CommandCoding(np.asarray(start_knots, dtype=float), T0, config.space)
     robot, limits = RobotModel.from_mjcf(), JointLimits()
     lab = SimLab(LabParams(rope=config.rope, variation=VariationParams.none()))
     state = {"evals": 0, "simulated": 0}

@@ -20,7 +20,7 @@ import numpy as np
 from flyknot.errors import ConfigError, check_int, check_positive
 from flyknot.limits import JointLimits
 from flyknot.progress import bar_disable
-from flyknot_tools.robot_demo import N_DECISION, CommandCoding, check_duration, command_score
+from flyknot_tools.robot_demo import N_DECISION, CommandCoding, CommandSpace, command_score
 
 __all__ = ["RateSearchConfig", "RateSearchResult", "rate_search"]
 
@@ -36,10 +36,8 @@ class RateSearchConfig:
         trials: Varied trials per candidate; every candidate of a generation plays the same
             lab seeds, and each generation draws fresh ones (so the search cannot fit a
             fixed handful of ropes).
-        sigma: CMA-ES initial step [normalised units, as :class:`CommandSearchConfig`].
-        knot_scale: Knot offset per normalised unit [rad].
-        duration_scale: Duration change per normalised unit [s].
-        duration: Allowed command duration (lo, hi) [s].
+        sigma: CMA-ES initial step [normalised units of ``space``].
+        space: How the decision vector moves the command.
         frame_s: Spacing of the judged truth frames [s].
         seed_base: Lab seed of the search's first trial (generation g, trial k plays
             ``seed_base + g * trials + k``); keep it clear of the check's seeds.
@@ -52,9 +50,7 @@ class RateSearchConfig:
     popsize: int = 8
     trials: int = 8
     sigma: float = 0.2
-    knot_scale: float = 0.12
-    duration_scale: float = 0.036
-    duration: tuple[float, float] = (0.6, 1.1)
+    space: CommandSpace = field(default_factory=CommandSpace)
     frame_s: float = 0.05
     seed_base: int = 1000
     check_seeds: tuple[int, int] = (10, 50)
@@ -63,7 +59,7 @@ class RateSearchConfig:
         for f in ("generations", "trials", "seed_base"):
             check_int(f, getattr(self, f), 1)
         check_int("popsize", self.popsize, 2)
-        for f in ("sigma", "knot_scale", "duration_scale", "frame_s"):
+        for f in ("sigma", "frame_s"):
             check_positive(f, getattr(self, f))
         lo, hi = (int(v) for v in self.check_seeds)
         if not 0 <= lo < hi:
@@ -76,7 +72,6 @@ class RateSearchConfig:
                 f"{lo}..{hi - 1}",
             )
         object.__setattr__(self, "check_seeds", (lo, hi))
-        object.__setattr__(self, "duration", check_duration(self.duration))
 
 
 @dataclass(frozen=True)
@@ -178,10 +173,7 @@ def rate_search(
     check_int("seed", seed, 0)
     check_int("workers", workers, 1)
     tic = time.perf_counter()
-    coding = CommandCoding(
-        np.asarray(start_knots, dtype=float), T0, config.knot_scale, config.duration_scale,
-        config.duration,
-    )  # fmt: skip
+    coding = CommandCoding(np.asarray(start_knots, dtype=float), T0, config.space)
     robot, limits = RobotModel.from_mjcf(), JointLimits()
 
     n_check = config.check_seeds[1] - config.check_seeds[0]

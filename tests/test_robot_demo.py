@@ -16,6 +16,7 @@ from flyknot.errors import ConfigError
 from flyknot_tools import cli as tools_cli
 from flyknot_tools.robot_demo import (
     CommandSearchConfig,
+    CommandSpace,
     command_score,
     free_from_knots,
     knots_from_free,
@@ -45,8 +46,13 @@ def test_bad_shapes_and_config_messages():
         free_from_knots(np.zeros((7, 8)))
     assert str(e.value) == "knots: must have shape (10, 8), got (7, 8)"
     with pytest.raises(ConfigError) as e:
-        CommandSearchConfig(duration=(1.0, 0.5))
+        CommandSpace(duration=(1.0, 0.5))
     assert str(e.value) == "duration: need 0.1 <= lo < hi <= 5 s, got (1.0, 0.5)"
+    with pytest.raises(ConfigError) as e:
+        CommandSpace(knot_scale=0.0)
+    assert str(e.value) == "knot_scale: must be a finite number > 0, got 0.0"
+    # Both searches move a command the same way: one space, one default.
+    assert CommandSearchConfig().space == RateSearchConfig().space == CommandSpace()
     with pytest.raises(ConfigError, match="evaluations: must be an integer >= 1, got 0"):
         CommandSearchConfig(evaluations=0)
     with pytest.raises(ConfigError) as e:
