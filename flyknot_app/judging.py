@@ -12,6 +12,7 @@ render of every trial the new judge counts as a knot and of one trial per other 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
@@ -266,11 +267,19 @@ def verdict_picture(
     return out
 
 
+def _drawn_since(picture: Path, trial: Path) -> bool:
+    """True when ``picture`` exists and was written after the trial's file (a record's JSON
+    is written last): a trial played again is drawn again."""
+    return picture.is_file() and picture.stat().st_mtime_ns >= trial.stat().st_mtime_ns
+
+
 def write_pictures(rows: Sequence[Rejudged], out: str | Path) -> list[Path]:
-    """:func:`verdict_picture` of every row of :func:`picture_rows`, into ``out``.
+    """:func:`verdict_picture` of every row of :func:`picture_rows`, into ``out``; a picture
+    already there and drawn after its trial (by the run's worker, :func:`draw_run_knots`) is
+    kept as it is (the same trial, verdict and file name: the same image).
 
     Returns:
-        The files written, in the order of :func:`picture_rows`.
+        The files, in the order of :func:`picture_rows`.
     """
     from flyknot_app.render import RendererCache
 
@@ -278,13 +287,34 @@ def write_pictures(rows: Sequence[Rejudged], out: str | Path) -> list[Path]:
     written = []
     with RendererCache() as renderers:
         for r in picture_rows(rows):
-            replay = r.kind == "replay"
-            record = _replay_record(r.path) if replay else load_record(r.path)
             path = out / picture_name(r)
-            written.append(
+            if not _drawn_since(path, r.path):
+                replay = r.kind == "replay"
+                record = _replay_record(r.path) if replay else load_record(r.path)
                 verdict_picture(record, r.new, path, arm=not replay, renderers=renderers)
-            )
+            written.append(path)
     return written
+
+
+def draw_run_knots(run_dir: str | Path, root: str | Path) -> list[Path]:
+    """The pictures of a finished run's knots, drawn where and as the report of the scenario
+    directory ``root`` draws them (``root/verdicts``; :func:`report_section` keeps them): each
+    run's worker draws its own knots instead of the report drawing every run's, one after the
+    other, once all have ended.
+
+    Returns:
+        The files (none for a run without trials or knots).
+    """
+    run_dir, root = Path(run_dir), Path(root)
+    if not find_trials(run_dir):
+        return []
+    prefix = run_dir.relative_to(root).as_posix()
+    knots = [
+        dataclasses.replace(r, name=f"{prefix}/{r.name}")
+        for r in rejudge_directory(run_dir, keep_stored=True)
+        if r.new_class == KNOT
+    ]
+    return write_pictures(knots, root / "verdicts") if knots else []
 
 
 def report_section(out_dir: str | Path) -> list[str]:
