@@ -293,6 +293,113 @@ def _closest_approach(C: np.ndarray) -> float:
     return float(D[:, far].min())
 
 
+class _Trials:
+    """A search's trials: the nominal lab scores candidates, varied labs confirm them."""
+
+    def __init__(self, coding: CommandCoding, config: CommandSearchConfig) -> None:
+        from flyknot_sim.lab import LabParams, SimLab, VariationParams
+        from learner.kinematics import RobotModel
+
+        self.coding, self.config = coding, config
+        self.robot, self.limits = RobotModel.from_mjcf(), JointLimits()
+        self.lab = SimLab(LabParams(rope=config.rope, variation=VariationParams.none()))
+        self.evals = self.simulated = 0
+
+    def score(self, y: np.ndarray) -> tuple[float, np.ndarray, float]:
+        """(score, knots, T) of decision vector y: its limit score, or its nominal trial's."""
+        from learner.bezier import BezierCommand
+
+        knots, T = self.coding.decode(y)
+        self.evals += 1
+        out_of_limits = self.coding.limit_score(knots, T, self.robot, self.limits)
+        if out_of_limits is not None:
+            return out_of_limits, knots, T
+        self.simulated += 1
+        rec = self.lab.run(BezierCommand(knots, T).joint_command())
+        return command_score(rec, T, self.config.frame_s), knots, T
+
+    def ties(self, knots: np.ndarray, T: float, seeds: range | None = None) -> int:
+        """Knots in the varied trials of lab ``seeds`` (default 0 .. confirm - 1)."""
+        from flyknot_sim.lab import LabParams, SimLab
+        from learner.bezier import BezierCommand
+
+        seeds = range(self.config.confirm) if seeds is None else seeds
+        command = BezierCommand(knots, T).joint_command()
+        return sum(
+            SimLab(LabParams(rope=self.config.rope, seed=s)).run(command).succeeded for s in seeds
+        )
+
+
+def _global_phase(trials: _Trials, best: tuple, history: list, bar, seed: int) -> tuple:
+    """Phase 1: CMA-ES from the start until the first tying nominal trial or the budget.
+
+    Returns:
+        (best (score, knots, T), first_hit evaluation or None, its decision vector or None).
+    """
+    import cma
+
+    config = trials.config
+    es = cma.CMAEvolutionStrategy(
+        np.zeros(N_DECISION), config.sigma0, {"seed": seed + 1, "verbose": -9}
+    )
+    while trials.evals < config.evaluations:
+        ys = es.ask()
+        scores = []
+        for y in ys:
+            s, knots, T = trials.score(np.asarray(y))
+            scores.append(s)
+            if s > best[0]:
+                best = (s, knots, T)
+            history.append(best[0])
+            bar.update(1)
+            bar.set_postfix(best=f"{best[0]:.1f}", simulated=trials.simulated)
+            if s >= HIT_SCORE:
+                return best, trials.evals, np.asarray(y)
+            if trials.evals >= config.evaluations:
+                break
+        if len(scores) == len(ys):
+            es.tell(ys, [-s for s in scores])
+    return best, None, None
+
+
+def _local_phase(
+    trials: _Trials, best: tuple, hit_y: np.ndarray, history: list, bar, seed: int
+) -> tuple[tuple[int, float, np.ndarray, float], int]:
+    """Phase 2: CMA-ES around the first tying command; every candidate whose nominal trial
+    ties is confirmed on the varied trials, and the one tying most often is kept.
+
+    Returns:
+        (chosen (ties, score, knots, T), confirmed candidates).
+    """
+    import cma
+
+    config = trials.config
+    chosen = (trials.ties(best[1], best[2]), best[0], best[1], best[2])
+    confirmed = 1
+    target = math.ceil(config.target_rate * config.confirm)
+    es = cma.CMAEvolutionStrategy(hit_y, config.local_sigma, {"seed": seed + 2, "verbose": -9})
+    start = trials.evals
+    while trials.evals - start < config.local_evaluations and chosen[0] < target:
+        ys = es.ask()
+        scores = []
+        for y in ys:
+            s, knots, T = trials.score(np.asarray(y))
+            scores.append(s)
+            if s >= HIT_SCORE:
+                ties = trials.ties(knots, T)
+                confirmed += 1
+                if (ties, s) > chosen[:2]:
+                    chosen = (ties, s, knots, T)
+            history.append(max(history[-1], s))
+            bar.update(1)
+            bar.set_postfix(best_ties=f"{chosen[0]}/{config.confirm}", confirmed=confirmed)
+            if chosen[0] >= target or trials.evals - start >= config.local_evaluations:
+                break
+        if len(scores) == len(ys):
+            es.tell(ys, [-s for s in scores])
+    return chosen, confirmed
+
+
 def search_command(
     start_knots: np.ndarray,
     T0: float,
@@ -309,110 +416,33 @@ def search_command(
     varied trials (seeds 0..confirm-1), and the search keeps the one that ties most often,
     stopping early once it ties in ``target_rate`` of them.
     """
-    import cma
     from tqdm import tqdm
-
-    from flyknot_sim.lab import LabParams, SimLab, VariationParams
-    from learner.bezier import BezierCommand
-    from learner.kinematics import RobotModel
 
     check_int("seed", seed, 0)
     tic = time.perf_counter()
-    coding = CommandCoding(np.asarray(start_knots, dtype=float), T0, config.space)
-    robot, limits = RobotModel.from_mjcf(), JointLimits()
-    lab = SimLab(LabParams(rope=config.rope, variation=VariationParams.none()))
-    state = {"evals": 0, "simulated": 0}
-
-    def evaluate(y: np.ndarray) -> tuple[float, np.ndarray, float]:
-        knots, T = coding.decode(y)
-        state["evals"] += 1
-        out_of_limits = coding.limit_score(knots, T, robot, limits)
-        if out_of_limits is not None:
-            return out_of_limits, knots, T
-        state["simulated"] += 1
-        rec = lab.run(BezierCommand(knots, T).joint_command())
-        return command_score(rec, T, config.frame_s), knots, T
-
-    def confirm_rate(knots: np.ndarray, T: float, seeds: range | None = None) -> int:
-        ties = 0
-        for s in range(config.confirm) if seeds is None else seeds:
-            rec = SimLab(LabParams(rope=config.rope, seed=s)).run(
-                BezierCommand(knots, T).joint_command()
-            )
-            ties += rec.succeeded
-        return ties
-
+    trials = _Trials(CommandCoding(np.asarray(start_knots, dtype=float), T0, config.space), config)
     total = config.evaluations + config.local_evaluations
     bar = tqdm(total=total, desc="robot demo search", disable=bar_disable(progress))
     history: list[float] = []
-    best: tuple[float, np.ndarray, float] = (-math.inf, np.asarray(start_knots), T0)
-    first_hit: int | None = None
-    hit_y: np.ndarray | None = None
-
-    # phase 1: global, until the first knot
-    es = cma.CMAEvolutionStrategy(
-        np.zeros(N_DECISION), config.sigma0, {"seed": seed + 1, "verbose": -9}
-    )
-    while state["evals"] < config.evaluations and first_hit is None:
-        ys = es.ask()
-        scores = []
-        for y in ys:
-            s, knots, T = evaluate(np.asarray(y))
-            scores.append(s)
-            if s > best[0]:
-                best = (s, knots, T)
-            history.append(best[0])
-            bar.update(1)
-            bar.set_postfix(best=f"{best[0]:.1f}", simulated=state["simulated"])
-            if s >= HIT_SCORE:
-                first_hit, hit_y = state["evals"], np.asarray(y)
-                break
-            if state["evals"] >= config.evaluations:
-                break
-        if len(scores) == len(ys):
-            es.tell(ys, [-s for s in scores])
-
-    # phase 2: local, for a knot that survives the trial-to-trial variation
-    chosen: tuple[int, float, np.ndarray, float] | None = None  # (ties, score, knots, T)
-    confirmed = 0
+    best = (-math.inf, np.asarray(start_knots), T0)
+    best, first_hit, hit_y = _global_phase(trials, best, history, bar, seed)
+    chosen, confirmed = None, 0
     if hit_y is not None:
-        chosen = (confirm_rate(best[1], best[2]), best[0], best[1], best[2])
-        confirmed = 1
-        target = math.ceil(config.target_rate * config.confirm)
-        es = cma.CMAEvolutionStrategy(hit_y, config.local_sigma, {"seed": seed + 2, "verbose": -9})
-        start = state["evals"]
-        while state["evals"] - start < config.local_evaluations and chosen[0] < target:
-            ys = es.ask()
-            scores = []
-            for y in ys:
-                s, knots, T = evaluate(np.asarray(y))
-                scores.append(s)
-                if s >= HIT_SCORE:
-                    ties = confirm_rate(knots, T)
-                    confirmed += 1
-                    if (ties, s) > chosen[:2]:
-                        chosen = (ties, s, knots, T)
-                history.append(max(history[-1], s))
-                bar.update(1)
-                bar.set_postfix(best_ties=f"{chosen[0]}/{config.confirm}", confirmed=confirmed)
-                if chosen[0] >= target or state["evals"] - start >= config.local_evaluations:
-                    break
-            if len(scores) == len(ys):
-                es.tell(ys, [-s for s in scores])
+        chosen, confirmed = _local_phase(trials, best, hit_y, history, bar, seed)
     bar.close()
     if chosen is None:
         score, knots, T = best
         ties = check = 0
     else:
         ties, score, knots, T = chosen
-        check = confirm_rate(knots, T, range(config.confirm, config.confirm + config.check))
+        check = trials.ties(knots, T, range(config.confirm, config.confirm + config.check))
     return CommandSearchResult(
         knots=np.asarray(knots),
         T=T,
         score=score,
         tied=score >= HIT_SCORE,
-        evaluations=state["evals"],
-        simulated=state["simulated"],
+        evaluations=trials.evals,
+        simulated=trials.simulated,
         first_hit=first_hit,
         confirm_knots=ties,
         confirmed_candidates=confirmed,
