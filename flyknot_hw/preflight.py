@@ -241,6 +241,73 @@ def _first_over(use: np.ndarray, allowed: float) -> tuple[int, int] | None:
     return i, int(np.flatnonzero(bad[i])[0])
 
 
+_Check = tuple[str, np.ndarray, np.ndarray, float, Any, Any]
+"""(quantity, value (n, k), use (n, k), allowed use, centre (k,), half range (k,))."""
+
+
+def _checks(
+    command: JointCommand,
+    limits: JointLimits,
+    margins: Margins,
+    torques: np.ndarray | None,
+    fingertip: np.ndarray | None,
+    workspace: Workspace | None,
+    tip_speed_max: float | None,
+) -> list[_Check]:
+    """Every quantity :func:`preflight` checks, as the use of its limit at every sample."""
+    q = np.asarray(command.q, dtype=float)
+    n, dt = command.n, command.dt
+    qd, qdd = command_derivatives(q, dt)
+    c, h = _centred(limits.q_min, limits.q_max)
+    checks: list[_Check] = [("position", q, np.abs(q - c) / h, margins.allowed("position"), c, h)]
+    for name, x, x_max in (("velocity", qd, limits.qd_max), ("acceleration", qdd, limits.qdd_max)):
+        checks.append((name, x, np.abs(x) / x_max, margins.allowed(name), 0, x_max))
+    if torques is not None:
+        tau = _as_samples("torques", torques, n, N_JOINTS)
+        allowed = margins.allowed("torque")
+        checks.append(("torque", tau, np.abs(tau) / limits.tau_max, allowed, 0, limits.tau_max))
+    if fingertip is not None:
+        if workspace is None:
+            raise ConfigError("workspace", "is required to check fingertip positions")
+        p = _as_samples("fingertip", fingertip, n, 3)
+        wc, wh = _centred(workspace.lo, workspace.hi)
+        checks.append(("workspace", p, np.abs(p - wc) / wh, 1.0, wc, wh))
+        if tip_speed_max is not None:
+            check_positive("tip_speed_max", tip_speed_max)
+            v = np.linalg.norm(central_differences(p, dt)[0], axis=1)[:, None]
+            allowed = margins.allowed("velocity")
+            checks.append(("tip_speed", v, v / tip_speed_max, allowed, 0, tip_speed_max))
+    return checks
+
+
+def _raise_first_violation(checks: list[_Check], dt: float) -> None:
+    """Raise :class:`PreflightError` for the earliest sample over its allowed use (on one
+    sample: the first check in order, then the lowest column); return if there is none."""
+    first: tuple[int, int, int] | None = None  # (sample, check index, column)
+    for k, (_, _, use, allowed, _, _) in enumerate(checks):
+        hit = _first_over(use, allowed)
+        if hit is not None and (first is None or hit[0] < first[0]):
+            first = (hit[0], k, hit[1])
+    if first is None:
+        return
+    i, k, j = first
+    quantity, value, _, allowed, centre, half = checks[k]
+    v = float(value[i, j])
+    centre_j = float(np.broadcast_to(centre, (value.shape[1],))[j])
+    half_j = float(np.broadcast_to(half, (value.shape[1],))[j])
+    sign = 1.0 if v >= centre_j else -1.0
+    raise PreflightError(
+        quantity,
+        v,
+        centre_j + sign * allowed * half_j,
+        centre_j + sign * half_j,
+        joint=None if quantity in ("workspace", "tip_speed") else j + 1,
+        axis=AXES[j] if quantity == "workspace" else None,
+        sample=i,
+        time=i * dt,
+    )
+
+
 def preflight(
     command: JointCommand,
     limits: JointLimits,
@@ -281,58 +348,14 @@ def preflight(
     if not isinstance(limits, JointLimits):
         raise ConfigError("limits", f"must be a JointLimits, got {type(limits).__name__}")
     margins = Margins() if margins is None else margins
-    q = np.asarray(command.q, dtype=float)
-    n, dt = command.n, command.dt
-    qd, qdd = command_derivatives(q, dt)
-    c, h = _centred(limits.q_min, limits.q_max)
-    # (quantity, value (n, k), use (n, k), allowed, centre (k,), half (k,))
-    checks = [("position", q, np.abs(q - c) / h, margins.allowed("position"), c, h)]
-    for name, x, x_max in (("velocity", qd, limits.qd_max), ("acceleration", qdd, limits.qdd_max)):
-        checks.append((name, x, np.abs(x) / x_max, margins.allowed(name), 0, x_max))
-    if torques is not None:
-        tau = _as_samples("torques", torques, n, N_JOINTS)
-        allowed = margins.allowed("torque")
-        checks.append(("torque", tau, np.abs(tau) / limits.tau_max, allowed, 0, limits.tau_max))
-    if fingertip is not None:
-        if workspace is None:
-            raise ConfigError("workspace", "is required to check fingertip positions")
-        p = _as_samples("fingertip", fingertip, n, 3)
-        wc, wh = _centred(workspace.lo, workspace.hi)
-        checks.append(("workspace", p, np.abs(p - wc) / wh, 1.0, wc, wh))
-        if tip_speed_max is not None:
-            check_positive("tip_speed_max", tip_speed_max)
-            v = np.linalg.norm(central_differences(p, dt)[0], axis=1)[:, None]
-            allowed = margins.allowed("velocity")
-            checks.append(("tip_speed", v, v / tip_speed_max, allowed, 0, tip_speed_max))
-
-    first: tuple[int, int, int] | None = None  # (sample, check index, column)
-    for k, (_, _, use, allowed, _, _) in enumerate(checks):
-        hit = _first_over(use, allowed)
-        if hit is not None and (first is None or hit[0] < first[0]):
-            first = (hit[0], k, hit[1])
-    if first is not None:
-        i, k, j = first
-        quantity, value, _, allowed, centre, half = checks[k]
-        v = float(value[i, j])
-        centre_j = float(np.broadcast_to(centre, (value.shape[1],))[j])
-        half_j = float(np.broadcast_to(half, (value.shape[1],))[j])
-        sign = 1.0 if v >= centre_j else -1.0
-        raise PreflightError(
-            quantity,
-            v,
-            centre_j + sign * allowed * half_j,
-            centre_j + sign * half_j,
-            joint=None if quantity in ("workspace", "tip_speed") else j + 1,
-            axis=AXES[j] if quantity == "workspace" else None,
-            sample=i,
-            time=i * dt,
-        )
+    checks = _checks(command, limits, margins, torques, fingertip, workspace, tip_speed_max)
+    _raise_first_violation(checks, command.dt)
     tip_speed = None
     if fingertip is not None:
         p = np.asarray(fingertip, dtype=float)
-        tip_speed = float(np.max(np.linalg.norm(central_differences(p, dt)[0], axis=1)))
+        tip_speed = float(np.max(np.linalg.norm(central_differences(p, command.dt)[0], axis=1)))
     return PreflightReport(
-        n=n,
+        n=command.n,
         rate_hz=float(command.rate_hz),
         peak_use={name: use.max(axis=0) for name, _, use, _, _, _ in checks},
         peak_sample={name: use.argmax(axis=0) for name, _, use, _, _, _ in checks},
