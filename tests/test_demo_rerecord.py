@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-import numpy as np
 import pytest
 
 from flyknot.constants import DEMOS_DIR
@@ -12,6 +11,7 @@ from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError
 from flyknot_tools.cli import main as tools_main
 from flyknot_tools.demo_rerecord import rerecord
+from tests.recorded_on import assert_recorded_again, same_class
 
 
 @pytest.mark.parametrize("name", ["fast", "robot"])
@@ -19,10 +19,10 @@ def test_a_shipped_demo_is_its_stored_motion_recorded_in_todays_lab(name):
     demo = Demonstration.load(DEMOS_DIR / f"{name}.npz")
     again = rerecord(demo, check_repeats=0)
     assert again.kind == ("robot" if name == "robot" else "hand")
-    assert again.demo.t_c == demo.t_c
-    for field in ("t", "hand_pos", "hand_quat", "markers"):
-        np.testing.assert_array_equal(getattr(again.demo, field), getattr(demo, field))
-    kept = {k: v for k, v in demo.metadata.items() if k != "check"}
+    assert_recorded_again(again.demo, demo)
+    # what the settle's length sets differs on another machine class (tests/recorded_on.py)
+    drop = {"check"} | (set() if same_class() else {"settle_fraction"})
+    kept = {k: v for k, v in demo.metadata.items() if k not in drop}
     assert {k: again.demo.metadata[k] for k in kept} == kept  # the search's record is kept
 
 

@@ -11,26 +11,21 @@ the simulated rope rests by the simulated lab's rule and answers from its centre
 
 Checked: the run finishes; every trial's record has the fake's joints (30000 report), markers
 recovered from its C3D file (aligned on the fingertip cluster, clock offset within 2 ms of
-the truth), the operator's verdict; the learning costs are close to the simulated lab's for
-the same scenario (the knot: below).
+the truth) that lie where the fake's rope was at the same instant up to t_c (median error
+under 3 mm, 95th percentile under 2 cm: 1 mm capture noise, ~1 ms of clock offset on a rope
+moving at metres a second, resampling), the operator's verdict.
 
-**Cost tolerance** (measured on this code, 2-core box under load). The fake is not the
+**Costs** are printed beside the simulated lab's, not compared with them. The fake is not the
 simulated lab replayed: the servo gains and the rope's start are drawn from other seeds,
-servo targets act when they arrive (streaming jitter), and the markers pass through a
-capture (noise, dropouts, labelling, clock alignment within ~1 ms, resampling). The rope's
-motion is chaotic, so costs scatter. Trial 1's command (the same in both labs): simulated lab
-0.55-0.67 over 6 seeds (std 0.045), the fake 0.46-0.67 over 6 runs (std 0.08); the
-simulated lab's trial-3 command: 0.29-0.36 (6 seeds) against 0.31-0.34 (4 runs of the fake).
-From trial 2 on, the commands differ as well (each update follows what was measured).
-Asserted: trial 1 within 0.2 of the simulated lab's cost (2.5 std of the fake's scatter),
-every trial within 0.25, and the mean of three trials within 0.15 of the simulated lab's.
+servo targets act when they arrive (streaming jitter; on a loaded box the physics falls
+100-200 ms behind the wall clock and the arm moves late), and the rope's motion is chaotic.
+A wrong frame, swapped marker labels or a clock off by a tick show in the markers'
+comparison with the fake's rope, whatever the physics did.
 
-**The knot** is a coin flip at this cost: with the simulated lab's trial-1 command it tied in
-2 of 6 seeds of the simulated lab (0 of 6 runs of the fake), with its trial-3 command in 1 of
-6 (2 of 4 on the fake); the simulated lab's own ``quick`` run (seed 0) ties in none of its
-three trials. An equal outcome cannot be asserted without a flaky test; what is checked is
-the verdict's path: every record's knot is the operator's answer, read from the fake's
-simulated rope at rest, and the learner's stop rule sees it (the ledger).
+**The knot** is a sample too (the simulated lab's ``quick`` run ties at trial 1, not at trial
+2; the fake tied in both trials of one run): what is checked is the verdict's path: every
+record's knot is the operator's answer, read from the fake's simulated rope at rest, and the
+learner's stop rule sees it (the ledger).
 """
 
 from __future__ import annotations
@@ -48,8 +43,9 @@ from fakes.fake_lab import FakeLabProcess
 from flyknot.record import TrialRecord
 from flyknot_app import cli
 
-SIM_QUICK = {"costs": (0.416, 0.229), "tied": (False, False)}
-"""``flyknot run quick`` in the simulated lab (rope 1, seed 0), measured on this code."""
+SIM_QUICK = {"costs": (0.313, 0.218), "tied": (True, False)}
+"""``flyknot run quick`` in the simulated lab (rope 1, seed 0), measured on this code (an
+x86_64-avx2 machine; printed beside the fake's, not compared)."""
 
 LAB_TOML = """\
 [robot]
@@ -85,6 +81,18 @@ after_s = 0.5
 """
 
 
+def marker_errors(rec: TrialRecord, truth: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Distance of each record marker from the fake's rope at the same instant, (T, 11) [m]
+    (NaN where the record has no marker): the truth (wall times; the capture's frame, which
+    the record's markers are in) interpolated at the record's times on the wall clock."""
+    t_wall, rope = truth
+    t = rec.t_marker + rec.metadata["timing"]["t0_perf_counter_s"]
+    assert t_wall.size > 2 and t_wall[0] <= t[0] and t[-1] <= t_wall[-1]
+    flat = rope.reshape(len(t_wall), -1)
+    at = np.stack([np.interp(t, t_wall, flat[:, j]) for j in range(flat.shape[1])], axis=1)
+    return np.linalg.norm(rec.markers - at.reshape(len(t), -1, 3), axis=-1)
+
+
 @pytest.fixture
 def fake_lab(tmp_path, monkeypatch):
     from xarm.core.config.x_config import XCONF
@@ -102,6 +110,7 @@ def test_quick_scenario_runs_on_the_fake_lab(fake_lab, tmp_path, monkeypatch):
     lab_file = tmp_path / "lab.toml"
     lab_file.write_text(LAB_TOML.format(host=info["host"], base_pose=info["base_pose"]))
     answers: list[str] = []
+    truths: list[tuple[np.ndarray, np.ndarray]] = []
 
     def confirm(phase: str) -> None:  # the operator steadies the rope, or waits for it
         if phase == "before":
@@ -110,6 +119,9 @@ def test_quick_scenario_runs_on_the_fake_lab(fake_lab, tmp_path, monkeypatch):
             fake_lab.call("settle_after")
 
     def ask(record, suggestion):  # ... and says what the rope shows
+        t0 = record.metadata["timing"]["t0_perf_counter_s"]
+        span = {"t_start": t0 + record.t_marker[0] - 0.1, "t_stop": t0 + record.t_marker[-1] + 0.1}
+        truths.append(fake_lab.call("rope_truth", **span))
         verdict = fake_lab.call("last_verdict")
         answers.append(verdict)
         return {"knot": "knot", "wrapped_at_grip": "wrapped", "unknot": "none"}.get(verdict)
@@ -128,7 +140,7 @@ def test_quick_scenario_runs_on_the_fake_lab(fake_lab, tmp_path, monkeypatch):
     records = [
         TrialRecord.load(learning / f"trial_{s['trial']:04d}_a{s['attempt']}") for s in ledger
     ]
-    offsets = []
+    offsets, errors = [], []
     for rec, s in zip(records, ledger, strict=True):
         meta = rec.metadata
         assert meta["cell"] == "xarm" and rec.fault is None
@@ -149,6 +161,13 @@ def test_quick_scenario_runs_on_the_fake_lab(fake_lab, tmp_path, monkeypatch):
         assert mocap["residual_rms_m"] < 2e-3
         before_tc = (rec.t_marker >= run["t_c"] - 0.1) & (rec.t_marker <= run["t_c"])
         assert np.all(np.isfinite(rec.markers[before_tc]), axis=2).mean() > 0.9  # dropouts
+        # markers: the fake's rope, marker by marker, up to t_c
+        err = marker_errors(rec, truths[len(offsets) - 1])
+        seen = err[rec.t_marker <= run["t_c"]]
+        seen = seen[np.isfinite(seen)]
+        errors.append((np.median(seen), np.percentile(seen, 95)))
+        assert seen.size > 0.5 * 11 * np.sum(rec.t_marker <= run["t_c"])
+        assert errors[-1][0] < 6e-3 and errors[-1][1] < 0.02, errors[-1]
         # the operator's verdict
         answer = answers[len(offsets) - 1]
         assert rec.verdict.source == "operator"
@@ -165,19 +184,14 @@ def test_quick_scenario_runs_on_the_fake_lab(fake_lab, tmp_path, monkeypatch):
         "knots": run["knots"],
         "answers": answers,
         "offset_error_ms": [round(1e3 * o, 3) for o in offsets],
+        "marker_error_mm": [[round(1e3 * x, 2) for x in e] for e in errors],
         "residual_rms_mm": [round(1e3 * r.metadata["mocap"]["residual_rms_m"], 3) for r in records],
         "lateness_max_ms": [r.metadata["timing"]["lateness"]["max_ms"] for r in records],
         "fake": report,
     }
     print("\nend to end on the fake lab:", json.dumps(summary, default=str))
-    # The fake lab's trial is another draw of the lab's trial-to-trial variation, played in
-    # real time from a start the fake lets hang, so its cost is a sample, not the simulated
-    # lab's number. In the elliptic-cone lab the simulated lab's seeds 0-9 give 0.32-0.53
-    # (trial 1) and 0.22-0.38 (trial 2); the fake gave 0.27 and 0.24 in one run and 0.22 and
-    # 0.79 (a knotted trial) in another. The bound catches what breaks the chain (a wrong
-    # frame, a clock off by a tick, swapped markers give costs of several units), not the
-    # spread.
-    assert all(c is not None for c in costs)
-    for c, c_sim in zip(costs, sim, strict=True):
-        assert abs(c - c_sim) < 1.0
+    # The fake's trial is another draw of the lab's trial-to-trial variation, played in real
+    # time (late when the box is loaded), so its cost is a sample, not the simulated lab's
+    # number: the markers' comparison with the fake's rope above is what checks the chain.
+    assert all(c is not None and np.isfinite(c) for c in costs)
     assert report["unknown_registers"] == []

@@ -1,12 +1,17 @@
 """The simulated lab's records and a learning run's costs, bit for bit.
 
-``tests/data/lab_fingerprints.json`` holds SHA-256 digests of the records of a fixed set of
-trials (the robot demonstration's seed command on ropes 1 and 7, lab seed 3, two trials each,
-0.3 s settle: every array the record carries, the truth, the fault, the first contact and
-the verdict) and the exact critical-point costs of a short learning run. A refactor must not
-change them; a change of the lab's physics or variation does, on purpose: then regenerate
-the file (``python tests/test_lab_fingerprint.py > tests/data/lab_fingerprints.json``) and
-say why in the commit.
+``tests/data/lab_fingerprints.json`` holds, per machine class
+(:func:`flyknot.numerics.numerics_class`: the lab is bit-reproducible on one class, not across
+CPUs of different vector extensions), SHA-256 digests of the records of a fixed set of trials
+(the robot demonstration's seed command on ropes 1 and 7, lab seed 3, two trials each, 0.3 s
+settle: every array the record carries, the truth, the fault, the first contact and the
+verdict) and the exact critical-point costs of a short learning run. A refactor must not
+change them; a change of the lab's physics or variation does, on purpose: then regenerate the
+entry of each class at hand (``python tests/test_lab_fingerprint.py``, which rewrites this
+machine's entry and keeps the others) and say why in the commit. The ``x86_64-avx512`` entry
+was made on the machine the project was developed on before (its class inferred: its digests
+differ from an AVX2 machine's from the first trial on); a class without an entry fails the
+tests with the command that writes one.
 """
 
 from __future__ import annotations
@@ -16,7 +21,9 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
+from flyknot.numerics import numerics_class
 from flyknot.record import TrialRecord
 from flyknot_app.trial_cli import load_command
 from flyknot_sim.lab import LabParams, SimLab
@@ -74,13 +81,50 @@ def learning_costs() -> list[str]:
     return [None if c is None else float(c).hex() for c in res.costs]
 
 
+def stored() -> dict:
+    """This machine class's stored fingerprints (the test fails on a class without any)."""
+    by_class = json.loads(STORED.read_text())["by_numerics_class"]
+    here = numerics_class()
+    assert here in by_class, (
+        f"no fingerprints for machine class {here!r} (stored: {sorted(by_class)}): "
+        "write them with `python tests/test_lab_fingerprint.py` on a commit whose lab is known good"
+    )
+    return by_class[here]
+
+
 def test_the_fixed_trials_are_bit_identical():
-    assert fingerprints() == json.loads(STORED.read_text())["records"]
+    assert fingerprints() == stored()["records"]
 
 
 def test_a_learning_runs_costs_are_bit_identical():
-    assert learning_costs() == json.loads(STORED.read_text())["learning_costs"]
+    assert learning_costs() == stored()["learning_costs"]
+
+
+@pytest.mark.parametrize(
+    ("machine", "features", "expected"),
+    [
+        ("x86_64", {"AVX512F": True, "AVX2": True, "FMA3": True}, "x86_64-avx512"),
+        ("x86_64", {"AVX512F": False, "AVX2": True, "FMA3": True}, "x86_64-avx2"),
+        ("x86_64", {"AVX2": False}, "x86_64-base"),
+        ("AMD64", {"AVX2": True, "FMA3": True}, "amd64-avx2"),
+        ("aarch64", {"AVX512F": True}, "aarch64"),
+    ],
+)
+def test_the_machine_class_names_the_widest_vector_extension(
+    monkeypatch, machine, features, expected
+):
+    import flyknot.numerics as numerics
+
+    monkeypatch.setattr(numerics.platform, "machine", lambda: machine)
+    monkeypatch.setattr(numerics, "_numpy_cpu_features", lambda: features)
+    assert numerics.numerics_class() == expected
 
 
 if __name__ == "__main__":
-    print(json.dumps({"records": fingerprints(), "learning_costs": learning_costs()}, indent=1))
+    data = json.loads(STORED.read_text()) if STORED.exists() else {"by_numerics_class": {}}
+    data["by_numerics_class"][numerics_class()] = {
+        "records": fingerprints(),
+        "learning_costs": learning_costs(),
+    }
+    STORED.write_text(json.dumps(data, indent=1) + "\n")
+    print(f"wrote the {numerics_class()} fingerprints to {STORED}")

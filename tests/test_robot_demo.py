@@ -25,6 +25,7 @@ from flyknot_tools.robot_demo import (
 )
 from flyknot_tools.robot_rate import RateSearchConfig, rate_search
 from tests.knot_curves import verdict
+from tests.recorded_on import assert_recorded_again
 
 ROBOT_DEMO = DEMOS_DIR / "robot.npz"
 
@@ -75,9 +76,7 @@ def test_shipped_robot_demo_is_its_commands_nominal_trial(shipped):
     # Recorded in the lab's defaults without variation.
     made_in = LabParams(variation=VariationParams.none())
     again = record_demonstration(knots, T, rope=demo.rope, lab_params=made_in)
-    assert again.t_c == pytest.approx(demo.t_c, abs=1e-9)
-    np.testing.assert_allclose(again.hand_pos, demo.hand_pos, atol=1e-9)
-    np.testing.assert_array_equal(np.isnan(again.markers), np.isnan(demo.markers))
+    assert_recorded_again(again, demo)
     assert demo.metadata["knot"] == "trefoil"
     assert 0.3 < demo.t_c < T  # the rope touches itself during the motion
     # the stored command's base rows are the lab's base: the demonstration's frame

@@ -470,6 +470,14 @@ class FakeLab:
         """The verdict class the last settle ended with (``knot``, ``wrapped_at_grip``, ...)."""
         return self.outcomes[-1]["verdict"] if self.outcomes else None
 
+    def rope_truth(self, t_start: float, t_stop: float) -> tuple[np.ndarray, np.ndarray]:
+        """The rope markers the capture sampled between two perf_counter times, before its
+        noise, dropouts and shuffling: wall times (n,) [s] and markers (n, 11, 3) [m], world
+        frame, marker 0 at the grip."""
+        frames = [f for f in list(self.scene.frames) if t_start <= f[1] <= t_stop]
+        t = np.array([f[1] for f in frames], dtype=float)
+        return t, np.stack([f[2] for f in frames]) if frames else np.zeros((0, 11, 3))
+
     def report(self) -> dict[str, Any]:
         """What the test checks: captures written, outcomes, real time measurements."""
         return {
