@@ -12,6 +12,7 @@ render of every trial the new judge counts as a knot and of one trial per other 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
@@ -274,8 +275,8 @@ def _drawn_since(picture: Path, trial: Path) -> bool:
 
 def write_pictures(rows: Sequence[Rejudged], out: str | Path) -> list[Path]:
     """:func:`verdict_picture` of every row of :func:`picture_rows`, into ``out``; a picture
-    already there and drawn after its trial (by an earlier report of the same run, e.g. before
-    ``--resume``) is kept as it is (the same trial, verdict and file name: the same image).
+    already there and drawn after its trial (by the run's worker, :func:`draw_run_knots`) is
+    kept as it is (the same trial, verdict and file name: the same image).
 
     Returns:
         The files, in the order of :func:`picture_rows`.
@@ -293,6 +294,27 @@ def write_pictures(rows: Sequence[Rejudged], out: str | Path) -> list[Path]:
                 verdict_picture(record, r.new, path, arm=not replay, renderers=renderers)
             written.append(path)
     return written
+
+
+def draw_run_knots(run_dir: str | Path, root: str | Path) -> list[Path]:
+    """The pictures of a finished run's knots, drawn where and as the report of the scenario
+    directory ``root`` draws them (``root/verdicts``; :func:`report_section` keeps them): each
+    run's worker draws its own knots instead of the report drawing every run's, one after the
+    other, once all have ended.
+
+    Returns:
+        The files (none for a run without trials or knots).
+    """
+    run_dir, root = Path(run_dir), Path(root)
+    if not find_trials(run_dir):
+        return []
+    prefix = run_dir.relative_to(root).as_posix()
+    knots = [
+        dataclasses.replace(r, name=f"{prefix}/{r.name}")
+        for r in rejudge_directory(run_dir, keep_stored=True)
+        if r.new_class == KNOT
+    ]
+    return write_pictures(knots, root / "verdicts") if knots else []
 
 
 def report_section(out_dir: str | Path) -> list[str]:

@@ -165,11 +165,10 @@ def execute_run(
 ) -> RunSummary:
     """Learn (and optionally repeat) one run; write and return its summary.
 
-    When the run ends, its trials' failure-anatomy diagnoses are stored beside their records
-    and, with ``figure``, its critical-point figure is drawn for the scenario's report: work
-    the report would otherwise do after every run, one at a time. (The knot pictures stay
-    the report's: a pool worker forked from a process that has opened an OpenGL context
-    hangs in its first render.)
+    When the run ends, its trials' failure-anatomy diagnoses are stored beside their records,
+    the pictures of its knots are drawn into the scenario's ``verdicts/`` and, with
+    ``figure``, its critical-point figure is drawn for the scenario's report: work the report
+    would otherwise do after every run, one at a time.
 
     The run's cell is opened here and closed when the run ends, however it ends (a real
     lab's connection to the controller and the motion capture).
@@ -187,10 +186,12 @@ def execute_run(
         if callable(close):
             close()
     from flyknot_app.anatomy_report import store_diagnoses
+    from flyknot_app.judging import draw_run_knots
     from flyknot_app.report import critical_figure_path, plot_critical_overlays
 
     run_dir = out_dir / "runs" / spec.name
     store_diagnoses(run_dir)
+    draw_run_knots(run_dir, out_dir)
     if figure:
         plot_critical_overlays(run_dir, summary, critical_figure_path(out_dir, spec.name))
     return summary

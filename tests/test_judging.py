@@ -234,18 +234,19 @@ def test_kept_verdicts_come_from_the_records_json_and_match_the_full_load(run_di
     assert fast[-1].new == stored.verdict and fast[-2].fault == "joint 4 torque limit"
 
 
-def test_a_second_report_keeps_the_pictures_drawn_after_their_trials(run_dir):
-    from flyknot_app.judging import report_section
+def test_a_runs_worker_draws_its_knots_as_the_report_would_and_the_report_keeps_them(run_dir):
+    from flyknot_app.judging import draw_run_knots, report_section
 
     learning = run_dir / "runs" / "rope1" / "learning"
-    report_section(run_dir)
-    drawn = run_dir / "verdicts" / "runs__rope1__learning__trial_0002_a0.knot.png"
-    first, stamp = drawn.read_bytes(), drawn.stat().st_mtime_ns
+    (drawn,) = draw_run_knots(run_dir / "runs" / "rope1", run_dir)
+    assert drawn == run_dir / "verdicts" / "runs__rope1__learning__trial_0002_a0.knot.png"
+    first = drawn.read_bytes()
+    stamp = drawn.stat().st_mtime_ns
     report_section(run_dir)
     assert drawn.stat().st_mtime_ns == stamp  # kept, not drawn again
     assert len(list((run_dir / "verdicts").glob("*.png"))) == 3
     drawn.unlink()
-    report_section(run_dir)  # drawn again: the same image
+    report_section(run_dir)  # the report draws it itself: the same image
     assert drawn.read_bytes() == first
     # A trial played again after its picture is drawn again.
     again = drawn.stat().st_mtime_ns
@@ -253,3 +254,22 @@ def test_a_second_report_keeps_the_pictures_drawn_after_their_trials(run_dir):
     rec.save(learning / "trial_0002_a0")
     report_section(run_dir)
     assert drawn.stat().st_mtime_ns > again
+    # A run without knots draws nothing (its other classes are the report's choice).
+    _record("unknot_rope1_trial1", None).save(run_dir / "runs" / "rope2" / "learning" / "t0")
+    assert draw_run_knots(run_dir / "runs" / "rope2", run_dir) == []
+
+
+def test_a_run_ends_with_its_knots_drawn(monkeypatch, tmp_path):
+    from flyknot_app import runner
+    from flyknot_app.scenario import parse_scenario
+
+    monkeypatch.setattr(runner, "open_cell", lambda kind, spec: object())
+
+    def play(lab, spec, out_dir, knots0, **kw):
+        _record("knot_rope1_repeat", "trefoil").save(out_dir / "runs" / "a" / "learning" / "t0")
+        return "summary"
+
+    monkeypatch.setattr(runner, "_execute_on", play)
+    spec = parse_scenario({"run": [{"name": "a"}]}, name="x").runs[0]
+    assert runner.execute_run(spec, tmp_path, None, resume=False, progress=False) == "summary"
+    assert (tmp_path / "verdicts" / "runs__a__learning__t0.knot.png").is_file()

@@ -146,3 +146,49 @@ def test_a_renderer_names_what_it_cannot_draw(record):
         "record: needs a renderer for pedestal 1.4 m and 160x120 px; this one draws 1 m and "
         "160x120 px"
     )
+
+
+FORK_AFTER_RENDER = """
+import multiprocessing, sys
+from flyknot.record import TrialRecord
+from flyknot_app.render import RenderParams, TrialRenderer
+
+def draw():
+    record = TrialRecord.load(sys.argv[1])
+    with TrialRenderer(record, RenderParams(width=160, height=120)) as r:
+        return float(r.render(0.1).mean())
+
+def child():
+    sys.exit(0 if draw() > 0 else 3)
+
+if __name__ == "__main__":
+    assert draw() > 0
+    p = multiprocessing.get_context("fork").Process(target=child)
+    p.start()
+    p.join(60)
+    if p.is_alive():
+        p.kill()
+        sys.exit("the forked child hung in its first render")
+    sys.exit(p.exitcode)
+"""
+
+
+def test_a_process_forked_after_a_render_draws(stem, tmp_path):
+    # A run pool's worker is forked from a process that may have drawn already (the report of
+    # an earlier scenario): with Mesa's rasteriser on threads it would hang in its first
+    # render; the renderer's context keeps it on the calling thread unless the user says.
+    import os
+    import subprocess
+    import sys
+
+    script = tmp_path / "fork_after_render.py"
+    script.write_text(FORK_AFTER_RENDER)
+    env = {k: v for k, v in os.environ.items() if k != "LP_NUM_THREADS"}
+    done = subprocess.run(
+        [sys.executable, str(script), str(stem)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
