@@ -498,6 +498,8 @@ def prepare_scenario(
     guesses (cached)."""
     import mujoco
 
+    from flyknot.numerics import numerics_class
+
     if resume and not (out_dir / "manifest.json").is_file():
         raise ConfigError(
             "--resume", f"{str(out_dir)!r} holds no run to resume (no manifest.json there)"
@@ -520,6 +522,7 @@ def prepare_scenario(
             "numpy": np.__version__,
             "python": platform.python_version(),
         },
+        "numerics": numerics_class(),
         "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
     }
     if not (resume and (out_dir / "manifest.json").is_file()):

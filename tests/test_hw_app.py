@@ -13,6 +13,7 @@ import pytest
 from flyknot.constants import REPO_ROOT
 from flyknot.errors import ConfigError
 from flyknot.geometry import quat_to_matrix
+from flyknot.numerics import numerics_class
 from flyknot.record import JointCommand
 from flyknot_app import cli
 from flyknot_app.cells import cell_spec, open_cell
@@ -97,6 +98,7 @@ def test_run_with_cell_dry_run_plays_the_scenario_through_the_preflight(tmp_path
     manifest = json.loads((out / "manifest.json").read_text())
     run = manifest["runs"][0]
     assert run["cell"] == "xarm" and run["cell_options"]["dry_run"] is True
+    assert manifest["numerics"] == numerics_class()  # the machine class the run ran on
     rec = json.loads((out / "runs" / "rope1" / "learning" / "trial_0000_a0.json").read_text())
     assert rec["metadata"]["dry_run"] is True
     assert 1.2 < rec["metadata"]["preflight"]["tip_speed_peak_m_s"] < 4.0 * 0.95
