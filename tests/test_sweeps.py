@@ -50,3 +50,13 @@ def test_a_tiny_sweep_runs_as_ray_tasks_and_resumes(tmp_path):
     )
     again = json.loads((out / "summary.json").read_text())
     assert [r["costs"] for r in again["runs"]] == first
+
+
+def test_the_tests_local_ray_listens_on_loopback_only():
+    # The address Ray gives a local instance's node (its GCS, raylet and workers bind to it),
+    # asked in a subprocess as the Ray sweep above runs: loopback, not the machine's address.
+    code = "from ray._private.services import get_node_ip_address as a; print(a())"
+    done = subprocess.run(
+        [sys.executable, "-c", code], check=True, capture_output=True, text=True, timeout=120
+    )
+    assert done.stdout.strip() == "127.0.0.1"
