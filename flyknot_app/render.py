@@ -81,8 +81,9 @@ def _gl_context(width: int, height: int):
     starts with its first context; a process forked after that (a run pool's worker) inherits
     the rasteriser's state but not its threads and hangs in its first render. Unless the
     user has set ``LP_NUM_THREADS``, it is set to 0 here, before the first context: llvmpipe
-    then draws in the calling thread (a picture 0.5-0.6 s against 0.5 s on this machine),
-    and pool workers can draw their runs' pictures."""
+    then draws in the calling thread (six pictures with their set-up 3.3-4.2 s against
+    3.1-3.3 s on threads, 2-core machine; docs/performance.md), and pool workers can draw
+    their runs' pictures."""
     os.environ.setdefault("LP_NUM_THREADS", "0")
     backend = os.environ.get("MUJOCO_GL", "").strip().lower()
     if backend == "osmesa":
