@@ -21,7 +21,7 @@ def elastic_rope(rope_id: int):
     return load_rope_table(path)[rope_id], load_sim_settings(path)
 
 
-LABS = ("before", "elastic", "pyramidal", "numpy_drag", "now")
+LABS = ("before", "elastic", "pyramidal", "numpy", "now")
 """The labs ``flyknot bench sim`` times, in its order (:func:`_lab_variants`)."""
 
 
@@ -29,9 +29,10 @@ def _lab_variants(rope_id: int):
     """Five labs: ``before`` (a fixed 1.5 s settle, no air drag, 1 deg sway, the elastic
     rope), ``elastic`` (the lab's defaults with the elastic rope table, :func:`elastic_rope`),
     ``pyramidal`` (the lab's defaults with MuJoCo's pyramidal friction cone instead of the
-    elliptic one), ``numpy_drag`` (the lab's defaults with the air drag computed by NumPy
-    instead of the compiled kernel, :data:`flyknot_sim.aero.COMPILED`: the same trials) and
-    ``now`` (the lab's defaults)."""
+    elliptic one), ``numpy`` (the lab's defaults with the air drag and the self-contact scan
+    computed by NumPy instead of the compiled kernels, :data:`flyknot_sim.aero.COMPILED` and
+    :data:`flyknot_sim.rope_handle.COMPILED`: the same trials) and ``now`` (the lab's
+    defaults)."""
     from dataclasses import replace
 
     from flyknot_sim.aero import AeroParams
@@ -52,7 +53,7 @@ def _lab_variants(rope_id: int):
         "before": before,
         "elastic": elastic,
         "pyramidal": pyramidal,
-        "numpy_drag": {"rope": rope_id},
+        "numpy": {"rope": rope_id},
         "now": {"rope": rope_id},
     }
     return {name: variants[name] for name in LABS}, LabParams
@@ -62,11 +63,12 @@ def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bo
     """Wall seconds per simulated second, and simulated seconds per trial, of a fast trial.
 
     The trial is the showcase swing (0.8 s, joint speeds up to 2.7 rad/s) and the settle,
-    run by :class:`flyknot_sim.lab.SimLab` exactly as a learning trial is, in four labs
+    run by :class:`flyknot_sim.lab.SimLab` exactly as a learning trial is, in five labs
     measured in the same run: ``before`` (the fixed 1.5 s settle, no drag, the elastic rope),
     ``elastic`` (the lab's defaults with the elastic rope table of ``assets/ropes_elastic.toml``),
-    ``pyramidal`` (the lab's defaults with the pyramidal friction cone), ``numpy_drag`` (the
-    lab's defaults with the drag in NumPy instead of compiled) and ``now`` (the lab's
+    ``pyramidal`` (the lab's defaults with the pyramidal friction cone), ``numpy`` (the lab's
+    defaults with the drag and the self-contact scan in NumPy instead of compiled: the same
+    records) and ``now`` (the lab's
     defaults: air drag, settle until the rope is at rest, capped, the frictional bending
     couple, the elliptic cone and impratio 10 of ``assets/ropes.toml``). Each
     is timed ``repeats`` times per rope (trials 0, 1, ... of seed 0); the best wall time per
@@ -76,6 +78,7 @@ def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bo
     from tqdm import tqdm
 
     import flyknot_sim.aero as aero
+    import flyknot_sim.rope_handle as rope_handle
     from flyknot_sim.commands import swing_command
     from flyknot_sim.lab import SimLab
     from flyknot_sim.rope_table import load_rope_table
@@ -95,12 +98,12 @@ def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bo
             best = float("inf")
             sims = []
             for _ in range(repeats):
-                aero.COMPILED = name != "numpy_drag"
+                aero.COMPILED = rope_handle.COMPILED = name != "numpy"
                 t0 = time.perf_counter()
                 try:
                     rec = lab.run(command)
                 finally:
-                    aero.COMPILED = True
+                    aero.COMPILED = rope_handle.COMPILED = True
                 wall = time.perf_counter() - t0
                 sim_s = float(rec.metadata["sim_duration_s"])
                 sims.append(sim_s)
@@ -193,7 +196,7 @@ def main(
                         f"{row['rope']:>4} {name:>9} {v['wall_per_sim_s']:>15.3f} "
                         f"{v['realtime_factor']:>12.1f} {v['sim_s_per_trial']:>14.2f}"
                     )
-                for base in ("elastic", "pyramidal", "numpy_drag"):
+                for base in ("elastic", "pyramidal", "numpy"):
                     ratio = row["now"]["wall_per_sim_s"] / row[base]["wall_per_sim_s"]
                     print(f"{row['rope']:>4} now / {base}, wall s per sim s: {ratio:.2f}")
         return 0

@@ -207,6 +207,11 @@ class RopeHandle:
         self.bind(model).set_hanging(model, data, sway_angle, sway_azimuth, sway_rate)
 
 
+COMPILED = True
+"""Scan the contacts for the rope's self-contacts with the compiled kernel
+(:mod:`flyknot_sim.contact_kernel`); False: NumPy (:meth:`BoundRope.self_contact_elements`)."""
+
+
 def _ids(model: mujoco.MjModel, obj: mujoco.mjtObj, names: Iterable[str], what: str) -> np.ndarray:
     out = []
     for name in names:
@@ -311,10 +316,10 @@ class BoundRope:
         """Centrelines of stored vertex positions, (..., n + 1, 3) -> same shape [m]."""
         return np.array(vertices, dtype=float, copy=True)
 
-    def _self_contact_elements(self, data: mujoco.MjData) -> np.ndarray:
+    def self_contact_elements(self, data: mujoco.MjData) -> np.ndarray:
         """Element pairs of the rope's self-contacts, shape (k, 2): two elements i, j with
         |i - j| >= 2 (sharing no vertex), or the end weight (as element n) and an element
-        j <= n - 2."""
+        j <= n - 2 (the readable reference of :mod:`flyknot_sim.contact_kernel`)."""
         ncon = data.ncon
         if ncon == 0:
             return np.zeros((0, 2), dtype=int)
@@ -339,7 +344,7 @@ class BoundRope:
         |i - j| >= 2 (sharing no vertex), or between the end weight and an element
         j <= n - 2 (counting the weight as element n).
         """
-        return len(self._self_contact_elements(data)) > 0
+        return self._contact_span(data)[0] >= 0
 
     def self_contact_span(
         self, model: mujoco.MjModel, data: mujoco.MjData
@@ -347,10 +352,30 @@ class BoundRope:
         """The first and last vertex of the elements in self-contact (element i joins
         vertices i and i + 1; the end weight is vertex n), or None if the rope touches
         nothing of itself."""
-        pairs = self._self_contact_elements(data)
-        if len(pairs) == 0:
+        lo, hi = self._contact_span(data)
+        if lo < 0:
             return None
-        return int(pairs.min()), min(int(pairs.max()) + 1, self.n_segments)
+        return lo, min(hi + 1, self.n_segments)
+
+    def _contact_span(self, data: mujoco.MjData) -> tuple[int, int]:
+        """The lowest and highest element of :meth:`self_contact_elements` ((-1, -1): none),
+        by the compiled scan (:data:`COMPILED`) or from the NumPy one."""
+        ncon = data.ncon
+        if ncon == 0:
+            return -1, -1
+        if COMPILED:
+            from flyknot_sim.contact_kernel import self_contact_span  # numba: compiled on demand
+
+            c = data.contact
+            lo, hi = self_contact_span(
+                c.flex, c.elem, c.geom, c.exclude, ncon, self.flex_id, self.end_geom,
+                self.n_segments,
+            )  # fmt: skip
+            return int(lo), int(hi)
+        pairs = self.self_contact_elements(data)
+        if len(pairs) == 0:
+            return -1, -1
+        return int(pairs.min()), int(pairs.max())
 
     # -- state write ---------------------------------------------------------------------
     def set_hanging(

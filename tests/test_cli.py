@@ -48,12 +48,12 @@ def test_bench_sim_json_shape(capsys):
     assert main(["bench", "sim", "--json", "--ropes", "6"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert list(out) == ["ropes"] and out["ropes"][0]["rope"] == 6
-    for lab in ("before", "elastic", "pyramidal", "numpy_drag", "now"):
+    for lab in ("before", "elastic", "pyramidal", "numpy", "now"):
         row = out["ropes"][0][lab]
         assert row["realtime_factor"] == pytest.approx(1 / row["wall_per_sim_s"])
         assert row["sim_s_per_trial"] > 0.8  # the swing itself lasts 0.8 s
     rope = out["ropes"][0]  # the same trial with either drag: the same simulated time
-    assert rope["numpy_drag"]["sim_s_per_trial"] == rope["now"]["sim_s_per_trial"]
+    assert rope["numpy"]["sim_s_per_trial"] == rope["now"]["sim_s_per_trial"]
 
 
 def test_bench_rejects_unknown_rope(capsys):
