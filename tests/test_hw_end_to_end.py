@@ -38,6 +38,7 @@ import c3d  # noqa: F401 - the test extra installs it
 import numpy as np
 import pytest
 import xarm  # noqa: F401 - the test extra installs it
+from fakes.fake_capture import LOSS_DELAY_S
 from fakes.fake_lab import FakeLabProcess
 
 from flyknot.record import TrialRecord
@@ -91,6 +92,21 @@ def marker_errors(rec: TrialRecord, truth: tuple[np.ndarray, np.ndarray]) -> np.
     flat = rope.reshape(len(t_wall), -1)
     at = np.stack([np.interp(t, t_wall, flat[:, j]) for j in range(flat.shape[1])], axis=1)
     return np.linalg.norm(rec.markers - at.reshape(len(t), -1, 3), axis=-1)
+
+
+def visible_span(rec: TrialRecord, captures: list[dict], t_c: float) -> tuple[float, float]:
+    """Where the fake's capture shows the rope in ``rec``, up to ``t_c``, on the record's
+    clock [s]: from when the operator let go of the rope (or the record's first frame) to
+    the capture's loss delay after the rope first touched itself (or ``t_c``)."""
+    (cap,) = [c for c in captures if c["file"] == Path(rec.metadata["mocap"]["source"]).name]
+    t0 = rec.metadata["timing"]["t0_perf_counter_s"]
+    start = float(rec.t_marker[0])
+    if cap["let_go"] is not None:
+        start = max(start, cap["let_go"] - t0)
+    end = t_c
+    if cap["first_contact"] is not None:
+        end = min(end, cap["first_contact"] - t0 + LOSS_DELAY_S)
+    return start, end
 
 
 @pytest.fixture
@@ -159,14 +175,20 @@ def test_quick_scenario_runs_on_the_fake_lab(fake_lab, tmp_path, monkeypatch):
         offsets.append(mocap["offset_s"] - truth)
         assert abs(offsets[-1]) < 2e-3, (mocap["offset_s"], truth)
         assert mocap["residual_rms_m"] < 2e-3
-        before_tc = (rec.t_marker >= run["t_c"] - 0.1) & (rec.t_marker <= run["t_c"])
-        assert np.all(np.isfinite(rec.markers[before_tc]), axis=2).mean() > 0.9  # dropouts
-        # markers: the fake's rope, marker by marker, up to t_c
+        # the capture hides the rope until the operator lets go and from 20 ms after it first
+        # touches itself (when that comes before t_c, a loaded box having played the command
+        # late): the markers are checked where the capture shows them, up to t_c
+        t_vis = visible_span(rec, report["captures"], run["t_c"])
+        assert t_vis[1] - t_vis[0] > 0.3, t_vis
+        shown = (rec.t_marker >= t_vis[0]) & (rec.t_marker <= t_vis[1])
+        last = shown & (rec.t_marker >= t_vis[1] - 0.1)
+        assert np.all(np.isfinite(rec.markers[last]), axis=2).mean() > 0.9  # dropouts
+        # markers: the fake's rope, marker by marker, where shown up to t_c
         err = marker_errors(rec, truths[len(offsets) - 1])
-        seen = err[rec.t_marker <= run["t_c"]]
+        seen = err[shown]
         seen = seen[np.isfinite(seen)]
         errors.append((np.median(seen), np.percentile(seen, 95)))
-        assert seen.size > 0.5 * 11 * np.sum(rec.t_marker <= run["t_c"])
+        assert seen.size > 0.5 * 11 * np.sum(shown)
         assert errors[-1][0] < 6e-3 and errors[-1][1] < 0.02, errors[-1]
         # the operator's verdict
         answer = answers[len(offsets) - 1]

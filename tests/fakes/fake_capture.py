@@ -21,6 +21,10 @@ from flyknot_hw.mocap import RawStream, write_c3d
 RATE_HZ = 200.0  # [Hz] capture rate
 
 
+LOSS_DELAY_S = 0.02
+"""Every rope marker is lost this long after the rope first touches itself [s]."""
+
+
 class FakeCapture:
     """The motion-capture software (module docstring): one C3D file per servo-mode session.
 
@@ -34,7 +38,7 @@ class FakeCapture:
     def __init__(self, scene, xarm, directory: Path, seed: int = 0):
         self.scene, self.xarm, self.directory = scene, xarm, Path(directory)
         self.rng = np.random.default_rng([seed, 777])
-        self.pre_s, self.post_s, self.loss_delay_s = 0.5, 0.5, 0.02
+        self.pre_s, self.post_s, self.loss_delay_s = 0.5, 0.5, LOSS_DELAY_S
         self.noise_m, self.cluster_noise_m, self.dropout = 1e-3, 3e-4, 0.01
         self.captures: list[dict[str, Any]] = []
         self._run = threading.Event()
@@ -103,5 +107,6 @@ class FakeCapture:
         os.replace(tmp, self.directory / name)
         self.captures.append(
             {"file": name, "t_start": t_start, "t_stop": t_stop, "frames": len(k),
-             "first_contact": touch[0] if touch else None, "lost_fraction": float(lost.mean())}
+             "first_contact": touch[0] if touch else None, "let_go": hung[-1] if hung else None,
+             "lost_fraction": float(lost.mean())}
         )  # fmt: skip
