@@ -124,6 +124,13 @@ class SettleParams:
             shape. Without it, a rope with a knot in it swings on above the rest speed past
             the cap (air drag damps it over minutes). None: off.
         knot_set_tol: The shape tolerance of ``knot_set_s``, in rope diameters [-].
+        unknot_held_s: Judge a rope early whose every verdict sample over this long [s] was
+            unknotted, touching itself or not (a rope wrapped round the grip, or hanging in a
+            loose loop, swings on above the rest speed for minutes). Measured on the paper
+            protocol's 1,456 trials at lab seed 0 (``docs/performance.md``): no trial's
+            verdict at such an end differed from its verdict at the end the other rules
+            gave; the longest run of unknotted samples that a knotted sample followed was
+            3.0 s (that knot opened again). None: off.
     """
 
     rest: RestCriterion = RestCriterion()
@@ -133,6 +140,7 @@ class SettleParams:
     contact_free_unknot: bool = True
     knot_set_s: float | None = 2.0
     knot_set_tol: float = 0.5
+    unknot_held_s: float | None = 3.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.rest, RestCriterion):
@@ -149,6 +157,8 @@ class SettleParams:
         if self.knot_set_s is not None:
             check_positive("knot_set_s", self.knot_set_s)
         check_positive("knot_set_tol", self.knot_set_tol)
+        if self.unknot_held_s is not None:
+            check_positive("unknot_held_s", self.unknot_held_s)
 
     @classmethod
     def fixed(cls, seconds: float) -> SettleParams:
@@ -238,6 +248,8 @@ class SettleOutcome:
             the final window (``SettleParams.contact_free_unknot``).
         knot_set: Not at rest, but judged early: the knot had set
             (``SettleParams.knot_set_s``).
+        unknot_held: Not at rest, but judged early: every verdict over
+            ``SettleParams.unknot_held_s`` was unknotted (and no other end came first).
         settle_s: Time from the end of the command to the verdict [s].
         verdict: The knot verdict at the end.
         free_end_speed_m_s: Largest free-end speed over the final window [m/s].
@@ -253,6 +265,7 @@ class SettleOutcome:
     history_t: tuple[float, ...]
     history: tuple[str, ...]
     knot_set: bool = False
+    unknot_held: bool = False
 
     def as_metadata(self, params: SettleParams) -> dict:
         """Plain data for a trial record's metadata."""
@@ -260,6 +273,7 @@ class SettleOutcome:
             "settled": self.settled,
             "contact_free": self.contact_free,
             "knot_set": self.knot_set,
+            "unknot_held": self.unknot_held,
             "settle_s": self.settle_s,
             "free_end_speed_m_s": self.free_end_speed_m_s,
             "verdict_stable_s": _stable_for(self.history_t, self.history),
@@ -272,6 +286,7 @@ class SettleOutcome:
                 "contact_free_unknot": params.contact_free_unknot,
                 "knot_set_s": params.knot_set_s,
                 "knot_set_tol": params.knot_set_tol,
+                "unknot_held_s": params.unknot_held_s,
             },
             "knot_history": {"t": list(self.history_t), "verdict": list(self.history)},
         }
@@ -294,7 +309,8 @@ class SettleMonitor:
     verdict every ``verdict_interval_s`` and says when to stop: after ``min_s``, once the speed
     has stayed below the threshold for ``window_s`` and every verdict within that window agrees
     (at least two), once an unknotted rope has been free of self-contact over that window,
-    once a knot has set (``knot_set_s``), or at ``max_s``.
+    once a knot has set (``knot_set_s``), once every verdict has been unknotted for
+    ``unknot_held_s``, or at ``max_s``.
     """
 
     def __init__(self, params: SettleParams, t_end: float, diameter: float | None = None):
@@ -314,6 +330,7 @@ class SettleMonitor:
             check_positive("diameter", diameter)
             self._tol = params.knot_set_tol * float(diameter)
         self._knot: tuple[float, str, tuple[int, int], np.ndarray] | None = None
+        self._unknot_since: float | None = None  # first sample of the current unknotted run
 
     def observe(
         self, t: float, speed: float, judge, contact: bool | None = None, knot_region=None
@@ -344,10 +361,15 @@ class SettleMonitor:
             self._speeds.popleft()
         elapsed = t - self.t_end
         cap = elapsed >= p.max_s - 1e-9
-        if t >= self._next_verdict - 1e-9:
+        sampled = t >= self._next_verdict - 1e-9
+        if sampled:
             self._t.append(t)
             self._v.append(judge())
             self._next_verdict = t + p.verdict_interval_s
+            if self._v[-1] != UNKNOT:
+                self._unknot_since = None
+            elif self._unknot_since is None:
+                self._unknot_since = t
             if knot_region is not None and self._tol is not None:
                 self._track_knot(t, self._v[-1], knot_region)
         if elapsed < p.min_s - 1e-9 and not cap:
@@ -363,8 +385,14 @@ class SettleMonitor:
             and window[-1] == UNKNOT
         )
         knot_set = self._knot is not None and t - self._knot[0] >= p.knot_set_s - 1e-9
-        if (quiet and stable) or free or knot_set or cap or fixed:
-            self._finish(t, elapsed, quiet, free, knot_set, judge)
+        held = (  # judged at a verdict sample: the outcome's verdict is that sample's
+            sampled
+            and p.unknot_held_s is not None
+            and self._unknot_since is not None
+            and t - self._unknot_since >= p.unknot_held_s - 1e-9
+        )
+        if (quiet and stable) or free or knot_set or held or cap or fixed:
+            self._finish(t, elapsed, quiet, free, knot_set, held, judge)
             return True
         return False
 
@@ -389,7 +417,7 @@ class SettleMonitor:
             lo, hi = span
             self._knot = (t, verdict, (lo, hi), np.array(vertices[lo : hi + 1], dtype=float))
 
-    def _finish(self, t, elapsed, quiet, free, knot_set, judge) -> None:
+    def _finish(self, t, elapsed, quiet, free, knot_set, held, judge) -> None:
         if not self._t or self._t[-1] < t - 1e-9:
             self._t.append(t)
             self._v.append(judge())
@@ -405,6 +433,7 @@ class SettleMonitor:
             history_t=tuple(self._t),
             history=tuple(self._v),
             knot_set=bool(knot_set and not settled and not free),
+            unknot_held=bool(held and not settled and not free and not knot_set),
         )
 
     @property

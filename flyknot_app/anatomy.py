@@ -390,6 +390,9 @@ def _settle_note(metadata: Mapping[str, Any]) -> str:
         why = "unknotted and free of self-contact"
     elif settle.get("knot_set"):
         why = "with its knot set"
+    elif settle.get("unknot_held"):
+        why = "unknotted at every verdict of the last "
+        why += f"{settle.get('criterion', {}).get('unknot_held_s', float('nan')):g} s"
     else:
         why = "not at rest"
     return f"; judged {why}" + (f" ({', '.join(parts)})" if parts else "")

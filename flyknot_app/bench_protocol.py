@@ -8,11 +8,13 @@ seconds in the workers, when its report was written, trials played (learning tri
 repeats, read back from the records) and simulated seconds per trial; in total the wall time
 and the peak resident memory of the largest worker process.
 
-``--quick`` runs a fixed small subset (:data:`QUICK`) three times in the same process: in the
+``--quick`` runs a fixed small subset (:data:`QUICK`) four times in the same process: in the
 lab as it is; without the knot-set end of the settle
 (:attr:`flyknot.rest.SettleParams.knot_set_s` off: a knotted rope runs to rest or the cap);
-and scenario by scenario, each on its own pool (as ``flyknot run`` runs one). So the
-before/after ratios come from one run on one machine state.
+without the held-unknot end (:attr:`flyknot.rest.SettleParams.unknot_held_s` off: an
+unknotted rope that touches itself runs to rest or the cap); and scenario by scenario, each
+on its own pool (as ``flyknot run`` runs one). So the before/after ratios come from one run
+on one machine state.
 """
 
 from __future__ import annotations
@@ -30,6 +32,9 @@ from typing import Any
 
 from flyknot.errors import ConfigError
 from flyknot_app.paper import PAPER_SCENARIOS
+
+BEFORE_LABS = ("no_knot_set", "no_unknot_held", "by_scenario")
+"""The labs ``--quick`` compares with the lab as it is (module docstring)."""
 
 
 @dataclass(frozen=True)
@@ -150,6 +155,7 @@ def bench_protocol(
     labs: dict[str, tuple[dict | None, bool]] = {"now": (None, True)}
     if quick:
         labs["no_knot_set"] = ({"kind": "sim", "knot_set": False}, True)
+        labs["no_unknot_held"] = ({"kind": "sim", "unknot_held": False}, True)
         labs["by_scenario"] = (None, False)
     out: dict[str, Any] = {"workers": workers, "quick": quick, "labs": {}}
     with tempfile.TemporaryDirectory() as scratch:
@@ -166,7 +172,7 @@ def bench_protocol(
     out["memory"] = _peak_rss_mb()
     if quick:
         now = out["labs"]["now"][-1]["wall_s"]
-        for lab in ("no_knot_set", "by_scenario"):
+        for lab in BEFORE_LABS:
             before = out["labs"][lab][-1]["wall_s"]
             out[f"{lab}_over_now"] = before / now if now else float("nan")
     return out
@@ -208,7 +214,7 @@ def format_protocol(res: dict[str, Any]) -> str:
         f"peak RSS: main process {mem['main_mb']:.0f} MB, largest worker "
         f"{mem['largest_worker_mb']:.0f} MB"
     )
-    for lab in ("no_knot_set", "by_scenario"):
+    for lab in BEFORE_LABS:
         if f"{lab}_over_now" in res:
             lines.append(f"{lab} / now, total wall time: {res[f'{lab}_over_now']:.2f}x")
     return "\n".join(lines)

@@ -40,6 +40,9 @@ class SimCellSpec:
         knot_set: End the settle of a knotted rope once its knot has set
             (:attr:`flyknot.rest.SettleParams.knot_set_s`); false: such a rope waits for rest
             or the cap (what ``flyknot bench protocol --quick`` compares against).
+        unknot_held: End the settle of a rope whose verdict has been unknotted for
+            :attr:`flyknot.rest.SettleParams.unknot_held_s`; false: such a rope waits for
+            rest, contact-free, or the cap (``flyknot bench protocol --quick`` compares).
     """
 
     rope: int | str = 1
@@ -47,21 +50,28 @@ class SimCellSpec:
     settle_s: float | None = None
     ropes: str | None = None
     knot_set: bool = True
+    unknot_held: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
             raise ConfigError("seed", f"must be an integer >= 0, got {self.seed!r}")
         if self.settle_s is not None:
             check_nonnegative("settle_s", self.settle_s)
-        if not isinstance(self.knot_set, bool):
-            raise ConfigError("cell.knot_set", f"must be true or false, got {self.knot_set!r}")
+        for name in ("knot_set", "unknot_held"):
+            value = getattr(self, name)
+            if not isinstance(value, bool):
+                raise ConfigError(f"cell.{name}", f"must be true or false, got {value!r}")
 
 
 def _open_sim(spec: SimCellSpec) -> Cell:
     from flyknot.rest import SettleParams
     from flyknot_sim.lab import LabParams, SimLab
 
-    settle = SettleParams() if spec.knot_set else SettleParams(knot_set_s=None)
+    default = SettleParams()
+    settle = SettleParams(
+        knot_set_s=default.knot_set_s if spec.knot_set else None,
+        unknot_held_s=default.unknot_held_s if spec.unknot_held else None,
+    )
     return SimLab(
         LabParams(
             rope=spec.rope, seed=spec.seed, settle=settle, settle_s=spec.settle_s, ropes=spec.ropes

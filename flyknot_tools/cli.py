@@ -17,9 +17,9 @@
   validation suite (:mod:`flyknot_tools.rope_validate`); exit 1 when a case fails.
 * ``flyknot-tools lab-study`` plays the robot command and Swipe over the rope model's brackets
   and over the parts of the trial-to-trial variation (:mod:`flyknot_tools.lab_study`).
-* ``flyknot-tools settle-compare [--demo NAME] [--trials A-B] [--rope R]`` plays a
-  demonstration's trials with and without the knot-set end of the settle
-  (:mod:`flyknot_tools.settle_compare`).
+* ``flyknot-tools settle-compare [--demo NAME] [--trials A-B] [--rope R] [--rule RULE]`` plays
+  a demonstration's trials with and without an early end of the settle (``knot_set`` or
+  ``unknot_held``; :mod:`flyknot_tools.settle_compare`).
 
 Replaying a demonstration is part of the application: ``flyknot demo replay``. Errors print
 as ``flyknot``'s do (one line on stderr, exit status 2); this module also runs as
@@ -460,8 +460,8 @@ def _cmd_settle_compare(args: argparse.Namespace) -> int:
         trials = range(int(first), int(last or first) + 1)
     except ValueError:
         raise ConfigError("--trials", f"must be A-B or A, got {args.trials!r}") from None
-    rows = compare_settles(args.demo, trials, args.rope)
-    print(json.dumps([asdict(r) for r in rows]) if args.json else format_compared(rows))
+    rows = compare_settles(args.demo, trials, args.rope, args.rule)
+    print(json.dumps([asdict(r) for r in rows]) if args.json else format_compared(rows, args.rule))
     return 0
 
 
@@ -554,7 +554,7 @@ def build_parser() -> argparse.ArgumentParser:
     cs.set_defaults(func=_cmd_closure_study)
     sc = sub.add_parser(
         "settle-compare",
-        help="a demonstration's trials with and without the knot-set end of the settle "
+        help="a demonstration's trials with and without an early end of the settle "
         "(docs/performance.md)",
     )
     sc.add_argument("--demo", default="robot", help="a shipped demonstration (default robot)")
@@ -562,6 +562,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--trials", default="10-29", help="lab seeds (robot) or replays (hand): A-B (10-29)"
     )
     sc.add_argument("--rope", type=int, default=1, help="rope of the robot command (default 1)")
+    sc.add_argument(
+        "--rule",
+        default="knot_set",
+        help="the early end compared: knot_set (default) or unknot_held",
+    )
     sc.add_argument("--json", action="store_true", help="print one JSON list, trial by trial")
     sc.set_defaults(func=_cmd_settle_compare)
     return p

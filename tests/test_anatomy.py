@@ -276,6 +276,12 @@ def test_settle_metadata_adds_a_note():
     meta["settle"] = {**meta["settle"], "knot_set": True, "settle_s": 4.0}
     d = an.diagnose(record("l" * 30, contact=0.1, metadata=meta))
     assert d.reason.endswith("; judged with its knot set (after 4.0 s, free end up to 0.12 m/s)")
+    settle = {**meta["settle"], "knot_set": False, "unknot_held": True, "settle_s": 3.5}
+    meta["settle"] = {**settle, "criterion": {"unknot_held_s": 3.0}}
+    d = an.diagnose(record("l" * 30, contact=0.1, metadata=meta))
+    assert d.reason.endswith(
+        "; judged unknotted at every verdict of the last 3 s (after 3.5 s, free end up to 0.12 m/s)"
+    )
 
 
 # ------------------------------------------------------------------------------------------

@@ -26,9 +26,9 @@ def test_the_protocol_is_every_paper_scenario_and_quick_is_a_subset_of_it():
     assert {c.scenario for c in QUICK} <= set(PAPER_SCENARIOS)
 
 
-def test_quick_times_the_same_trials_three_ways(capsys, tmp_path):
+def test_quick_times_the_same_trials_four_ways(capsys, tmp_path):
     res = bench_protocol(workers=1, quick=True, progress=False, cases=TINY, keep=tmp_path / "b")
-    labs = ("now", "no_knot_set", "by_scenario")
+    labs = ("now", "no_knot_set", "no_unknot_held", "by_scenario")
     for lab in labs:  # kept: the run directories of every lab
         assert (tmp_path / "b" / lab / "01-tracking" / "summary.json").is_file()
     assert capsys.readouterr().out == ""  # the runner's lines do not reach a JSON reader
@@ -40,7 +40,7 @@ def test_quick_times_the_same_trials_three_ways(capsys, tmp_path):
         assert tracking["sim_s_per_trial"] > 0.3  # the command and the fixed 0.3 s settle
         assert 0 < tracking["run_s"] <= tracking["done_s"] <= total["wall_s"]
         assert total["run_s"] == tracking["run_s"]
-    for lab in ("no_knot_set", "by_scenario"):
+    for lab in labs[1:]:
         assert res[f"{lab}_over_now"] == pytest.approx(
             res["labs"][lab][-1]["wall_s"] / res["labs"]["now"][-1]["wall_s"]
         )
@@ -49,6 +49,7 @@ def test_quick_times_the_same_trials_three_ways(capsys, tmp_path):
     text = format_protocol(res)
     assert "no_knot_set / now, total wall time" in text and "01-tracking" in text
     assert "by_scenario / now, total wall time" in text
+    assert "no_unknot_held / now, total wall time" in text
 
 
 def test_workers_must_be_a_positive_integer_and_out_a_new_directory(tmp_path):

@@ -25,7 +25,7 @@ def test_unknown_kind_and_field_list_the_valid_ones():
     with pytest.raises(
         ConfigError,
         match=r"^cell\.ip: not a field of a 'sim' cell "
-        r"\(valid choices: rope, seed, settle_s, ropes, knot_set\)$",
+        r"\(valid choices: rope, seed, settle_s, ropes, knot_set, unknot_held\)$",
     ):
         cell_spec("sim", {"ip": "10.0.0.1"})
     with pytest.raises(ConfigError, match=r"^seed: must be an integer >= 0, got -1$"):
@@ -50,7 +50,7 @@ def test_a_scenarios_cell_table_sets_the_kind_and_the_cells_defaults():
     with pytest.raises(
         ConfigError,
         match=r"^cell\.gain: not a field of a 'sim' cell "
-        r"\(valid choices: rope, seed, settle_s, knot_set\)$",
+        r"\(valid choices: rope, seed, settle_s, knot_set, unknot_held\)$",
     ):
         parse_scenario({"cell": {"gain": 0.5}, "run": [{"name": "a"}]}, name="x")
     with pytest.raises(ConfigError, match=r"^run\[0\]\.cell: unknown field"):
@@ -80,8 +80,14 @@ def test_the_runner_closes_the_cell_however_the_run_ends(monkeypatch, tmp_path):
     assert closed == [True]
 
 
-def test_the_sim_cells_knot_set_option_reaches_the_labs_settle():
-    assert open_cell("sim", SimCellSpec()).params.settle.knot_set_s == 2.0
-    assert open_cell("sim", SimCellSpec(knot_set=False)).params.settle.knot_set_s is None
+def test_the_sim_cells_early_end_options_reach_the_labs_settle():
+    settle = open_cell("sim", SimCellSpec()).params.settle
+    assert (settle.knot_set_s, settle.unknot_held_s) == (2.0, 3.0)
+    settle = open_cell("sim", SimCellSpec(knot_set=False)).params.settle
+    assert (settle.knot_set_s, settle.unknot_held_s) == (None, 3.0)
+    settle = open_cell("sim", SimCellSpec(unknot_held=False)).params.settle
+    assert (settle.knot_set_s, settle.unknot_held_s) == (2.0, None)
     with pytest.raises(ConfigError, match=r"^cell.knot_set: must be true or false, got 'no'"):
         SimCellSpec(knot_set="no")
+    with pytest.raises(ConfigError, match=r"^cell.unknot_held: must be true or false, got 1"):
+        SimCellSpec(unknot_held=1)

@@ -136,6 +136,36 @@ def test_monitor_contact_free_unknot_ends_early():
     assert not out.contact_free and out.settle_s == pytest.approx(4.0, abs=0.005)
 
 
+def test_a_rope_unknotted_at_every_verdict_for_unknot_held_s_ends_early():
+    # Touching itself and swinging: only the held-unknot end or the cap can end it.
+    out = _run(SettleMonitor(SettleParams(), 0.0), 0.0, lambda t: 1.0, lambda t: "unknot")
+    assert out.unknot_held and not (out.settled or out.contact_free or out.knot_set)
+    # the first verdict sample at least 3 s after the first one (samples every 0.25 s of
+    # ticks: 0, 0.252, ..., 3.024)
+    assert out.settle_s == out.history_t[-1] == pytest.approx(3.024)
+    meta = out.as_metadata(SettleParams())
+    assert meta["unknot_held"] is True and meta["criterion"]["unknot_held_s"] == 3.0
+    off = SettleParams(max_s=6.0, unknot_held_s=None)
+    out = _run(SettleMonitor(off, 0.0), 0.0, lambda t: 1.0, lambda t: "unknot")
+    assert not out.unknot_held and out.settle_s == pytest.approx(6.0, abs=0.005)
+
+
+def test_a_knotted_verdict_restarts_the_held_unknot_clock():
+    # Unknotted, then a knot from 1.0 s to 1.6 s, then unknotted again: the rope is judged
+    # at the first verdict sample 3 s after the first unknotted sample that followed the knot.
+    out = _run(
+        SettleMonitor(SettleParams(max_s=10.0), 0.0),
+        0.0,
+        lambda t: 1.0,
+        lambda t: "trefoil" if 0.99 <= t < 1.6 else "unknot",
+    )
+    assert out.unknot_held and out.verdict == "unknot"
+    k = max(i for i, v in enumerate(out.history) if v == "trefoil") + 1
+    assert out.history.count("trefoil") == 3  # the samples at 1.008, 1.26 and 1.512 s
+    assert out.history_t[k] == pytest.approx(1.764)
+    assert out.settle_s == out.history_t[-1] == pytest.approx(1.764 + 3.024)
+
+
 def test_fixed_settle_judges_at_its_time():
     out = _run(SettleMonitor(SettleParams.fixed(0.5), 1.0), 1.0, lambda t: 2.0, lambda t: "unknot")
     assert out.settle_s == pytest.approx(0.5, abs=0.005)
@@ -166,6 +196,7 @@ def test_metadata_round_trip_fields():
         ({"verdict_interval_s": 0.0}, "verdict_interval_s: must be a finite number > 0, got 0.0"),
         ({"contact_free_unknot": 1}, "contact_free_unknot: must be true or false, got 1"),
         ({"rest": 0.03}, "rest: must be a RestCriterion, got float"),
+        ({"unknot_held_s": 0.0}, "unknot_held_s: must be a finite number > 0, got 0.0"),
     ],
 )
 def test_settle_params_errors(kwargs, message):
