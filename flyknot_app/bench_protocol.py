@@ -44,14 +44,23 @@ class QuickCase:
     scenario: str
     overrides: dict
 
+    @property
+    def label(self) -> str:
+        """The scenario's name, and its rope when the overrides pick one
+        (``04-success-rate-rope5``): the case's directory and row."""
+        rope = self.overrides.get("rope")
+        return self.scenario if rope is None else f"{self.scenario}-rope{rope}"
+
 
 QUICK = (
     QuickCase("01-tracking", {"max_runs": 1, "repeats": 7}),
     QuickCase("04-success-rate", {"max_runs": 1, "rope": 4, "repeats": 6}),
+    QuickCase("04-success-rate", {"max_runs": 1, "rope": 5, "repeats": 8}),
 )
-"""Rope 1's initial command 8 times (ropes that end unknotted), and rope 4 learned from the
+"""Rope 1's initial command 8 times (ropes that end unknotted), rope 4 learned from the
 robot demonstration (a knot at trial 2 at lab seed 0) with 6 repeats of its command (knots:
-what the knot-set end of the settle shortens)."""
+what the knot-set end of the settle shortens), and rope 5 learned and repeated 8 times (ropes
+wrapped round the grip or hanging in a loop: what the held-unknot end shortens)."""
 
 
 def _peak_rss_mb() -> dict[str, float]:
@@ -96,8 +105,8 @@ def _run_lab(
     from flyknot_app.scenario import load_scenario
 
     items = []
-    for name, overrides in cases:
-        where = root / name
+    for label, name, overrides in cases:
+        where = root / label
         where.mkdir(parents=True)
         (where / "initial_guess").symlink_to(guesses, target_is_directory=True)
         items.append((load_scenario(name, dict(overrides), cell=cell), where))
@@ -107,14 +116,14 @@ def _run_lab(
         if together:
             done = run_scenarios(items, workers=workers, progress=False)
             for (scen, where), d in zip(items, done, strict=True):
-                rows.append(_stats_row(scen.name, len(scen.runs), where, d.run_s, d.done_s))
+                rows.append(_stats_row(where.name, len(scen.runs), where, d.run_s, d.done_s))
         else:
             for scen, where in items:
                 t1 = time.perf_counter()
                 run_scenario(scen, where, workers=workers, progress=False)
                 wall = time.perf_counter() - t1
                 done_s = time.perf_counter() - t0
-                rows.append(_stats_row(scen.name, len(scen.runs), where, wall, done_s))
+                rows.append(_stats_row(where.name, len(scen.runs), where, wall, done_s))
     return rows, time.perf_counter() - t0
 
 
@@ -124,7 +133,7 @@ def _make_guesses(cases, guesses: Path) -> float:
     from flyknot_app.scenario import load_scenario
 
     t0 = time.perf_counter()
-    for name, overrides in cases:
+    for _, name, overrides in cases:
         make_initial_guesses(load_scenario(name, dict(overrides)), guesses.parent)
     return time.perf_counter() - t0
 
@@ -150,7 +159,7 @@ def bench_protocol(
         raise ConfigError("--workers", f"must be an integer >= 1, got {workers!r}")
     if cases is None:
         cases = QUICK if quick else tuple(QuickCase(name, {}) for name in PAPER_SCENARIOS)
-    cases = [(c.scenario, c.overrides) for c in cases]
+    cases = [(c.label, c.scenario, c.overrides) for c in cases]
     # (cell, on one pool?): the cell as the scenario says, all scenarios on one pool
     labs: dict[str, tuple[dict | None, bool]] = {"now": (None, True)}
     if quick:
@@ -200,13 +209,13 @@ def format_protocol(res: dict[str, Any]) -> str:
         "run s: the scenario's runs' wall seconds in the workers (summed); done at: seconds "
         "from the lab's start until its report was written",
     ]
-    head = f"{'lab':>12} {'scenario':>16} {'runs':>5} {'trials':>7} {'run s':>8} "
+    head = f"{'lab':>14} {'scenario':>21} {'runs':>5} {'trials':>7} {'run s':>8} "
     head += f"{'done at s':>10} {'sim s/trial':>12}"
     lines.append(head)
     for lab, rows in res["labs"].items():
         for r in rows:
             lines.append(
-                f"{lab:>12} {r['scenario']:>16} {r['runs']:>5} {r['trials']:>7} "
+                f"{lab:>14} {r['scenario']:>21} {r['runs']:>5} {r['trials']:>7} "
                 f"{r['run_s']:>8.1f} {r['done_s']:>10.1f} {r['sim_s_per_trial']:>12.2f}"
             )
     mem = res["memory"]

@@ -24,6 +24,8 @@ def test_the_protocol_is_every_paper_scenario_and_quick_is_a_subset_of_it():
         "06-transfer", "07-sensitivity", "08-certainty",
     )  # fmt: skip
     assert {c.scenario for c in QUICK} <= set(PAPER_SCENARIOS)
+    labels = [c.label for c in QUICK]  # each case's directory and row
+    assert labels == ["01-tracking", "04-success-rate-rope4", "04-success-rate-rope5"]
 
 
 def test_quick_times_the_same_trials_four_ways(capsys, tmp_path):
