@@ -101,6 +101,7 @@ def _cmd_synthesize(args: argparse.Namespace) -> int:
         check_repeats=args.check_repeats,
         progress=not args.quiet,
         start=start,
+        last_stage=args.last_stage,
     )
     result.demo.save(out)
     summary = {"file": str(out), **result.summary()}
@@ -336,6 +337,11 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
         "--throw-budget", type=int, default=None, help="most trials of the throw stage (900)"
     )
     s.add_argument("--max-accel", type=float, default=None, help="peak hand acceleration [m/s^2]")
+    s.add_argument(
+        "--last-stage",
+        action="store_true",
+        help="search the last stage alone from --start (a local search of a demonstration)",
+    )
     s.add_argument(
         "--envelope",
         action="store_true",

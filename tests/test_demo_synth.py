@@ -683,6 +683,37 @@ def test_confirmation_stops_once_the_target_is_out_of_reach():
     assert evaluate(lab, ref, FAST, [{}] * 6, max_failures=1).ties == 6
 
 
+def test_the_last_stage_alone_is_a_local_search_from_the_start(monkeypatch):
+    """``last_stage``: only the variant's last stage runs, from the start motion as it is
+    (no wind-up picked), with the later stages' step and budget."""
+    from flyknot.errors import SolverError
+    from flyknot_tools.hand_demos import synthesis
+
+    calls = []
+
+    def fake_search(stage, seed, cfg, *, start, stream, lab, bar):
+        calls.append((stage.name, cfg.sigma0, cfg.budget, cfg.target_rate, start, stream))
+        raise SolverError("demo search", "budget", "stopped by the test")
+
+    monkeypatch.setattr(synthesis, "search", fake_search)
+    monkeypatch.setattr(synthesis, "_pick_windup", lambda *a: pytest.fail("wind-up picked"))
+    start = KnotMotion.from_dict(_shipped("inverse").metadata["motion"])
+    config = synthesis.SynthConfig()
+    with pytest.raises(SolverError):
+        synthesis.synthesize_motion("inverse", 0, config, start=start, last_stage=True)
+    ((name, sigma, budget, target, motion, stream),) = calls
+    assert name == "inverse" and stream == 1  # the two-stage variant's wind-up stage
+    assert (sigma, budget) == (config.stage_sigma, config.stage_budget)
+    assert target == config.search.target_rate and motion is start
+    calls.clear()
+    with pytest.raises(SolverError):  # a one-stage variant: its only stage, locally
+        synthesis.synthesize_motion("fast", 0, config, start=start, last_stage=True)
+    assert [c[:3] for c in calls] == [("fast", config.stage_sigma, config.stage_budget)]
+    with pytest.raises(ConfigError) as e:
+        synthesis.synthesize_motion("fast", 0, config, last_stage=True)
+    assert str(e.value) == "start: the last stage alone needs a start motion (--start)"
+
+
 def test_cli_envelope_start_and_budgets_reach_the_search(tmp_path, capsys, monkeypatch):
     from flyknot.errors import SolverError
     from flyknot_tools.hand_demos import synthesis
@@ -690,15 +721,18 @@ def test_cli_envelope_start_and_budgets_reach_the_search(tmp_path, capsys, monke
 
     seen = {}
 
-    def fake(variant, seed, config, *, check_repeats, progress, start):
-        seen.update(variant=variant, config=config, start=start)
+    def fake(variant, seed, config, *, check_repeats, progress, start, last_stage):
+        seen.update(variant=variant, config=config, start=start, last_stage=last_stage)
         raise SolverError("demo search", "budget", "stopped by the test")
 
     monkeypatch.setattr(synthesis, "synthesize", fake)
     args = ["demo", "synthesize", "--variant", "swipe", "--out", str(tmp_path / "x.npz")]
     args += ["--envelope", "--max-speed", "2.0", "--start", str(DEMOS_DIR / "fast.npz")]
     args += ["--throw-budget", "7", "--target-rate", "0.95", "--confirm-abort", "--quiet"]
+    assert tools_cli.main([*args, "--last-stage"]) == 2
+    assert seen["last_stage"] is True
     assert tools_cli.main(args) == 2
+    assert seen["last_stage"] is False
     assert "stopped by the test" in capsys.readouterr().err
     env = shared_envelope(arm_envelope().envelope)
     v = seen["variant"]

@@ -223,6 +223,7 @@ def synthesize_motion(
     progress: bool = False,
     on_stage: Callable[[str, SearchResult], None] | None = None,
     start: KnotMotion | None = None,
+    last_stage: bool = False,
 ) -> StagedResult:
     """Search a robust flying-knot motion of ``variant`` in stages (:meth:`Variant.stages`).
 
@@ -233,8 +234,12 @@ def synthesize_motion(
     ``config.stage_target``, the last at ``config.search.target_rate``. ``on_stage`` is
     called with each finished stage's kind and result. ``start`` replaces the variant's seed
     motion as the first stage's start (e.g. a demonstration found under looser pace limits).
+    ``last_stage``: run the last stage alone from ``start`` (a motion of the variant already,
+    its wind-up kept), with the later stages' budget and step: a local search that can raise a
+    demonstration's tie rate without squeezing it into the throw stage's window.
 
     Raises:
+        ConfigError: ``last_stage`` without ``start``.
         SolverError: A stage found no motion whose nominal trial ties, or the total budget
             ran out.
     """
@@ -248,6 +253,9 @@ def synthesize_motion(
     tic = time.perf_counter()
     lab = HandLab(config.search.hand)
     stages = v.stages()
+    if last_stage and start is None:
+        raise ConfigError("start", "the last stage alone needs a start motion (--start)")
+    first = len(stages) - 1 if last_stage else 0
     motion = replace(v, duration=THROW_WINDOW).seed_motion() if start is None else start
     bar = tqdm(
         total=config.total_budget,
@@ -258,14 +266,14 @@ def synthesize_motion(
     used = 0
     done: list[tuple[str, SearchResult]] = []
     try:
-        for k, (kind, stage) in enumerate(stages):
+        for k, (kind, stage) in enumerate(stages[first:], start=first):
             last = k == len(stages) - 1
-            if kind == "windup":
+            if kind == "windup" and not last_stage:
                 motion, spent = _pick_windup(lab, motion, stage, seed, k, config)
                 used += spent
                 bar.update(spent)
             cfg = replace(config.search, sigma0=v.throw_sigma)
-            if k > 0:
+            if k > 0 or last_stage:
                 cfg = replace(cfg, budget=config.stage_budget, sigma0=config.stage_sigma)
             if not last:
                 cfg = replace(cfg, target_rate=config.stage_target)
@@ -341,13 +349,16 @@ def synthesize(
     check_repeats: int = 20,
     progress: bool = False,
     start: KnotMotion | None = None,
+    last_stage: bool = False,
 ) -> SynthResult:
     """Search a motion (:func:`synthesize_motion`), record it as a demonstration
     (:func:`make_demonstration`) and check it with ``check_repeats`` varied replays
     (:func:`replay` with seed ``seed``; the count goes into the metadata as ``check``).
-    ``start``: as in :func:`synthesize_motion`."""
+    ``start``, ``last_stage``: as in :func:`synthesize_motion`."""
     v = get_variant(variant) if isinstance(variant, str) else variant
-    staged = synthesize_motion(v, seed, config, progress=progress, start=start)
+    staged = synthesize_motion(
+        v, seed, config, progress=progress, start=start, last_stage=last_stage
+    )
     hand = config.search.hand
     demo, _ = make_demonstration(
         staged.motion,
