@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -160,11 +160,27 @@ class SettleParams:
         if self.unknot_held_s is not None:
             check_positive("unknot_held_s", self.unknot_held_s)
 
+    def without(self, *ends: str) -> SettleParams:
+        """The same settle with the named early ends off (keys of :data:`EARLY_ENDS`).
+
+        Raises:
+            ConfigError: An unknown end, listing the valid ones.
+        """
+        for end in ends:
+            if end not in EARLY_ENDS:
+                raise ConfigError("end", f"unknown early end {end!r}", list(EARLY_ENDS))
+        return replace(self, **{EARLY_ENDS[end]: None for end in ends})
+
     @classmethod
     def fixed(cls, seconds: float) -> SettleParams:
         """Wait exactly ``seconds`` and judge, rested or not (min = max)."""
         check_nonnegative("settle_s", seconds)
         return cls(min_s=seconds, max_s=max(seconds, 1e-9))
+
+
+EARLY_ENDS = {"knot_set": "knot_set_s", "unknot_held": "unknot_held_s"}
+"""The settle's early ends that can be turned off: name -> the :class:`SettleParams` field
+that is None when it is off."""
 
 
 def shape_change(reference: np.ndarray, now: np.ndarray) -> float:

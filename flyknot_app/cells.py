@@ -64,14 +64,10 @@ class SimCellSpec:
 
 
 def _open_sim(spec: SimCellSpec) -> Cell:
-    from flyknot.rest import SettleParams
+    from flyknot.rest import EARLY_ENDS, SettleParams
     from flyknot_sim.lab import LabParams, SimLab
 
-    default = SettleParams()
-    settle = SettleParams(
-        knot_set_s=default.knot_set_s if spec.knot_set else None,
-        unknot_held_s=default.unknot_held_s if spec.unknot_held else None,
-    )
+    settle = SettleParams().without(*(end for end in EARLY_ENDS if not getattr(spec, end)))
     return SimLab(
         LabParams(
             rope=spec.rope, seed=spec.seed, settle=settle, settle_s=spec.settle_s, ropes=spec.ropes

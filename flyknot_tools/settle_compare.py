@@ -1,12 +1,12 @@
 """An early end of the settle against the settle without it, trial by trial.
 
 A demonstration's motion is played in its lab twice per trial, with the same variation: once
-in the lab as it is and once with one early end of the settle off (:data:`RULES`: the
-knot-set end, :attr:`flyknot.rest.SettleParams.knot_set_s`, after which a knotted rope waits
-for rest or the cap; or the held-unknot end, :attr:`~flyknot.rest.SettleParams.unknot_held_s`,
-after which an unknotted rope that touches itself does). The robot demonstration's command
-plays in :class:`flyknot_sim.lab.SimLab` (lab seeds ``seeds``), a hand demonstration's motion
-in the hand lab (replays ``seeds`` of variation seed 0). Per trial: the verdict class both
+in the lab as it is and once with one early end of the settle off
+(:data:`flyknot.rest.EARLY_ENDS`: the knot-set end, after which a knotted rope waits for rest
+or the cap; or the held-unknot end, after which an unknotted rope that touches itself does).
+The robot demonstration's command plays in :class:`flyknot_sim.lab.SimLab` (lab seeds
+``seeds``), a hand demonstration's motion in the hand lab (replays ``seeds`` of variation
+seed 0). Per trial: the verdict class both
 ways, whether the rule ended the lab's settle, the settle [s] both ways, and the wall time
 both ways. ``docs/performance.md`` has the measured tables.
 """
@@ -22,21 +22,18 @@ import numpy as np
 from flyknot.constants import DEMOS_DIR
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError
-from flyknot.rest import SettleParams
-
-RULES = {"knot_set": "knot_set_s", "unknot_held": "unknot_held_s"}
-"""The early ends that can be compared: name -> the :class:`~flyknot.rest.SettleParams` field
-that turns it off (None)."""
+from flyknot.rest import EARLY_ENDS, SettleParams
 
 SETTLES = ("lab", "without")
 """The two settles compared: the lab's, and the same without the rule."""
 
 
 def settles(rule: str) -> dict[str, SettleParams]:
-    """The lab's settle and the same without ``rule`` (a key of :data:`RULES`)."""
-    if rule not in RULES:
-        raise ConfigError("rule", f"unknown rule {rule!r}", sorted(RULES))
-    return {"lab": SettleParams(), "without": replace(SettleParams(), **{RULES[rule]: None})}
+    """The lab's settle and the same without ``rule`` (a key of
+    :data:`flyknot.rest.EARLY_ENDS`)."""
+    if rule not in EARLY_ENDS:
+        raise ConfigError("rule", f"unknown rule {rule!r}", sorted(EARLY_ENDS))
+    return {"lab": SettleParams(), "without": SettleParams().without(rule)}
 
 
 @dataclass(frozen=True)
@@ -102,7 +99,7 @@ def compare_settles(
         demo: A shipped demonstration's name (``robot`` or a hand demonstration).
         trials: Lab seeds (robot) or replay indices (hand).
         rope: The rope (robot command only; a hand demonstration replays on its own rope).
-        rule: The early end compared (a key of :data:`RULES`).
+        rule: The early end compared (a key of :data:`flyknot.rest.EARLY_ENDS`).
     """
     settles(rule)  # the rule's name checked before anything is played
     path = DEMOS_DIR / f"{demo}.npz"

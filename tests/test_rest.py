@@ -166,6 +166,17 @@ def test_a_knotted_verdict_restarts_the_held_unknot_clock():
     assert out.settle_s == out.history_t[-1] == pytest.approx(1.764 + 3.024)
 
 
+def test_without_turns_the_named_early_ends_off():
+    p = SettleParams(min_s=1.0)
+    assert p.without() == p
+    assert p.without("knot_set") == SettleParams(min_s=1.0, knot_set_s=None)
+    both = p.without("knot_set", "unknot_held")
+    assert (both.knot_set_s, both.unknot_held_s, both.min_s) == (None, None, 1.0)
+    with pytest.raises(ConfigError) as e:
+        p.without("rest")
+    assert str(e.value) == "end: unknown early end 'rest' (valid choices: knot_set, unknot_held)"
+
+
 def test_fixed_settle_judges_at_its_time():
     out = _run(SettleMonitor(SettleParams.fixed(0.5), 1.0), 1.0, lambda t: 2.0, lambda t: "unknot")
     assert out.settle_s == pytest.approx(0.5, abs=0.005)
