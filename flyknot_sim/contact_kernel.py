@@ -31,7 +31,7 @@ def self_contact_span(flex, elem, geom, exclude, ncon, flex_id, end_geom, n):
         exclude: MuJoCo's exclusion flag per contact, (>= ncon,) (0: active).
         ncon: Contacts to scan.
         flex_id: The rope's flex.
-        end_geom: The end weight's geom (-1: none).
+        end_geom: The end weight's geom (a geom of the model, >= 0: flex sides carry -1).
         n: The rope's element count.
     """
     lo, hi = -1, -1
