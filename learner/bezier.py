@@ -17,6 +17,7 @@ from __future__ import annotations
 import numbers
 from collections.abc import Iterable
 from dataclasses import dataclass
+from functools import lru_cache
 from math import comb, factorial
 
 import numpy as np
@@ -143,10 +144,24 @@ def controller_basis(t: np.ndarray, T: float, derivative: int = 0) -> np.ndarray
         derivative: Order r, one of 0, 1, 2.
 
     Returns:
-        Basis, shape (m, 8) [1 / s^r].
+        Basis, shape (m, 8) [1 / s^r], read-only (one array per grid, T and r is kept: an
+        update asks for the same grid's bases several times).
     """
     check_choice("derivative", derivative, (0, 1, 2))
-    t = np.asarray(t, dtype=float)
+    t = np.ascontiguousarray(t, dtype=float)
+    if t.ndim != 1:
+        return _controller_basis(t, T, derivative)  # raises the shape's ConfigError
+    return _controller_basis_of(t.tobytes(), _float_T(T), int(derivative))
+
+
+@lru_cache(maxsize=16)
+def _controller_basis_of(t_bytes: bytes, T: float, derivative: int) -> np.ndarray:
+    out = _controller_basis(np.frombuffer(t_bytes, dtype=float), T, derivative)
+    out.setflags(write=False)
+    return out
+
+
+def _controller_basis(t: np.ndarray, T: float, derivative: int) -> np.ndarray:
     basis = bernstein_basis(t, T, 0)
     if derivative == 0:
         return basis
@@ -220,7 +235,7 @@ def basis_jacobian(basis: np.ndarray, rows: Iterable[int] = range(N_JOINTS)) -> 
     rows = _rows(rows)
     select = np.zeros((len(rows), N_ROWS))
     select[np.arange(len(rows)), rows] = 1.0
-    jac = np.einsum("aj,cq->acqj", basis, select)
+    jac = basis[:, None, None, :] * select[None, :, :, None]  # (m, rows, 10, 8)
     return jac.reshape(basis.shape[0] * len(rows), N_ROWS * N_KNOTS)
 
 

@@ -192,22 +192,34 @@ def propagate_sensitivity(
     K = np.zeros((4 * n, 4 * n))
     dvec = np.empty((n, 3))
     rhs = np.empty((4 * n, nth))
+    row = np.empty(nth)  # one rhs row, summed term by term in the order of the formula
     last = -1
     for k in range(slot.shape[0]):
         if slot[k] >= 0:
             last = k
+    drive = np.empty((2, 3, nth))  # c_next dA_{k+1} - beta dA_k, the same for every row i
     for k in range(last):
+        for b in range(2):
+            for a in range(3):
+                for t in range(nth):
+                    drive[b, a, t] = c_next * dA[k + 1, b, a, t] - beta * dA[k, b, a, t]
         for i in range(n):
             for a in range(3):
                 for t in range(nth):
-                    s = -m[i] * dp[i, a, t] - dt * m[i] * dv[i, a, t]
-                    for j in range(n):
-                        s -= beta * DtD[i, j] * dp[j, a, t]
-                    for b in range(2):
-                        s += DtDin[i, b] * (c_next * dA[k + 1, b, a, t] - beta * dA[k, b, a, t])
-                    if i == 0:
-                        s += (MU[k + 1, 0] / ell) * dU_tip[k + 1, a, t]
-                    rhs[3 * i + a, t] = -s
+                    row[t] = -m[i] * dp[i, a, t] - dt * m[i] * dv[i, a, t]
+                for j in range(n):
+                    w = beta * DtD[i, j]
+                    for t in range(nth):
+                        row[t] -= w * dp[j, a, t]
+                for b in range(2):
+                    for t in range(nth):
+                        row[t] += DtDin[i, b] * drive[b, a, t]
+                if i == 0:
+                    w = MU[k + 1, 0] / ell
+                    for t in range(nth):
+                        row[t] += w * dU_tip[k + 1, a, t]
+                for t in range(nth):
+                    rhs[3 * i + a, t] = -row[t]
         for i in range(n):
             for t in range(nth):
                 rhs[3 * n + i, t] = 0.0

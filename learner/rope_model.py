@@ -242,6 +242,38 @@ def rope_energy(
     return kinetic + potential + bending_energy(p, p_tip, d_tip, params)
 
 
+@lru_cache(maxsize=8)
+def _kkt_indices(n: int) -> tuple[np.ndarray, ...]:
+    """Flat indices of the scaled KKT matrix (4N, 4N) of N links (read-only).
+
+    Into K: the (N, N) scalar block for each coordinate (kron(Hs, I3)), order (c, i, j); the
+    constraint rows Ghat (own point, previous point) and their transposes. Into an (N, N)
+    matrix: the diagonal, the diagonal without its last entry, the sub- and superdiagonal.
+    """
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    c = np.arange(3)
+    rows = 3 * i[None] + c[:, None, None]
+    cols = 3 * j[None] + c[:, None, None]
+    jj = np.arange(n)[:, None]
+    own_r, own_c = 3 * n + jj + 0 * c, 3 * jj + c  # (N, 3)
+    prev_r, prev_c = 3 * n + jj[1:] + 0 * c, 3 * (jj[1:] - 1) + c  # (N-1, 3)
+    d = np.arange(n)
+    out = (
+        (rows * 4 * n + cols).ravel(),
+        (own_r * 4 * n + own_c).ravel(),
+        (own_c * 4 * n + own_r).ravel(),
+        (prev_r * 4 * n + prev_c).ravel(),
+        (prev_c * 4 * n + prev_r).ravel(),
+        d * n + d,
+        d[:-1] * n + d[:-1],
+        d[1:] * n + d[:-1],
+        d[:-1] * n + d[1:],
+    )
+    for a in out:
+        a.setflags(write=False)
+    return out
+
+
 class _StepSolver:
     """Newton on the scaled KKT system of one step; keeps work arrays between steps."""
 
@@ -258,25 +290,20 @@ class _StepSolver:
         self.n = n
         self.K = np.zeros((4 * n, 4 * n))
         self.gvec = np.array([0.0, 0.0, -params.gravity])
-        # Flat indices into K: the (N, N) scalar block for each coordinate (kron(Hs, I3)), the
-        # constraint rows Ghat (own point, previous point) and their transposes.
-        i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
-        c = np.arange(3)
-        rows = 3 * i[None] + c[:, None, None]
-        cols = 3 * j[None] + c[:, None, None]
-        self.idx_H = (rows * 4 * n + cols).ravel()  # order (c, i, j)
-        jj = np.arange(n)[:, None]
-        own_r, own_c = 3 * n + jj + 0 * c, 3 * jj + c  # (N, 3)
-        prev_r, prev_c = 3 * n + jj[1:] + 0 * c, 3 * (jj[1:] - 1) + c  # (N-1, 3)
-        self.idx_G_own = (own_r * 4 * n + own_c).ravel()
-        self.idx_GT_own = (own_c * 4 * n + own_r).ravel()
-        self.idx_G_prev = (prev_r * 4 * n + prev_c).ravel()
-        self.idx_GT_prev = (prev_c * 4 * n + prev_r).ravel()
-        d = np.arange(n)
-        self.diag = d * n + d
-        self.diag_prev = d[:-1] * n + d[:-1]
-        self.low = d[1:] * n + d[:-1]
-        self.up = d[:-1] * n + d[1:]
+        m = ops.m[:, None]
+        self._neg_m = -m  # the constant's terms that do not change from step to step
+        self._gravity_term = params.dt**2 * m * self.gvec  # dt^2 M g_vec (N, 3)
+        (
+            self.idx_H,
+            self.idx_G_own,
+            self.idx_GT_own,
+            self.idx_G_prev,
+            self.idx_GT_prev,
+            self.diag,
+            self.diag_prev,
+            self.low,
+            self.up,
+        ) = _kkt_indices(n)
 
     def kkt(self, p: np.ndarray, mu: np.ndarray, p_tip: np.ndarray) -> np.ndarray:
         """Scaled KKT matrix d(R1s, R2s)/d(p', mu'), shape (4N, 4N), at (p', mu', p_tip').
@@ -314,12 +341,11 @@ class _StepSolver:
         with A = (p_tip - l d_tip, p_tip) (2, 3) [m], kappa = k dt^2 / l^2, beta = b dt / l^2.
         """
         ops, dt = self.ops, self.params.dt
-        m = ops.m[:, None]
         return (
-            -m * (p_k + dt * v_k)
+            self._neg_m * (p_k + dt * v_k)
             + ops.kappa * (ops.DtDin @ A_next)
             + ops.beta * (ops.DtDin @ (A_next - A_k) - ops.DtD @ p_k)
-            - dt**2 * m * self.gvec
+            - self._gravity_term
         )
 
     def residual(
@@ -419,6 +445,12 @@ def _solver_options(tol: float, max_iter: int) -> None:
         raise ConfigError("max_iter", f"must be an integer >= 1, got {max_iter!r}")
 
 
+@lru_cache(maxsize=64)
+def _with_dt(params: RopeModelParams, dt: float) -> RopeModelParams:
+    """``params`` with the step dt [s] (cached: :func:`hanging_state`'s pseudo-time steps)."""
+    return dataclasses.replace(params, dt=dt)
+
+
 def hanging_state(
     p_tip: np.ndarray,
     d_tip: np.ndarray,
@@ -462,7 +494,7 @@ def hanging_state(
         h = min(params.dt * 2.0**j, _HANG_H_MAX)
         # The scaled residual grows with h^2 (and so does its rounding): loosen Newton alike.
         newton_tol = NEWTON_TOL * max(1.0, (h / params.dt) ** 2)
-        solver = _StepSolver(dataclasses.replace(params, dt=h), newton_tol, NEWTON_MAX_ITER)
+        solver = _StepSolver(_with_dt(params, h), newton_tol, NEWTON_MAX_ITER)
         p_new, mu, _ = solver.solve(j, p, zeros, A, A, mu_scaled * h**2)
         mu_scaled = mu / h**2
         change = np.max(np.abs(p_new - p))

@@ -10,7 +10,7 @@ term). Built once per run by :meth:`DemoTarget.from_demonstration`.
 from __future__ import annotations
 
 import numbers
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
@@ -25,6 +25,7 @@ from learner.system_model import model_times
 STATE_DIM = 66  # rope state [p_1..p_11, v_1..v_11]
 TIME_TOL = 1e-9  # [s] slack when comparing times with the model grid and t_c
 _ROT_TOL = 1e-6
+_HAND_CACHE_SIZE = 8  # time grids whose hand a target keeps
 
 
 @dataclass(frozen=True, eq=False)
@@ -51,6 +52,7 @@ class DemoTarget:
     hand_rot: np.ndarray
     hand_v: np.ndarray
     x_pre: np.ndarray
+    _hand_cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         for name in ("T", "dt"):
@@ -108,9 +110,18 @@ class DemoTarget:
             t: Times, shape (m,) [s] in [0, T].
 
         Returns:
-            (p (m, 3) [m], R (m, 3, 3), v (m, 3) [m/s]).
+            (p (m, 3) [m], R (m, 3, 3), v (m, 3) [m/s]), read-only (kept per times: each
+            update of a learning run asks for the same follow-through grid).
         """
-        t = np.atleast_1d(np.asarray(t, dtype=float))
+        t = np.ascontiguousarray(np.atleast_1d(np.asarray(t, dtype=float)))
+        key = (t.shape, t.tobytes())
+        if key not in self._hand_cache:
+            if len(self._hand_cache) >= _HAND_CACHE_SIZE:
+                self._hand_cache.clear()
+            self._hand_cache[key] = tuple(readonly(a) for a in self._hand_at(t))
+        return self._hand_cache[key]
+
+    def _hand_at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         grid = self.t
         if (
             t.ndim != 1

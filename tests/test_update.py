@@ -366,6 +366,22 @@ def test_target_from_demonstration_is_the_model_state(problem):
     np.testing.assert_allclose(p[1], 0.5 * (target.hand_p[90] + target.hand_p[91]), atol=1e-14)
 
 
+def test_target_keeps_the_hand_of_a_grid_read_only(problem):
+    _, _, target, _ = problem
+    t = np.array([0.1, T_C, 0.4525])
+    first = target.hand_at(t)
+    again = target.hand_at(t.copy())
+    assert all(a is b for a, b in zip(first, again, strict=True))
+    assert not any(a.flags.writeable for a in first)
+    fresh = target._hand_at(t)  # what the cache keeps is what it computes
+    for a, b in zip(first, fresh, strict=True):
+        np.testing.assert_array_equal(a, b)
+    other = target.hand_at(np.array([0.2]))
+    np.testing.assert_array_equal(other[0], target._hand_at(np.array([0.2]))[0])
+    with pytest.raises(ConfigError, match="must be finite times in"):
+        target.hand_at(np.array([-1.0]))
+
+
 def test_target_marks_lost_demo_markers_as_nan(problem):
     _, _, _, demo = problem
     markers = np.array(demo.markers)
