@@ -370,7 +370,8 @@ def build_inverse_qp(
         g -= M.T @ (Qd * err)
         const += float(err @ (Qd * err))
     if follow is not None:
-        W = np.array([weights.follow_weights(bool(tc)) for tc in follow.is_tc])  # (k, 9)
+        at_tc = np.asarray(follow.is_tc, dtype=bool)[:, None]
+        W = np.where(at_tc, weights.follow_weights(True), weights.follow_weights(False))  # (k, 9)
         J = np.ascontiguousarray(follow.J, dtype=float)
         H += weighted_gram(J, W)  # sum_t J_t^T W_t J_t
         g -= weighted_rhs(J, W, np.ascontiguousarray(follow.e, dtype=float))  # sum_t J_t^T W_t e_t
