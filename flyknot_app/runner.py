@@ -163,12 +163,16 @@ def execute_run(
     progress: bool,
     figure: bool = False,
 ) -> RunSummary:
-    """Learn (and optionally repeat) one run; write and return its summary.
+    """:func:`play_run`, then :func:`finish_run`: one run and its post-run work, here."""
+    summary = play_run(spec, out_dir, knots0, resume=resume, progress=progress)
+    finish_run(spec, out_dir, summary, figure=figure)
+    return summary
 
-    When the run ends, its trials' failure-anatomy diagnoses are stored beside their records,
-    the pictures of its knots are drawn into the scenario's ``verdicts/`` and, with
-    ``figure``, its critical-point figure is drawn for the scenario's report: work the report
-    would otherwise do after every run, one at a time.
+
+def play_run(
+    spec: RunSpec, out_dir: Path, knots0: np.ndarray | None, *, resume: bool, progress: bool
+) -> RunSummary:
+    """Learn (and optionally repeat) one run; write and return its summary.
 
     The run's cell is opened here and closed when the run ends, however it ends (a real
     lab's connection to the controller and the motion capture).
@@ -180,21 +184,37 @@ def execute_run(
             return done
     lab = open_cell(spec.cell, spec.cell_spec())
     try:
-        summary = _execute_on(lab, spec, out_dir, knots0, resume=resume, progress=progress)
+        return _execute_on(lab, spec, out_dir, knots0, resume=resume, progress=progress)
     finally:
         close = getattr(lab, "close", None)
         if callable(close):
             close()
+
+
+FINISHED = "post_run.done"
+"""Written into a run's directory when :func:`finish_run` has done its work."""
+
+
+def finish_run(spec: RunSpec, out_dir: Path, summary: RunSummary, *, figure: bool = False) -> None:
+    """A finished run's post-run work, which the scenario's report would otherwise do for
+    every run, one at a time, after the last: its trials' failure-anatomy diagnoses stored
+    beside their records, the pictures of its knots drawn into the scenario's ``verdicts/``
+    and, with ``figure``, its critical-point figure. Done once: a resumed scenario skips the
+    runs whose directory holds :data:`FINISHED`.
+    """
     from flyknot_app.anatomy_report import store_diagnoses
     from flyknot_app.judging import draw_run_knots
     from flyknot_app.report import critical_figure_path, plot_critical_overlays
 
     run_dir = out_dir / "runs" / spec.name
+    if (run_dir / FINISHED).is_file():
+        return
     store_diagnoses(run_dir)
     draw_run_knots(run_dir, out_dir)
     if figure:
         plot_critical_overlays(run_dir, summary, critical_figure_path(out_dir, spec.name))
-    return summary
+    if run_dir.is_dir():
+        atomic_write_text(run_dir / FINISHED, "")
 
 
 def command_limits(lab: Any) -> JointLimits:
@@ -472,7 +492,13 @@ def run_scenarios(
     done: dict[str, ScenarioDone] = {}
     t0 = time.perf_counter()
     for job, res, wall in run_jobs(
-        jobs, execute_run, executor=executor, workers=workers, address=address, progress=progress
+        jobs,
+        play_run,
+        finish=finish_run,
+        executor=executor,
+        workers=workers,
+        address=address,
+        progress=progress,
     ):
         results[job.scenario][job.spec.name] = res
         run_s[job.scenario] += wall

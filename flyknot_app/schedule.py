@@ -101,24 +101,34 @@ def _knots0(job: RunJob) -> np.ndarray | None:
 
 
 Play = Callable[..., RunSummary]
-"""Executes one run: ``play(spec, out_dir, knots0, resume=, progress=, figure=)`` (the
-runner's ``execute_run``; a module-level function, so that it reaches worker processes)."""
+"""Executes one run: ``play(spec, out_dir, knots0, resume=, progress=)`` (the runner's
+``play_run``; a module-level function, so that it reaches worker processes)."""
+
+Finish = Callable[..., None]
+"""A finished run's post-run work: ``finish(spec, out_dir, summary, figure=)`` (the runner's
+``finish_run``), scheduled as its own task."""
 
 
-def _play(
-    play: Play, job: RunJob, knots0: np.ndarray | None, progress: bool
+def _task(
+    play: Play,
+    finish: Finish | None,
+    job: RunJob,
+    knots0: np.ndarray | None,
+    summary: RunSummary | None,
+    progress: bool = False,
 ) -> tuple[RunSummary, float]:
-    """Execute one run; its summary and wall seconds."""
+    """One task: the run (``summary`` None) or its post-run work; the summary and wall
+    seconds."""
     t0 = time.perf_counter()
-    summary = play(
-        job.spec, job.out_dir, knots0, resume=job.resume, progress=progress, figure=job.figure
-    )
+    if summary is None:
+        summary = play(job.spec, job.out_dir, knots0, resume=job.resume, progress=progress)
+    elif finish is not None:
+        finish(job.spec, job.out_dir, summary, figure=job.figure)
     return summary, time.perf_counter() - t0
 
 
-def _worker(args: tuple[Play, RunJob, np.ndarray | None]) -> tuple[RunSummary, float]:
-    play, job, knots0 = args
-    return _play(play, job, knots0, progress=False)
+def _worker(args: tuple) -> tuple[RunSummary, float]:
+    return _task(*args)
 
 
 class _Ready:
@@ -173,16 +183,20 @@ def run_jobs(
     jobs: Sequence[RunJob],
     play: Play,
     *,
+    finish: Finish | None = None,
     executor: str = "process",
     workers: int = 1,
     address: str | None = None,
     progress: bool = False,
 ) -> Iterator[tuple[RunJob, RunSummary, float]]:
-    """Run every job with ``play``; yield ``(job, summary, wall seconds)`` as each finishes.
+    """Run every job with ``play`` (then ``finish``); yield ``(job, summary, wall seconds)``
+    as each has finished both.
 
     A job starts once the run it starts from has finished (its learned command is read from
-    disk then); of the jobs that can start, the highest :func:`ranks` goes first. At most
-    ``workers`` runs are in flight (on a Ray cluster at ``address``: every run that can start).
+    disk then); of the jobs that can start, the highest :func:`ranks` goes first. A run's
+    ``finish`` is a task of its own, started when no run can start: short post-run work fills
+    the pool's idle workers while the last runs end. At most ``workers`` tasks are in flight
+    (on a Ray cluster at ``address``: every task that can start).
 
     Raises:
         ConfigError: An unknown executor, ``workers`` < 1, or runs that wait on each other.
@@ -193,11 +207,11 @@ def run_jobs(
         raise ConfigError("--workers", f"must be an integer >= 1, got {workers!r}")
     ready = _Ready(jobs)
     if executor == "ray":
-        yield from _on_ray(play, ready, len(jobs), workers, address)
+        yield from _on_ray(play, finish, ready, len(jobs), workers, address)
     elif workers == 1 or len(jobs) == 1:
-        yield from _in_process(play, ready, progress)
+        yield from _in_process(play, finish, ready, progress)
     else:
-        yield from _on_pool(play, ready, len(jobs), workers)
+        yield from _on_pool(play, finish, ready, len(jobs), workers)
 
 
 def _check_stuck(ready: _Ready) -> None:
@@ -205,32 +219,67 @@ def _check_stuck(ready: _Ready) -> None:
         raise ConfigError("start_from", "runs depend on each other in a cycle")
 
 
-def _in_process(play: Play, ready: _Ready, progress: bool):
+def _in_process(play: Play, finish: Finish | None, ready: _Ready, progress: bool):
     while (job := ready.pop()) is not None:
-        summary, wall = _play(play, job, _knots0(job), progress)
+        summary, wall = _task(play, finish, job, _knots0(job), None, progress)
         ready.finished(job)
+        if finish is not None:
+            wall += _task(play, finish, job, None, summary)[1]
         yield job, summary, wall
     _check_stuck(ready)
 
 
-def _on_pool(play: Play, ready: _Ready, n_jobs: int, workers: int):
-    with ProcessPoolExecutor(max_workers=min(workers, n_jobs)) as pool:
-        running: dict[Any, RunJob] = {}
-        while True:
-            while len(running) < workers and (job := ready.pop()) is not None:
-                running[pool.submit(_worker, (play, job, _knots0(job)))] = job
-            if not running:
+Submit = Callable[[tuple], Any]
+"""Starts :func:`_worker` on its arguments; a handle of the running task."""
+WaitOne = Callable[[list], tuple[Any, tuple[RunSummary, float]]]
+"""Waits for one of the handles to finish; it and its result."""
+
+
+def _drive(
+    play: Play, finish: Finish | None, ready: _Ready, limit: int, submit: Submit, wait_one: WaitOne
+):
+    """Keep ``limit`` tasks in flight: a run that can start first, else a finished run's
+    post-run work; yield each run once both are done (its wall seconds summed)."""
+    running: dict[Any, tuple[RunJob, float | None]] = {}  # handle -> job, its run's seconds
+    unfinished: list[tuple[RunJob, RunSummary, float]] = []
+    while True:
+        while len(running) < limit:
+            if (job := ready.pop()) is not None:
+                running[submit((play, finish, job, _knots0(job), None))] = (job, None)
+            elif unfinished:
+                job, summary, wall = unfinished.pop(0)
+                running[submit((play, finish, job, None, summary))] = (job, wall)
+            else:
                 break
-            done, _ = wait(running, return_when=FIRST_COMPLETED)
-            for fut in done:
-                job = running.pop(fut)
-                summary, wall = fut.result()
-                ready.finished(job)
-                yield job, summary, wall
+        if not running:
+            break
+        handle, (summary, wall) = wait_one(list(running))
+        job, run_wall = running.pop(handle)
+        if run_wall is not None:
+            yield job, summary, run_wall + wall
+            continue
+        ready.finished(job)
+        if finish is None:
+            yield job, summary, wall
+        else:
+            unfinished.append((job, summary, wall))
     _check_stuck(ready)
 
 
-def _on_ray(play: Play, ready: _Ready, n_jobs: int, workers: int, address: str | None):
+def _on_pool(play: Play, finish: Finish | None, ready: _Ready, n_jobs: int, workers: int):
+    with ProcessPoolExecutor(max_workers=min(workers, n_jobs)) as pool:
+
+        def wait_one(handles: list) -> tuple[Any, tuple[RunSummary, float]]:
+            done, _ = wait(handles, return_when=FIRST_COMPLETED)
+            fut = next(iter(done))
+            return fut, fut.result()
+
+        yield from _drive(play, finish, ready, workers, lambda a: pool.submit(_worker, a), wait_one)
+
+
+def _on_ray(
+    play: Play, finish: Finish | None, ready: _Ready, n_jobs: int, workers: int, address: str | None
+):
     try:
         import ray
     except ImportError:
@@ -241,16 +290,10 @@ def _on_ray(play: Play, ready: _Ready, n_jobs: int, workers: int, address: str |
             kwargs["num_cpus"] = workers
         ray.init(address=address, **kwargs)
     task = ray.remote(num_cpus=1)(_worker)
-    limit = workers if address is None else n_jobs
-    running: dict[Any, RunJob] = {}
-    while True:
-        while len(running) < limit and (job := ready.pop()) is not None:
-            running[task.remote((play, job, _knots0(job)))] = job
-        if not running:
-            break
-        done, _ = ray.wait(list(running), num_returns=1)
-        job = running.pop(done[0])
-        summary, wall = ray.get(done[0])
-        ready.finished(job)
-        yield job, summary, wall
-    _check_stuck(ready)
+
+    def wait_one(handles: list) -> tuple[Any, tuple[RunSummary, float]]:
+        done, _ = ray.wait(handles, num_returns=1)
+        return done[0], ray.get(done[0])
+
+    limit = workers if address is None else 2 * n_jobs  # a cluster: every task that can start
+    yield from _drive(play, finish, ready, limit, task.remote, wait_one)

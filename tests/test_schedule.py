@@ -141,3 +141,113 @@ def test_two_scenarios_on_one_pool_give_what_each_gives_alone(tmp_path):
         assert (tmp_path / "one" / name / "report.md").is_file()
     with pytest.raises(ConfigError, match=r"^out_dir: two scenarios would write into the same"):
         run_scenarios([(x, tmp_path / "z"), (y, tmp_path / "z")])
+
+
+class _Clock:
+    """A pool of simulated workers: a task ends ``duration`` after it starts; ``wait_one``
+    returns the earliest to end and moves the clock there."""
+
+    def __init__(self, durations: dict[tuple[str, str], float]):
+        self.durations, self.now, self.log = durations, 0.0, []
+        self._ends: dict[int, tuple[float, tuple]] = {}
+
+    def submit(self, args: tuple) -> int:
+        from flyknot_app.schedule import _task
+
+        play, finish, job, knots0, summary = args
+        kind = "run" if summary is None else "finish"
+        self.log.append((self.now, "start", kind, job.spec.name))
+        result = _task(play, finish, job, knots0, summary)
+        end = self.now + self.durations[kind, job.spec.name]
+        self._ends[len(self._ends)] = (end, (kind, job.spec.name, result))
+        return len(self._ends) - 1
+
+    def wait_one(self, handles: list) -> tuple[int, tuple]:
+        h = min(handles, key=lambda k: self._ends[k][0])
+        end, (kind, name, result) = self._ends[h]
+        self.now = end
+        self.log.append((end, "end", kind, name))
+        return h, (
+            result[0],
+            end - next(t for t, e, k, n in self.log if (e, k, n) == ("start", kind, name)),
+        )
+
+
+def test_post_run_work_is_its_own_task_and_fills_idle_workers():
+    from flyknot_app.schedule import _drive
+
+    jobs = _jobs(
+        {
+            "defaults": {"max_trials": 10},
+            "run": [{"name": "a", "max_trials": 25}, {"name": "b"}, {"name": "c"}],
+        }
+    )
+    clock = _Clock(
+        {("run", "a"): 10.0, ("run", "b"): 2.0, ("run", "c"): 2.0}
+        | {("finish", n): 1.0 for n in "abc"}
+    )
+    finished = []
+
+    def play(spec, out_dir, knots0, *, resume, progress):
+        return f"summary {spec.name}"
+
+    def finish(spec, out_dir, summary, *, figure):
+        finished.append((spec.name, summary))
+
+    out = list(_drive(play, finish, _Ready(jobs), 2, clock.submit, clock.wait_one))
+    # a (rank 25) and b start; c waits for a free worker, then the finishes of b and c run
+    # beside a: the second worker is busy until 6 s, a and its finish end at 11 s
+    assert [(j.spec.name, s, w) for j, s, w in out] == [
+        ("b", "summary b", 3.0),
+        ("c", "summary c", 3.0),
+        ("a", "summary a", 11.0),
+    ]
+    starts = [(t, kind, name) for t, e, kind, name in clock.log if e == "start"]
+    assert starts == [
+        (0.0, "run", "a"),
+        (0.0, "run", "b"),
+        (2.0, "run", "c"),  # a run before the waiting finish of b
+        (4.0, "finish", "b"),
+        (5.0, "finish", "c"),
+        (10.0, "finish", "a"),
+    ]
+    assert finished == [("b", "summary b"), ("c", "summary c"), ("a", "summary a")]
+
+
+def test_without_a_finish_a_run_is_yielded_when_it_ends():
+    from flyknot_app.schedule import _drive
+
+    jobs = _jobs({"run": [{"name": n, "max_trials": 5} for n in "abc"]})
+    clock = _Clock({("run", "a"): 3.0, ("run", "b"): 1.0, ("run", "c"): 1.0})
+
+    def play(spec, out_dir, knots0, *, resume, progress):
+        return spec.name
+
+    drive = _drive(play, None, _Ready(jobs), 2, clock.submit, clock.wait_one)
+    assert [(j.spec.name, s, w) for j, s, w in drive] == [
+        ("b", "b", 1.0),
+        ("c", "c", 1.0),
+        ("a", "a", 3.0),
+    ]
+    assert [e[2] for e in clock.log if e[1] == "start"] == ["run"] * 3
+
+
+def test_a_runs_post_run_work_is_done_once(monkeypatch, tmp_path):
+    from flyknot_app import runner
+    from flyknot_app.anatomy_report import store_diagnoses  # noqa: F401 (the patched module)
+
+    calls = []
+    monkeypatch.setattr(
+        "flyknot_app.anatomy_report.store_diagnoses", lambda d: calls.append(("diag", d))
+    )
+    monkeypatch.setattr(
+        "flyknot_app.judging.draw_run_knots", lambda d, root: calls.append(("knots", d))
+    )
+    spec = parse_scenario({"run": [{"name": "a"}]}, name="x").runs[0]
+    run_dir = tmp_path / "runs" / "a"
+    run_dir.mkdir(parents=True)
+    runner.finish_run(spec, tmp_path, "summary")
+    assert calls == [("diag", run_dir), ("knots", run_dir)]
+    assert (run_dir / runner.FINISHED).is_file()
+    runner.finish_run(spec, tmp_path, "summary")  # a resumed scenario: already done
+    assert len(calls) == 2
