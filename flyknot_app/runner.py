@@ -29,6 +29,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from flyknot import __version__
+from flyknot.cache import cache_root
 from flyknot.constants import DEMOS_DIR, FOLLOW_THROUGH_S, PATH_FRAC
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, FlyknotError, RecordError
@@ -85,7 +86,9 @@ def initial_knots(
     window: tuple[float, float] = (FOLLOW_THROUGH_S, PATH_FRAC),
     progress: bool = False,
 ) -> tuple[np.ndarray, dict]:
-    """kappa_0 for a demonstration, computed once per run directory and cached there.
+    """kappa_0 for a demonstration, cached in the run directory (``initial_guess/``, kept
+    with the run) and in the machine's cache (:func:`guess_key`), so that a scenario run into
+    a new directory reuses a guess this machine has made before from the same inputs.
 
     ``progress``: show IPOPT's iterations (a bar on a terminal; nothing otherwise).
 
@@ -95,17 +98,25 @@ def initial_knots(
     """
     from scipy.spatial.transform import Rotation
 
-    from learner.initial_guess import InitialGuessParams, initial_guess
+    from learner import initial_guess as guess_module
+    from learner.initial_guess import InitialGuessParams
 
     cache = out_dir / "initial_guess" / guess_cache_name(demo_name, window, base_height)
     digest = hashlib.sha256(demo_path(demo_name).read_bytes()).hexdigest()
     cached = _cached_guess(cache)
     if cached is not None and cached[1].get("demo_sha256") == digest:
         return cached
+    params = InitialGuessParams(base_height=base_height)
+    key = guess_key(digest, window, rope_dt, params, robot, guess_module.initial_guess)
+    shared = cache_root() / "initial_guess" / f"{key}.npz"
+    cached = _cached_guess(shared)
+    if cached is not None and cached[1].get("demo_sha256") == digest:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        atomic_save_npz(cache, {"knots": cached[0], "info": np.array(json.dumps(cached[1]))})
+        return cached
     trimmed, target = prepare_target(demo_name, rope_dt, window)
     t = trimmed.t - trimmed.t[0]
     R = Rotation.from_quat(trimmed.hand_quat, scalar_first=True).as_matrix()
-    params = InitialGuessParams(base_height=base_height)
     from tqdm import tqdm
 
     bar = tqdm(
@@ -121,7 +132,7 @@ def initial_knots(
         bar.update(1)
 
     try:
-        res = initial_guess(
+        res = guess_module.initial_guess(
             t, trimmed.hand_pos, R, target.T, robot, params=params, on_iteration=on_iteration
         )
     finally:
@@ -139,9 +150,54 @@ def initial_knots(
     }
     if not res.success:
         raise FlyknotError(f"initial guess for demo {demo_name!r} failed: {res.status}")
-    cache.parent.mkdir(parents=True, exist_ok=True)
-    atomic_save_npz(cache, {"knots": res.knots, "info": np.array(json.dumps(info))})
+    for path in (cache, shared):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_save_npz(path, {"knots": res.knots, "info": np.array(json.dumps(info))})
     return np.asarray(res.knots), info
+
+
+def guess_key(
+    demo_sha256: str,
+    window: tuple[float, float],
+    rope_dt: float,
+    params: Any,
+    robot: Any,
+    solver: Any,
+) -> str:
+    """The key of an initial guess in the machine's cache (:func:`flyknot.cache.cache_root`,
+    ``initial_guess/``): a digest of everything the guess is computed from — the
+    demonstration file's content, the window, the model step, the guess's parameters (the
+    base height among them), the robot model (its CasADi kinematics and dynamics, serialised;
+    the shipped xArm 7 file for None), the function that makes it (a stand-in makes its own
+    entries), the machine class and CasADi's version, and the source of the learner and the
+    core it uses, so that a change of any of them makes the guess again."""
+    import casadi
+
+    import flyknot
+    import learner
+    from flyknot.constants import XARM7_XML
+    from flyknot.numerics import numerics_class
+
+    h = hashlib.sha256()
+    parts = [
+        demo_sha256,
+        repr(tuple(float(w) for w in window)),
+        repr(float(rope_dt)),
+        repr(params),
+        f"{solver.__module__}.{solver.__qualname__}",
+        numerics_class(),
+        casadi.__version__,
+    ]
+    for part in parts:
+        h.update(part.encode() + b"\0")
+    if robot is None:
+        h.update(Path(XARM7_XML).read_bytes())
+    else:
+        h.update(robot.fk.serialize().encode() + robot.inverse_dynamics.serialize().encode())
+    for pkg in (flyknot, learner):
+        for f in sorted(Path(pkg.__file__).parent.glob("*.py")):
+            h.update(f.read_bytes())
+    return h.hexdigest()[:32]
 
 
 def _cached_guess(path: Path) -> tuple[np.ndarray, dict] | None:

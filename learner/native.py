@@ -30,6 +30,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
+from flyknot.cache import cache_root
 from flyknot.errors import ConfigError, FlyknotError
 
 __all__ = ["NativeBatch", "NativeUnavailableError", "cache_dir", "compile_batch"]
@@ -45,13 +46,9 @@ class NativeUnavailableError(FlyknotError):
 
 
 def cache_dir() -> Path:
-    """Where compiled libraries are kept: ``$FLYKNOT_CACHE/native``, else
-    ``$XDG_CACHE_HOME/flyknot/native``, else ``~/.cache/flyknot/native``."""
-    root = os.environ.get("FLYKNOT_CACHE")
-    if root:
-        return Path(root) / "native"
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    return Path(xdg or Path.home() / ".cache") / "flyknot" / "native"
+    """Where compiled libraries are kept: ``native/`` under :func:`flyknot.cache.cache_root`
+    (``$FLYKNOT_CACHE``, else ``$XDG_CACHE_HOME/flyknot``, else ``~/.cache/flyknot``)."""
+    return cache_root() / "native"
 
 
 def _compiler() -> str:

@@ -10,10 +10,12 @@ the NumPy path to rounding (``tests/test_rope_kernel.py`` checks them against it
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numba
 import numpy as np
 
-__all__ = ["CONVERGED", "MAX_ITER", "NON_FINITE", "kkt_into", "newton_step"]
+__all__ = ["CONVERGED", "MAX_ITER", "NON_FINITE", "kkt_indices", "kkt_into", "newton_step"]
 
 CONVERGED, NON_FINITE, MAX_ITER = 0, 1, 2
 """Status codes of :func:`newton_step`."""
@@ -48,6 +50,38 @@ def _merit(r1, r2, m):
             phi += x * x
         phi += r2[i] * r2[i]
     return phi if np.isfinite(phi) else np.inf
+
+
+@lru_cache(maxsize=8)
+def kkt_indices(n: int) -> tuple[np.ndarray, ...]:
+    """Flat indices of the scaled KKT matrix (4N, 4N) of N links (read-only).
+
+    Into K: the (N, N) scalar block for each coordinate (kron(Hs, I3)), order (c, i, j); the
+    constraint rows Ghat (own point, previous point) and their transposes. Into an (N, N)
+    matrix: the diagonal, the diagonal without its last entry, the sub- and superdiagonal.
+    """
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    c = np.arange(3)
+    rows = 3 * i[None] + c[:, None, None]
+    cols = 3 * j[None] + c[:, None, None]
+    jj = np.arange(n)[:, None]
+    own_r, own_c = 3 * n + jj + 0 * c, 3 * jj + c  # (N, 3)
+    prev_r, prev_c = 3 * n + jj[1:] + 0 * c, 3 * (jj[1:] - 1) + c  # (N-1, 3)
+    d = np.arange(n)
+    out = (
+        (rows * 4 * n + cols).ravel(),
+        (own_r * 4 * n + own_c).ravel(),
+        (own_c * 4 * n + own_r).ravel(),
+        (prev_r * 4 * n + prev_c).ravel(),
+        (prev_c * 4 * n + prev_r).ravel(),
+        d * n + d,
+        d[:-1] * n + d[:-1],
+        d[1:] * n + d[:-1],
+        d[:-1] * n + d[1:],
+    )
+    for a in out:
+        a.setflags(write=False)
+    return out
 
 
 @numba.njit(cache=True)

@@ -49,7 +49,7 @@ import numpy as np
 from flyknot.constants import GRAVITY, MARKER_SPACING, MODEL_DT, N_MARKERS
 from flyknot.errors import ConfigError, SolverError, check_nonnegative, check_positive
 from flyknot.geometry import readonly
-from learner.rope_kernel import CONVERGED, newton_step
+from learner.rope_kernel import CONVERGED, kkt_indices, newton_step
 
 NEWTON_TOL = 1e-10  # [m], scaled residuals (see module docstring)
 NEWTON_MAX_ITER = 25
@@ -242,38 +242,6 @@ def rope_energy(
     return kinetic + potential + bending_energy(p, p_tip, d_tip, params)
 
 
-@lru_cache(maxsize=8)
-def _kkt_indices(n: int) -> tuple[np.ndarray, ...]:
-    """Flat indices of the scaled KKT matrix (4N, 4N) of N links (read-only).
-
-    Into K: the (N, N) scalar block for each coordinate (kron(Hs, I3)), order (c, i, j); the
-    constraint rows Ghat (own point, previous point) and their transposes. Into an (N, N)
-    matrix: the diagonal, the diagonal without its last entry, the sub- and superdiagonal.
-    """
-    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
-    c = np.arange(3)
-    rows = 3 * i[None] + c[:, None, None]
-    cols = 3 * j[None] + c[:, None, None]
-    jj = np.arange(n)[:, None]
-    own_r, own_c = 3 * n + jj + 0 * c, 3 * jj + c  # (N, 3)
-    prev_r, prev_c = 3 * n + jj[1:] + 0 * c, 3 * (jj[1:] - 1) + c  # (N-1, 3)
-    d = np.arange(n)
-    out = (
-        (rows * 4 * n + cols).ravel(),
-        (own_r * 4 * n + own_c).ravel(),
-        (own_c * 4 * n + own_r).ravel(),
-        (prev_r * 4 * n + prev_c).ravel(),
-        (prev_c * 4 * n + prev_r).ravel(),
-        d * n + d,
-        d[:-1] * n + d[:-1],
-        d[1:] * n + d[:-1],
-        d[:-1] * n + d[1:],
-    )
-    for a in out:
-        a.setflags(write=False)
-    return out
-
-
 class _StepSolver:
     """Newton on the scaled KKT system of one step; keeps work arrays between steps."""
 
@@ -303,7 +271,7 @@ class _StepSolver:
             self.diag_prev,
             self.low,
             self.up,
-        ) = _kkt_indices(n)
+        ) = kkt_indices(n)
 
     def kkt(self, p: np.ndarray, mu: np.ndarray, p_tip: np.ndarray) -> np.ndarray:
         """Scaled KKT matrix d(R1s, R2s)/d(p', mu'), shape (4N, 4N), at (p', mu', p_tip').

@@ -197,6 +197,7 @@ def test_a_lab_with_another_base_height_gets_its_own_initial_guess(tmp_path, mon
         )
 
     monkeypatch.setattr(ig, "initial_guess", fake_guess)
+    monkeypatch.setenv("FLYKNOT_CACHE", str(tmp_path / "cache"))  # no stand-in guess kept
     a, _ = runner.initial_knots("robot", tmp_path, None, 0.005, 1.3, (0.25, 0.0))
     b, _ = runner.initial_knots("robot", tmp_path, None, 0.005, 0.8, (0.25, 0.0))
     again, _ = runner.initial_knots("robot", tmp_path, None, 0.005, 1.3, (0.25, 0.0))
@@ -225,6 +226,7 @@ def test_a_changed_demonstration_file_gets_a_new_initial_guess(tmp_path, monkeyp
         )  # fmt: skip
 
     monkeypatch.setattr(ig, "initial_guess", fake_guess)
+    monkeypatch.setenv("FLYKNOT_CACHE", str(tmp_path / "cache"))  # no stand-in guess kept
     demo = tmp_path / "mine.npz"
     shutil.copy(DEMOS_DIR / "slow.npz", demo)
     a, _ = runner.initial_knots(str(demo), tmp_path, None, 0.005, 1.0)
@@ -392,3 +394,60 @@ def test_a_runs_learner_options_are_the_loops():
     assert params.update.margin == 0.25 and params.update.weights.w_crit_pos == 25.0
     with pytest.raises(ConfigError, match=r"^gain: must lie in \(0, 1\], got 2$"):
         from_mapping(RunSpec, {"name": "a", "gain": 2})
+
+
+def test_an_initial_guess_is_reused_from_the_machines_cache(tmp_path, monkeypatch):
+    """A scenario run into a new directory reuses the guess this machine made from the same
+    inputs (and copies it into the run directory); other inputs make their own."""
+    import flyknot_app.runner as runner
+    from learner import initial_guess as ig
+
+    made = []
+
+    def fake_guess(t, p, R, T, robot, params, on_iteration=None):
+        from types import SimpleNamespace
+
+        made.append(params.base_height)
+        return SimpleNamespace(
+            success=True, status="ok", cost=0.0, solve_time=0.0, max_errors={}, rms_errors={},
+            knots=np.full((10, 8), float(len(made))),
+        )  # fmt: skip
+
+    monkeypatch.setattr(ig, "initial_guess", fake_guess)
+    monkeypatch.setenv("FLYKNOT_CACHE", str(tmp_path / "cache"))
+    a, _ = runner.initial_knots("robot", tmp_path / "a", None, 0.005, 1.3)
+    b, info = runner.initial_knots("robot", tmp_path / "b", None, 0.005, 1.3)
+    assert made == [1.3] and a[0, 0] == b[0, 0] == 1.0
+    assert (
+        tmp_path
+        / "b"
+        / "initial_guess"
+        / runner.guess_cache_name("robot", (runner.FOLLOW_THROUGH_S, runner.PATH_FRAC), 1.3)
+    ).is_file()
+    assert (
+        info["demo_sha256"]
+        == runner.hashlib.sha256(runner.demo_path("robot").read_bytes()).hexdigest()
+    )
+    runner.initial_knots("robot", tmp_path / "c", None, 0.005, 0.8)  # another base height
+    runner.initial_knots("robot", tmp_path / "d", None, 0.005, 1.3, (0.1, 0.0))  # window
+    assert made == [1.3, 0.8, 1.3]
+    assert len(list((tmp_path / "cache" / "initial_guess").glob("*.npz"))) == 3
+
+
+def test_the_guess_key_names_every_input():
+    from flyknot_app.runner import guess_key
+    from learner.initial_guess import InitialGuessParams, initial_guess
+    from learner.kinematics import RobotModel
+
+    base = ("a" * 64, (0.25, 0.0), 0.005, InitialGuessParams(base_height=1.3), None, initial_guess)
+    key = guess_key(*base)
+    assert key == guess_key(*base) and len(key) == 32
+    changed = [
+        ("b" * 64, *base[1:]),
+        (base[0], (0.2, 0.0), *base[2:]),
+        (*base[:2], 0.004, *base[3:]),
+        (*base[:3], InitialGuessParams(base_height=1.0), *base[4:]),
+        (*base[:4], RobotModel.from_mjcf(include_damping=False), base[5]),
+        (*base[:5], guess_key),
+    ]
+    assert len({guess_key(*c) for c in changed} | {key}) == len(changed) + 1

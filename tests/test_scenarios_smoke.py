@@ -19,16 +19,24 @@ FILES = sorted(SCENARIOS_DIR.glob("*.toml"))
 TINY = ["max_trials=1", "settle_s=0.2", "max_runs=2"]
 
 
+def _tiny(path: Path):
+    """The scenario at tiny size (its first runs, one trial, one repeat where it repeats)."""
+    scen = load_scenario(str(path), parse_overrides(TINY))
+    if any(r.repeats for r in scen.runs):
+        scen = load_scenario(str(path), parse_overrides([*TINY, "repeats=1"]))
+    return scen
+
+
 @pytest.fixture(scope="session")
 def guess_cache(tmp_path_factory):
-    """Initial guesses of every (demonstration, window) the scenario files use, computed
-    once for all smoke runs."""
+    """Initial guesses of every (demonstration, window) the tiny scenarios and the tests below
+    use, computed once for all smoke runs."""
     from learner.kinematics import RobotModel
 
     root = tmp_path_factory.mktemp("ig")
     robot = RobotModel.from_mjcf()
     z = float(robot_base_pose(SceneParams())[2])
-    used = {(r.demo, r.window) for f in FILES for r in load_scenario(str(f)).runs}
+    used = {(r.demo, r.window) for f in FILES for r in _tiny(f).runs}
     for demo, window in sorted(used):
         initial_knots(demo, root, robot, 0.005, z, window)
     return root / "initial_guess"
@@ -37,9 +45,7 @@ def guess_cache(tmp_path_factory):
 @pytest.mark.parametrize("path", FILES, ids=lambda p: p.stem)
 def test_scenario_runs_at_tiny_size(path: Path, tmp_path, guess_cache):
     overrides = parse_overrides(TINY)
-    scen = load_scenario(str(path), overrides)
-    if any(r.repeats for r in scen.runs):
-        scen = load_scenario(str(path), parse_overrides([*TINY, "repeats=1"]))
+    scen = _tiny(path)
     out = tmp_path / scen.name
     shutil.copytree(guess_cache, out / "initial_guess")
     summary = run_scenario(scen, out, overrides=overrides, progress=False)
