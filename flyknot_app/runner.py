@@ -21,7 +21,6 @@ import hashlib
 import json
 import platform
 import time
-import zipfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -39,6 +38,7 @@ from flyknot.progress import bar_disable
 from flyknot.record import TrialRecord, atomic_save_npy, atomic_save_npz, atomic_write_text
 from flyknot.verdict import JUDGE_NAME
 from flyknot_app.cells import open_cell
+from flyknot_app.guess_cache import cached_guess, guess_cache_name, guess_key
 from flyknot_app.run_summary import RunSummary, ScenarioSummary
 from flyknot_app.scenario import RunSpec, Scenario, find_named_file
 
@@ -67,16 +67,6 @@ def prepare_target(
     return trimmed, DemoTarget.from_demonstration(trimmed, dt=rope_dt)
 
 
-def guess_cache_name(demo_name: str, window: tuple[float, float], base_height: float) -> str:
-    """File name of a cached initial guess: the demo's stem, the window when it is not the
-    paper's, and the robot base's height [m] (the guess keeps the fingertip z_min above the
-    floor, so a lab with another base height needs its own)."""
-    stem = Path(demo_name).stem
-    if tuple(window) != (FOLLOW_THROUGH_S, PATH_FRAC):
-        stem += f"_ft{window[0]:g}_p{window[1]:g}"
-    return f"{stem}_base{base_height:.4f}.npz"
-
-
 def initial_knots(
     demo_name: str,
     out_dir: Path,
@@ -103,13 +93,13 @@ def initial_knots(
 
     cache = out_dir / "initial_guess" / guess_cache_name(demo_name, window, base_height)
     digest = hashlib.sha256(demo_path(demo_name).read_bytes()).hexdigest()
-    cached = _cached_guess(cache)
+    cached = cached_guess(cache)
     if cached is not None and cached[1].get("demo_sha256") == digest:
         return cached
     params = InitialGuessParams(base_height=base_height)
     key = guess_key(digest, window, rope_dt, params, robot, guess_module.initial_guess)
     shared = cache_root() / "initial_guess" / f"{key}.npz"
-    cached = _cached_guess(shared)
+    cached = cached_guess(shared)
     if cached is not None and cached[1].get("demo_sha256") == digest:
         cache.parent.mkdir(parents=True, exist_ok=True)
         atomic_save_npz(cache, {"knots": cached[0], "info": np.array(json.dumps(cached[1]))})
@@ -154,60 +144,6 @@ def initial_knots(
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_save_npz(path, {"knots": res.knots, "info": np.array(json.dumps(info))})
     return np.asarray(res.knots), info
-
-
-def guess_key(
-    demo_sha256: str,
-    window: tuple[float, float],
-    rope_dt: float,
-    params: Any,
-    robot: Any,
-    solver: Any,
-) -> str:
-    """The key of an initial guess in the machine's cache (:func:`flyknot.cache.cache_root`,
-    ``initial_guess/``): a digest of everything the guess is computed from — the
-    demonstration file's content, the window, the model step, the guess's parameters (the
-    base height among them), the robot model (its CasADi kinematics and dynamics, serialised;
-    the shipped xArm 7 file for None), the function that makes it (a stand-in makes its own
-    entries), the machine class and CasADi's version, and the source of the learner and the
-    core it uses, so that a change of any of them makes the guess again."""
-    import casadi
-
-    import flyknot
-    import learner
-    from flyknot.constants import XARM7_XML
-    from flyknot.numerics import numerics_class
-
-    h = hashlib.sha256()
-    parts = [
-        demo_sha256,
-        repr(tuple(float(w) for w in window)),
-        repr(float(rope_dt)),
-        repr(params),
-        f"{solver.__module__}.{solver.__qualname__}",
-        numerics_class(),
-        casadi.__version__,
-    ]
-    for part in parts:
-        h.update(part.encode() + b"\0")
-    if robot is None:
-        h.update(Path(XARM7_XML).read_bytes())
-    else:
-        h.update(robot.fk.serialize().encode() + robot.inverse_dynamics.serialize().encode())
-    for pkg in (flyknot, learner):
-        for f in sorted(Path(pkg.__file__).parent.glob("*.py")):
-            h.update(f.read_bytes())
-    return h.hexdigest()[:32]
-
-
-def _cached_guess(path: Path) -> tuple[np.ndarray, dict] | None:
-    """A cached initial guess, or None when it is absent or unreadable (made again); the
-    caller checks that it was made from the same demonstration file (``demo_sha256``)."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return z["knots"], json.loads(str(z["info"]))
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
-        return None
 
 
 def execute_run(

@@ -435,7 +435,7 @@ def test_an_initial_guess_is_reused_from_the_machines_cache(tmp_path, monkeypatc
 
 
 def test_the_guess_key_names_every_input():
-    from flyknot_app.runner import guess_key
+    from flyknot_app.guess_cache import guess_key
     from learner.initial_guess import InitialGuessParams, initial_guess
     from learner.kinematics import RobotModel
 
