@@ -14,6 +14,7 @@ Three executors: this process (one worker), a local process pool, Ray tasks (a l
 from __future__ import annotations
 
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
@@ -159,6 +160,11 @@ class _Ready:
         self._ready.extend(now)
         self._ready.sort(key=lambda j: (-self._rank[j.key], self._order[j.key]))
 
+    @property
+    def job_keys(self) -> list[tuple[str, str]]:
+        """(scenario, run name) of every job, in the given order."""
+        return list(self._order)
+
     def pop(self) -> RunJob | None:
         """The next job to start (now counted as running), or None when none can start now."""
         if not self._ready:
@@ -194,9 +200,10 @@ def run_jobs(
 
     A job starts once the run it starts from has finished (its learned command is read from
     disk then); of the jobs that can start, the highest :func:`ranks` goes first. A run's
-    ``finish`` is a task of its own, started when no run can start: short post-run work fills
-    the pool's idle workers while the last runs end. At most ``workers`` tasks are in flight
-    (on a Ray cluster at ``address``: every task that can start).
+    ``finish`` is a task of its own, started when no run can start (short post-run work fills
+    the pool's idle workers while the last runs end), or before other runs once its
+    scenario's runs have all ended (the scenario's report waits on it). At most ``workers``
+    tasks are in flight (on a Ray cluster at ``address``: every task that can start).
 
     Raises:
         ConfigError: An unknown executor, ``workers`` < 1, or runs that wait on each other.
@@ -238,13 +245,25 @@ WaitOne = Callable[[list], tuple[Any, tuple[RunSummary, float]]]
 def _drive(
     play: Play, finish: Finish | None, ready: _Ready, limit: int, submit: Submit, wait_one: WaitOne
 ):
-    """Keep ``limit`` tasks in flight: a run that can start first, else a finished run's
-    post-run work; yield each run once both are done (its wall seconds summed)."""
+    """Keep ``limit`` tasks in flight; yield each run once it and its post-run work are done
+    (its wall seconds summed). Which task starts next: the post-run work of a scenario whose
+    runs have all ended (its report waits on it), else a run that can start, else the oldest
+    post-run work."""
     running: dict[Any, tuple[RunJob, float | None]] = {}  # handle -> job, its run's seconds
     unfinished: list[tuple[RunJob, RunSummary, float]] = []
+    runs_left = Counter(scenario for scenario, _ in ready.job_keys)
+
+    def post_first() -> tuple[RunJob, RunSummary, float] | None:
+        for i, item in enumerate(unfinished):
+            if runs_left[item[0].scenario] == 0:
+                return unfinished.pop(i)
+        return None
+
     while True:
         while len(running) < limit:
-            if (job := ready.pop()) is not None:
+            if (item := post_first()) is not None:
+                running[submit((play, finish, item[0], None, item[1]))] = (item[0], item[2])
+            elif (job := ready.pop()) is not None:
                 running[submit((play, finish, job, _knots0(job), None))] = (job, None)
             elif unfinished:
                 job, summary, wall = unfinished.pop(0)
@@ -259,6 +278,7 @@ def _drive(
             yield job, summary, run_wall + wall
             continue
         ready.finished(job)
+        runs_left[job.scenario] -= 1
         if finish is None:
             yield job, summary, wall
         else:

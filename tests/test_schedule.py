@@ -251,3 +251,31 @@ def test_a_runs_post_run_work_is_done_once(monkeypatch, tmp_path):
     assert (run_dir / runner.FINISHED).is_file()
     runner.finish_run(spec, tmp_path, "summary")  # a resumed scenario: already done
     assert len(calls) == 2
+
+
+def test_a_scenario_whose_runs_have_ended_gets_its_post_run_work_first():
+    """Its report waits on that work; another scenario's runs wait instead."""
+    from flyknot_app.schedule import _drive
+
+    x = _jobs({"run": [{"name": "a", "max_trials": 10}]}, "x")
+    y = _jobs({"run": [{"name": n, "max_trials": 5} for n in ("b", "c", "d")]}, "y")
+    clock = _Clock(
+        {("run", "a"): 1.0, ("run", "b"): 4.0, ("run", "c"): 4.0, ("run", "d"): 4.0}
+        | {("finish", n): 1.0 for n in "abcd"}
+    )
+
+    def play(spec, out_dir, knots0, *, resume, progress):
+        return spec.name
+
+    def finish(spec, out_dir, summary, *, figure):
+        return None
+
+    out = list(_drive(play, finish, _Ready(x + y), 2, clock.submit, clock.wait_one))
+    starts = [(t, kind, name) for t, e, kind, name in clock.log if e == "start"]
+    assert starts[:4] == [
+        (0.0, "run", "a"),  # rank 10 (a's 10 trials) before the 5-trial runs
+        (0.0, "run", "b"),
+        (1.0, "finish", "a"),  # x has no run left: its post-run work before y's run c
+        (2.0, "run", "c"),
+    ]
+    assert out[0][0].spec.name == "a" and out[0][2] == 2.0
