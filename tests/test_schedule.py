@@ -149,28 +149,25 @@ class _Clock:
 
     def __init__(self, durations: dict[tuple[str, str], float]):
         self.durations, self.now, self.log = durations, 0.0, []
-        self._ends: dict[int, tuple[float, tuple]] = {}
+        self._tasks: list[tuple[float, float, str, str, object]] = []  # start, end, kind, ...
 
     def submit(self, args: tuple) -> int:
         from flyknot_app.schedule import _task
 
         play, finish, job, knots0, summary = args
-        kind = "run" if summary is None else "finish"
-        self.log.append((self.now, "start", kind, job.spec.name))
-        result = _task(play, finish, job, knots0, summary)
-        end = self.now + self.durations[kind, job.spec.name]
-        self._ends[len(self._ends)] = (end, (kind, job.spec.name, result))
-        return len(self._ends) - 1
+        kind, name = ("run" if summary is None else "finish"), job.spec.name
+        self.log.append((self.now, "start", kind, name))
+        summary = _task(play, finish, job, knots0, summary)[0]
+        end = self.now + self.durations[kind, name]
+        self._tasks.append((self.now, end, kind, name, summary))
+        return len(self._tasks) - 1
 
     def wait_one(self, handles: list) -> tuple[int, tuple]:
-        h = min(handles, key=lambda k: self._ends[k][0])
-        end, (kind, name, result) = self._ends[h]
+        h = min(handles, key=lambda k: self._tasks[k][1])
+        start, end, kind, name, summary = self._tasks[h]
         self.now = end
         self.log.append((end, "end", kind, name))
-        return h, (
-            result[0],
-            end - next(t for t, e, k, n in self.log if (e, k, n) == ("start", kind, name)),
-        )
+        return h, (summary, end - start)
 
 
 def test_post_run_work_is_its_own_task_and_fills_idle_workers():
