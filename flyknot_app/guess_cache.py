@@ -13,8 +13,9 @@ from typing import Any
 import numpy as np
 
 from flyknot.constants import FOLLOW_THROUGH_S, PATH_FRAC
+from flyknot.record import atomic_save_npz
 
-__all__ = ["cached_guess", "guess_cache_name", "guess_key"]
+__all__ = ["cached_guess", "guess_cache_name", "guess_key", "store_guess"]
 
 
 def guess_cache_name(demo_name: str, window: tuple[float, float], base_height: float) -> str:
@@ -79,3 +80,9 @@ def cached_guess(path: Path) -> tuple[np.ndarray, dict] | None:
             return z["knots"], json.loads(str(z["info"]))
     except (OSError, ValueError, KeyError, zipfile.BadZipFile):
         return None
+
+
+def store_guess(path: Path, knots: np.ndarray, info: dict) -> None:
+    """Write a guess where :func:`cached_guess` reads it (atomically, the directory made)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_save_npz(path, {"knots": knots, "info": np.array(json.dumps(info))})

@@ -35,10 +35,10 @@ from flyknot.errors import ConfigError, FlyknotError, RecordError
 from flyknot.judge import CellVerdict
 from flyknot.limits import JointLimits
 from flyknot.progress import bar_disable
-from flyknot.record import TrialRecord, atomic_save_npy, atomic_save_npz, atomic_write_text
+from flyknot.record import TrialRecord, atomic_save_npy, atomic_write_text
 from flyknot.verdict import JUDGE_NAME
 from flyknot_app.cells import open_cell
-from flyknot_app.guess_cache import cached_guess, guess_cache_name, guess_key
+from flyknot_app.guess_cache import cached_guess, guess_cache_name, guess_key, store_guess
 from flyknot_app.run_summary import RunSummary, ScenarioSummary
 from flyknot_app.scenario import RunSpec, Scenario, find_named_file
 
@@ -101,8 +101,7 @@ def initial_knots(
     shared = cache_root() / "initial_guess" / f"{key}.npz"
     cached = cached_guess(shared)
     if cached is not None and cached[1].get("demo_sha256") == digest:
-        cache.parent.mkdir(parents=True, exist_ok=True)
-        atomic_save_npz(cache, {"knots": cached[0], "info": np.array(json.dumps(cached[1]))})
+        store_guess(cache, *cached)
         return cached
     trimmed, target = prepare_target(demo_name, rope_dt, window)
     t = trimmed.t - trimmed.t[0]
@@ -141,8 +140,7 @@ def initial_knots(
     if not res.success:
         raise FlyknotError(f"initial guess for demo {demo_name!r} failed: {res.status}")
     for path in (cache, shared):
-        path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_save_npz(path, {"knots": res.knots, "info": np.array(json.dumps(info))})
+        store_guess(path, res.knots, info)
     return np.asarray(res.knots), info
 
 
