@@ -117,50 +117,74 @@ def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bo
     return {"ropes": out}
 
 
-def bench_sweep(runs: int = 8, trials: int = 3, progress: bool = True) -> dict:
+def sweep_order(repeats: int) -> list[int]:
+    """Worker counts in the order a sweep is timed: 1, 2, then 2, 1, then 1, 2, ...
+
+    The order alternates (ABBA) so that a drift of a shared machine's speed over the
+    benchmark's minutes falls on both counts alike instead of on the second one.
+    """
+    if repeats < 1:
+        raise ConfigError("repeats", f"must be >= 1, got {repeats}")
+    return [w for r in range(repeats) for w in ((1, 2) if r % 2 == 0 else (2, 1))]
+
+
+def sweep_speedups(walls: dict[str, dict[int, list[float]]]) -> dict:
+    """Per executor: its sweeps' wall seconds on 1 and on 2 workers (each list and its mean)
+    and the speed-up, mean(1 worker) / mean(2 workers)."""
+    out: dict = {}
+    for executor, by_workers in walls.items():
+        means = {w: sum(ts) / len(ts) for w, ts in by_workers.items()}
+        for w in (1, 2):
+            out[f"{executor}_wall_s_{w}"] = means[w]
+            out[f"{executor}_walls_s_{w}"] = list(by_workers[w])
+        out[f"{executor}_speedup"] = means[1] / means[2]
+    return out
+
+
+def bench_sweep(runs: int = 8, trials: int = 3, repeats: int = 1, progress: bool = True) -> dict:
     """Wall time of a seed sweep of learning runs on 1 and on 2 workers, for both executors.
 
     The sweep: ``learn-rope1`` at lab seeds 0 .. runs - 1, ``trials`` learning trials each
     (no stop at the first knot, so every run plays them all). Each executor (a local process
-    pool, Ray tasks on a local Ray with that many CPUs) runs it on 1 and on 2 workers, one after
-    the other in this process, from the same cached initial guess (made once before, not
-    timed; Ray's start-up is not timed either).
+    pool, Ray tasks on a local Ray with that many CPUs) runs it ``repeats`` times on each
+    worker count, in :func:`sweep_order`, one after the other in this process, from the same
+    cached initial guess (made once before, not timed; Ray's start-up is not timed either).
     """
     import contextlib
     import io
     import tempfile
     from pathlib import Path
 
+    try:
+        import ray
+    except ImportError:
+        raise ConfigError("bench sweep", "needs ray: pip install -e '.[ray]'") from None
+
     from flyknot_app.runner import run_scenario
     from flyknot_app.scenario import expand_seeds, load_scenario
 
     overrides = {"max_trials": trials, "stop_at_success": False}
     scen = expand_seeds(load_scenario("learn-rope1", overrides), list(range(runs)))
-    out: dict = {"runs": runs, "trials": trials}
+    walls: dict[str, dict[int, list[float]]] = {}
     quiet = contextlib.redirect_stdout(io.StringIO())  # the runner's line per run
     with tempfile.TemporaryDirectory() as tmp, quiet:
         one = expand_seeds(load_scenario("learn-rope1", {"max_trials": 0}), [0])
         run_scenario(one, Path(tmp) / "warm", progress=False)  # the initial guess, cached
         cache = Path(tmp) / "warm" / "initial_guess"
         for executor in ("process", "ray"):
-            for workers in (1, 2):
+            walls[executor] = {1: [], 2: []}
+            for i, workers in enumerate(sweep_order(repeats)):
                 if executor == "ray":
-                    import ray
-
                     ray.shutdown()
                     ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
-                d = Path(tmp) / f"{executor}{workers}"
+                d = Path(tmp) / f"{executor}{i}"
                 d.mkdir()
                 (d / "initial_guess").symlink_to(cache, target_is_directory=True)
                 t0 = time.perf_counter()
                 run_scenario(scen, d, workers=workers, executor=executor, progress=False)
-                out[f"{executor}_wall_s_{workers}"] = time.perf_counter() - t0
-        import ray
-
+                walls[executor][workers].append(time.perf_counter() - t0)
         ray.shutdown()
-    for executor in ("process", "ray"):
-        out[f"{executor}_speedup"] = out[f"{executor}_wall_s_1"] / out[f"{executor}_wall_s_2"]
-    return out
+    return {"runs": runs, "trials": trials, "repeats": repeats, **sweep_speedups(walls)}
 
 
 BENCHMARKS = ("sim", "learner", "sweep", "protocol")
@@ -207,11 +231,14 @@ def main(
         print(json.dumps(res) if as_json else format_learner(res))
         return 0
     if what == "sweep":
-        res = bench_sweep(progress=not as_json)
+        res = bench_sweep(repeats=repeats, progress=not as_json)
         if as_json:
             print(json.dumps(res))
         else:
-            print(f"{res['runs']} learning runs of {res['trials']} trials (learn-rope1, seeds):")
+            print(
+                f"{res['runs']} learning runs of {res['trials']} trials (learn-rope1, seeds), "
+                f"{res['repeats']} sweep(s) per worker count, means:"
+            )
             for ex in ("process", "ray"):
                 print(
                     f"  {ex:>7}: 1 worker {res[f'{ex}_wall_s_1']:.1f} s, 2 workers "

@@ -505,7 +505,12 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("what", choices=BENCHMARKS)
     b.add_argument("--json", action="store_true", help="print one JSON object")
     b.add_argument("--ropes", type=int, nargs="*", default=None, help="rope ids (default all)")
-    b.add_argument("--repeats", type=int, default=1, help="repeats per measurement")
+    b.add_argument(
+        "--repeats",
+        type=int,
+        default=1,
+        help="repeats per measurement (sweep: sweeps per worker count, timed 1, 2, 2, 1, ...)",
+    )
     b.add_argument("--workers", type=int, default=2, help="protocol: worker processes (default 2)")
     b.add_argument(
         "--quick",
