@@ -217,7 +217,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     )
 
 
-DEFAULT_CHECK_MODELS = ("1e5,50", "1e3,50", "100,0.5")
+DEFAULT_CHECK_MODELS = ("1e5,50", "100,0.5", "2,0")
+"""The paper's rope model, a middle one and the scenario files' (identified with ``--grid``)."""
 
 
 def _parse_model(text: str) -> tuple[float, float]:
@@ -230,7 +231,7 @@ def _parse_model(text: str) -> tuple[float, float]:
 
 
 def _cmd_model_check(args: argparse.Namespace) -> int:
-    from flyknot_app.model_check import check_models, format_table
+    from flyknot_app.model_check import check_models, format_table, grid_models
 
     knots = None
     if args.knots is not None:
@@ -240,7 +241,13 @@ def _cmd_model_check(args: argparse.Namespace) -> int:
         knots = np.load(path)
         if hasattr(knots, "files"):
             knots = knots["knots"]
-    models = [_parse_model(m) for m in (args.model or DEFAULT_CHECK_MODELS)]
+    if args.grid and args.model:
+        raise ConfigError("--grid", "give either --grid or --model, not both")
+    models = (
+        grid_models()
+        if args.grid
+        else [_parse_model(m) for m in (args.model or DEFAULT_CHECK_MODELS)]
+    )
     res = check_models(
         args.demo,
         args.rope,
@@ -420,6 +427,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="STIFFNESS,DAMPING of a rope model to score (repeatable; default: "
         + " ".join(DEFAULT_CHECK_MODELS)
         + ")",
+    )
+    m.add_argument(
+        "--grid",
+        action="store_true",
+        help="score the identification grid of models (stiffness x damping) and name the best",
     )
     m.add_argument("--json", action="store_true", help="print one JSON object")
     m.set_defaults(func=_cmd_model_check)

@@ -239,6 +239,24 @@ def check_models(
     }
 
 
+GRID_STIFFNESS = (1.0, 2.0, 3.0, 5.0, 10.0, 30.0, 100.0, 1e3, 1e4, 1e5)
+"""Bending stiffnesses [N m / rad] of the identification grid (``flyknot model-check --grid``):
+from the paper's 1e5 down to a rope that droops under its own weight."""
+GRID_DAMPING = (0.0, 0.01, 0.05, 0.5, 5.0, 50.0)
+"""Bending dampings [N m s / rad] of the identification grid, up to the paper's 50."""
+
+
+def grid_models() -> list[tuple[float, float]]:
+    """Every (stiffness, damping) pair of :data:`GRID_STIFFNESS` x :data:`GRID_DAMPING`."""
+    return [(k, c) for k in GRID_STIFFNESS for c in GRID_DAMPING]
+
+
+def best_model(res: dict) -> dict:
+    """The scored model of :func:`check_models`' result whose predicted responses point most
+    nearly along the measured ones (the highest mean cosine; the first of equals)."""
+    return max(res["models"], key=lambda r: r["mean_cos"])
+
+
 def format_table(res: dict) -> str:
     """The result of :func:`check_models` as a text table."""
     lines = [
@@ -248,9 +266,15 @@ def format_table(res: dict) -> str:
         f"{'stiffness':>10} {'damping':>8} {'mean cos':>9} {'min cos':>8} {'ratio':>6} "
         f"{'rel miss':>8}",
     ]
+    best = best_model(res)
     for r in res["models"]:
         lines.append(
             f"{r['stiffness']:>10g} {r['damping']:>8g} {r['mean_cos']:>9.2f} {r['min_cos']:>8.2f} "
-            f"{r['ratio']:>6.2f} {r['rel_miss']:>8.2f}"
+            f"{r['ratio']:>6.2f} {r['rel_miss']:>8.2f}" + ("  <- best" if r is best else "")
         )
+    lines.append(
+        f"best: stiffness {best['stiffness']:g}, damping {best['damping']:g} (mean cos "
+        f"{best['mean_cos']:.2f}); use it with --set rope_model.stiffness=K --set "
+        "rope_model.damping=B"
+    )
     return "\n".join(lines)

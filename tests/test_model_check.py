@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from flyknot.errors import ConfigError, RecordError
 from flyknot_app import cli
-from flyknot_app.model_check import agreement, evaluation_time, random_directions
+from flyknot_app.model_check import agreement, best_model, evaluation_time, random_directions
 
 
 def _responses(seed: int, n: int = 5) -> np.ndarray:
@@ -73,16 +73,38 @@ def test_evaluation_time_backs_off_before_tracking_loss():
 
 
 def test_cli_model_check_end_to_end(tmp_path, capsys):
-    """Two models: the scenario files' model agrees better than the paper's (README)."""
-    code = cli.main(["model-check", "--json", "--model", "1e5,50", "--model", "100,0.5"])
+    """The scenario files' rope model agrees with the lab far better than the paper's and than
+    100, 0.5 (docs/learning.md, section 3), and is among the identification grid's models."""
+    from flyknot_app.model_check import best_model, grid_models
+    from flyknot_app.scenario import load_scenario
+
+    ours = load_scenario("03-ropes").runs[0].learner.rope_model
+    assert (ours.stiffness, ours.damping) in grid_models()
+    code = cli.main(
+        ["model-check", "--json", "--model", "1e5,50", "--model", "100,0.5", "--model",
+         f"{ours.stiffness},{ours.damping}"]
+    )  # fmt: skip
     assert code == 0
     res = json.loads(capsys.readouterr().out)
     assert 0.0 < res["t_eval"] <= res["t_c"]
     assert len(res["response_norms"]) == 8 and min(res["response_norms"]) > 1e-3
-    paper, tuned = res["models"]
-    assert (paper["stiffness"], tuned["damping"]) == (1e5, 0.5)
-    assert tuned["mean_cos"] > paper["mean_cos"] + 0.2
-    assert tuned["min_cos"] > 0.0
+    paper, middle, scen = res["models"]
+    assert (paper["stiffness"], middle["damping"]) == (1e5, 0.5)
+    assert scen["mean_cos"] > middle["mean_cos"] + 0.2 > paper["mean_cos"] + 0.2
+    assert scen["mean_cos"] > 0.9 and scen["min_cos"] > 0.8
+    assert best_model(res) is res["models"][2]
+
+
+def test_best_model_is_the_highest_mean_cosine():
+    res = {"models": [{"mean_cos": 0.2}, {"mean_cos": 0.9}, {"mean_cos": 0.9}, {"mean_cos": -1}]}
+    assert best_model(res) is res["models"][1]
+
+
+def test_cli_model_check_grid_or_models(capsys):
+    assert cli.main(["model-check", "--grid", "--model", "2,0"]) == 2
+    assert capsys.readouterr().err == (
+        "flyknot: error: --grid: give either --grid or --model, not both\n"
+    )
 
 
 def test_cli_model_check_bad_model(capsys):
