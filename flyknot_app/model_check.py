@@ -11,6 +11,8 @@ module measures the lab's own response to small knot changes and compares:
    measured rope state r_j = (x(kappa + d_j) - x(kappa - d_j)) / 2 (66,) [m, m/s].
 3. For every candidate rope model, linearise about the base trial's measured joints and
    predict p_j = M d_j; :func:`agreement` compares p_j with r_j on the marker positions.
+4. Identification (``--grid``): score every model of :func:`grid_models` and keep the one
+   whose predictions point most nearly along the measured responses (:func:`best_model`).
 
 Only a simulated lab can replay a trial without variation, so this is a tool of the
 simulated lab (it lives outside ``learner/``).
@@ -29,10 +31,14 @@ from flyknot.errors import ConfigError, RecordError, check_positive
 from flyknot.progress import bar_disable
 
 __all__ = [
+    "GRID_DAMPING",
+    "GRID_STIFFNESS",
     "ModelAgreement",
     "agreement",
+    "best_model",
     "check_models",
     "evaluation_time",
+    "grid_models",
     "random_directions",
 ]
 
