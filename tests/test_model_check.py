@@ -112,3 +112,21 @@ def test_cli_model_check_bad_model(capsys):
     assert capsys.readouterr().err == (
         "flyknot: error: --model: expected STIFFNESS,DAMPING, got '100'\n"
     )
+
+
+def test_every_scenario_learns_with_the_identified_model():
+    """One learner rope model in every scenario file but the paper's sensitivity grid, which
+    varies it on purpose."""
+    from flyknot.constants import SCENARIOS_DIR
+    from flyknot_app.scenario import load_scenario
+
+    ours = load_scenario("03-ropes").runs[0].learner.rope_model
+    for path in sorted(SCENARIOS_DIR.glob("*.toml")):
+        if path.stem == "07-sensitivity":
+            continue
+        for run in load_scenario(path.stem).runs:
+            model = run.learner.rope_model
+            assert (model.stiffness, model.damping) == (ours.stiffness, ours.damping), (
+                path.stem,
+                run.name,
+            )
