@@ -75,7 +75,7 @@ def test_evaluation_time_backs_off_before_tracking_loss():
 def test_cli_model_check_end_to_end(tmp_path, capsys):
     """The scenario files' rope model agrees with the lab far better than the paper's and than
     100, 0.5 (docs/learning.md, section 3), and is among the identification grid's models."""
-    from flyknot_app.model_check import best_model, grid_models
+    from flyknot_app.model_check import grid_models
     from flyknot_app.scenario import load_scenario
 
     ours = load_scenario("03-ropes").runs[0].learner.rope_model
