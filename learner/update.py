@@ -366,6 +366,43 @@ def _errors(
 # --------------------------------------------------------------------------------------------
 
 
+def _checked_step(
+    res: QPResult,
+    viol: np.ndarray,
+    rows: LimitRows | None,
+    knots: np.ndarray,
+    T: float,
+    t_samples: np.ndarray,
+    robot: RobotModel,
+    s: UpdateSettings,
+    M_c: np.ndarray,
+    err: np.ndarray,
+    qw: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, float]:
+    """The solved step as it is applied, and what it does.
+
+    dk = P(dkappa) (the base rows projected, ``s.base_update``), kappa_{k+1} = kappa - dk,
+    the predicted cost ||err - M_c dk||_Q^2 and the limit rows' violations (the QP's rows at
+    the projected step; every 250 Hz sample of the new command). An unsolved QP gives a
+    NaN step and the knots unchanged.
+
+    Returns:
+        ``(dk (10, 8), new_knots (10, 8), predicted cost, violation per active row,
+        sampled violation)``.
+    """
+    if not res.solved:
+        return np.full((N_ROWS, N_KNOTS), np.nan), knots.copy(), float("nan"), viol, 0.0
+    dk = _project_base(res.dkappa, s.base_update)
+    if rows is not None and not np.array_equal(dk[:N_JOINTS], res.dkappa[:N_JOINTS]):
+        viol = limit_violation(rows, dk)  # the limits see the joint rows only
+    new_knots = knots - dk
+    sampled = 0.0
+    if s.limits is not None:
+        sampled = sampled_violation(new_knots, T, t_samples, robot, s.limits)
+    r = err - M_c @ dk.ravel()
+    return dk, new_knots, float(np.sum(qw * r**2)), viol, sampled
+
+
 def ilc_update(
     record: TrialRecord,
     command: BezierCommand,
@@ -476,28 +513,16 @@ def ilc_update(
 
     # the update, checked
     qw = _q_weights(s.weights)
-    cost_before = float(np.sum(qw * err**2))
-    sampled = 0.0
-    if res.solved:
-        dk = _project_base(res.dkappa, s.base_update)
-        if rows is not None and not np.array_equal(dk[:N_JOINTS], res.dkappa[:N_JOINTS]):
-            viol = limit_violation(rows, dk)  # the limits see the joint rows only
-        new_knots = knots - dk
-        if s.limits is not None:
-            sampled = sampled_violation(new_knots, T, t_samples, robot, s.limits)
-        r = err - M_c @ dk.ravel()
-        predicted = float(np.sum(qw * r**2))
-    else:
-        dk = np.full((N_ROWS, N_KNOTS), np.nan)
-        new_knots = knots.copy()
-        predicted = float("nan")
+    dk, new_knots, predicted, viol, sampled = _checked_step(
+        res, viol, rows, knots, T, t_samples, robot, s, M_c, err, qw
+    )
     timings["total"] = time.perf_counter() - t_all
     return UpdateResult(
         dkappa=dk,
         new_knots=new_knots,
         qp_status=res.status,
         solved=bool(res.solved),
-        cost_before=cost_before,
+        cost_before=float(np.sum(qw * err**2)),
         predicted_cost_after=predicted,
         err=err,
         timings=timings,
