@@ -162,8 +162,18 @@ def _sensitivity_section(summary: ScenarioSummary) -> list[str]:
     return [*lines, ""]
 
 
+def transfer_cell(runs: Sequence[RunSummary]) -> str:
+    """One transfer over seeds: the median trials until the first knot over the seeds that
+    tied, ``(k/n)`` after it when k of the n seeds tied and k < n; ``-`` when none tied."""
+    tied = [r.trials_to_success for r in runs if r.trials_to_success is not None]
+    if not tied:
+        return "-"
+    share = "" if len(tied) == len(runs) else f" ({len(tied)}/{len(runs)})"
+    return f"{statistics.median(tied):g}{share}"
+
+
 def _transfer_section(summary: ScenarioSummary) -> list[str]:
-    """Median trials to transfer rope A's command to rope B over seeds (``-``: no seed tied)."""
+    """The transfer grid: :func:`transfer_cell` of rope A's command on rope B."""
     runs = {r.name: r for r in summary.runs}
     cells: dict[tuple, list[RunSummary]] = {}
     for r in summary.runs:
@@ -171,15 +181,15 @@ def _transfer_section(summary: ScenarioSummary) -> list[str]:
             cells.setdefault((runs[r.start_from].rope, r.rope), []).append(r)
     ropes = sorted({b for _, b in cells} | {a for a, _ in cells}, key=str)
     lines = ["### Transfer: median trials until the first knot, command of rope A on rope B", ""]
+    lines += ["Over the seeds that tied; (k/n): k of the n seeds tied; -: none tied.", ""]
     if not cells:
         return [*lines, "No transfer run in this directory.", ""]
     lines += ["| A \\ B | " + " | ".join(str(b) for b in ropes) + " |"]
-    lines += ["|---" * (len(ropes) + 1) + "|"]  # "-": no seed tied; empty: not run
+    lines += ["|---" * (len(ropes) + 1) + "|"]
     for a in ropes:
         row = []
         for b in ropes:
-            tied = [r.trials_to_success for r in cells.get((a, b), []) if r.trials_to_success]
-            row.append(f"{statistics.median(tied):g}" if tied else "-" if (a, b) in cells else "")
+            row.append(transfer_cell(cells[a, b]) if (a, b) in cells else "")  # empty: not run
         lines.append(f"| {a} | " + " | ".join(row) + " |")
     return [*lines, ""]
 

@@ -7,7 +7,7 @@ import json
 import pytest
 
 from flyknot_app.cli import main
-from flyknot_app.paper import paper_table, repeats_text, trials_text
+from flyknot_app.paper import paper_table, repeats_text, transfer_cell, trials_text
 from flyknot_app.run_summary import RunSummary, ScenarioSummary
 
 
@@ -28,6 +28,9 @@ def test_trials_and_repeats_over_seeds():
     assert trials_text(runs[1:2]) == "none in 10 (1 seed)"
     assert repeats_text(runs) == "78/80 (91-99 %)"
     assert repeats_text(runs[1:2]) == "-"
+    assert transfer_cell(runs) == "4 (2/3)"
+    assert transfer_cell(runs[::2]) == "4"
+    assert transfer_cell(runs[1:2]) == "-"
 
 
 def _write(out, name, kind, runs):
