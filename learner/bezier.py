@@ -168,6 +168,25 @@ def _controller_basis(t: np.ndarray, T: float, derivative: int) -> np.ndarray:
     return difference_matrices(basis.shape[0], _grid_step(t))[derivative - 1] @ basis
 
 
+def controller_jacobian(t: np.ndarray, T: float, derivative: int = 0) -> np.ndarray:
+    """:func:`basis_jacobian` of :func:`controller_basis`: d q_c^(r) / d kappa of every sample
+    and joint, shape (m * 7, 80) [1 / s^r], read-only.
+
+    It depends on the grid, T and r only, so one array per grid is kept (an update's limit
+    rows ask for the same three at every update of a run).
+    """
+    controller_basis(t, T, derivative)  # checks the arguments (and keeps the basis)
+    t_bytes = np.ascontiguousarray(t, dtype=float).tobytes()
+    return _controller_jacobian_of(t_bytes, _float_T(T), int(derivative))
+
+
+@lru_cache(maxsize=8)
+def _controller_jacobian_of(t_bytes: bytes, T: float, derivative: int) -> np.ndarray:
+    out = basis_jacobian(_controller_basis_of(t_bytes, T, derivative))
+    out.setflags(write=False)
+    return out
+
+
 def check_knots(knots: object, field: str = "knots") -> np.ndarray:
     """Knots as a float array (10, 8); ConfigError naming ``field`` if malformed."""
     k = np.asarray(knots, dtype=float)

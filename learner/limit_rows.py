@@ -28,7 +28,7 @@ from flyknot.constants import N_JOINTS, N_VARS
 from flyknot.errors import ConfigError, check_choice
 from flyknot.geometry import readonly
 from flyknot.limits import JointLimits
-from learner.bezier import basis_jacobian, check_knots, controller_basis
+from learner.bezier import check_knots, controller_basis, controller_jacobian
 
 if TYPE_CHECKING:
     from learner.inverse_qp import QPResult
@@ -236,7 +236,7 @@ def limit_rows(
     bases = {r: controller_basis(t, T, r) for r in (0, 1, 2)}  # (m, 8)
     joints = check_knots(knots)[:N_JOINTS].T  # (8, 7)
     derivs = {r: bases[r] @ joints for r in (0, 1, 2)}  # (m, 7)
-    jacs = {r: basis_jacobian(bases[r]) for r in (0, 1, 2)}  # (m * 7, 80)
+    jacs = {r: controller_jacobian(t, T, r) for r in (0, 1, 2)}  # (m * 7, 80)
     m = derivs[0].shape[0]
     bounds = {
         "pos": (limits.q_min, limits.q_max),

@@ -17,7 +17,7 @@ from flyknot.limits import (
 from flyknot.record import JointCommand
 from flyknot_hw.config import Margins
 from flyknot_hw.preflight import PreflightError, effective_limits, preflight
-from learner.bezier import BezierCommand, controller_basis
+from learner.bezier import BezierCommand, basis_jacobian, controller_basis, controller_jacobian
 
 DT = 0.004
 
@@ -52,6 +52,19 @@ def test_controller_basis_gives_what_the_controllers_compute():
     np.testing.assert_allclose(controller_basis(t, 0.61, 2) @ knots[:7].T, qdd, atol=1e-6)
     with pytest.raises(ConfigError) as e:
         controller_basis(np.array([0.0, 0.1, 0.3]), 0.61, 1)
+    assert str(e.value) == "t: must be a uniform grid of sample times from 0 (a command's)"
+
+
+def test_controller_jacobian_is_the_bases_jacobian_kept_per_grid():
+    t = BezierCommand(np.zeros((10, 8)), 0.61).sample_times()
+    for r in (0, 1, 2):
+        jac = controller_jacobian(t, 0.61, r)
+        assert np.array_equal(jac, basis_jacobian(controller_basis(t, 0.61, r)))
+        assert not jac.flags.writeable
+        assert controller_jacobian(t.copy(), 0.61, r) is jac  # kept, not rebuilt
+    assert controller_jacobian(t, 0.62, 1) is not controller_jacobian(t, 0.61, 1)
+    with pytest.raises(ConfigError) as e:
+        controller_jacobian(np.array([0.0, 0.1, 0.3]), 0.61, 1)
     assert str(e.value) == "t: must be a uniform grid of sample times from 0 (a command's)"
 
 
