@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import numbers
 
-import casadi as ca
 import numpy as np
 
 from flyknot.constants import N_BASE_ROWS, N_JOINTS, N_KNOTS, N_VARS
@@ -56,36 +55,11 @@ _T_C_SLACK = 1e-9  # [s] the first sample must be t_c within this
 # fingertip kinematics along the command
 # --------------------------------------------------------------------------------------------
 
-_OMEGA_CACHE: dict[int, tuple[ca.Function, ca.Function, dict[int, ca.Function]]] = {}
-
-
-def _omega_map(robot: RobotModel, m: int) -> ca.Function:
-    """CasADi map of the body-frame angular Jacobian, rows flattened row-major (3 n, m)."""
-    key = id(robot.fk)
-    hit = _OMEGA_CACHE.get(key)
-    if hit is None or hit[0] is not robot.fk:
-        n = robot.n_joints
-        q = ca.SX.sym("q", n)
-        _, R = robot.fk(q)
-        dR = ca.jacobian(ca.vec(R), q)  # (9, n), column-major vec
-        cols = []
-        for j in range(n):
-            W = R.T @ ca.reshape(dR[:, j], 3, 3)  # [w_j]x in the tip frame
-            cols.append(0.5 * ca.vertcat(W[2, 1] - W[1, 2], W[0, 2] - W[2, 0], W[1, 0] - W[0, 1]))
-        Jw = ca.horzcat(*cols)  # (3, n)
-        fun = ca.Function("tip_omega_body", [q], [ca.reshape(Jw.T, 3 * n, 1)])
-        hit = (robot.fk, fun, {})
-        _OMEGA_CACHE[key] = hit
-    maps = hit[2]
-    if m not in maps:
-        maps[m] = hit[1].map(m, "serial")
-    return maps[m]
-
 
 def tip_angular_jacobian(robot: RobotModel, q: np.ndarray) -> np.ndarray:
     """Body-frame angular Jacobian of the fingertip: R_tip(q + dq) ~= R_tip(q) Exp(J_w(q) dq).
 
-    J_w[:, j] = vee(R_tip^T dR_tip/dq_j), built symbolically from ``robot.fk`` (CasADi).
+    J_w[:, j] = vee(R_tip^T dR_tip/dq_j) (:meth:`RobotModel.tip_angular_jacobians`).
 
     Args:
         robot: Robot model.
@@ -94,12 +68,7 @@ def tip_angular_jacobian(robot: RobotModel, q: np.ndarray) -> np.ndarray:
     Returns:
         J_w, shape (m, 3, 7) [rad/rad].
     """
-    q = np.asarray(q, dtype=float)
-    n = robot.n_joints
-    if q.ndim != 2 or q.shape[1] != n:
-        raise ConfigError("q", f"expected shape (m, {n}), got {q.shape}")
-    m = q.shape[0]
-    return np.asarray(_omega_map(robot, m)(q.T)).T.reshape(m, 3, n)
+    return robot.tip_angular_jacobians(q)
 
 
 def _fingertip(knots: np.ndarray, T: float, t: np.ndarray, robot: RobotModel):

@@ -62,6 +62,17 @@ def _rot_axis(axis: np.ndarray, angle: ca.SX) -> ca.SX:
     return ca.DM.eye(3) + ca.sin(angle) * K + (1 - ca.cos(angle)) * (K @ K)
 
 
+def _body_omega(R: ca.SX, q: ca.SX) -> ca.SX:
+    """J_w (3, n) with column j = vee(R^T dR/dq_j): the body-frame angular velocity per unit
+    joint rate of an orientation R(q)."""
+    dR = ca.jacobian(ca.vec(R), q)  # (9, n), column-major vec
+    cols = []
+    for j in range(q.numel()):
+        W = R.T @ ca.reshape(dR[:, j], 3, 3)  # [w_j]x in the body frame
+        cols.append(0.5 * ca.vertcat(W[2, 1] - W[1, 2], W[0, 2] - W[2, 0], W[1, 0] - W[0, 1]))
+    return ca.horzcat(*cols)
+
+
 def _build_symbolic(chain: dict, q: ca.SX, qd: ca.SX, qdd: ca.SX, flags: tuple[bool, ...]):
     """Forward kinematics and recursive Newton-Euler in the base frame.
 
@@ -313,6 +324,7 @@ class RobotModel:
                 [q, qd, qdd, vq, vqd, vqdd],
                 [ca.jtimes(tau, ca.vertcat(q, qd, qdd), ca.vertcat(vq, vqd, vqdd))],
             ),
+            "tip_omega": ca.Function("tip_omega_flat", [q], [rows(_body_omega(fk(q)[1], q))]),
         }
         zeros = np.zeros(n)
 
@@ -399,6 +411,20 @@ class RobotModel:
         m = q.shape[0]
         p, R, v = self._eval("tip", q, qd)
         return TipStates(p, R.reshape(m, 3, 3), v)
+
+    def tip_angular_jacobians(self, q: np.ndarray) -> np.ndarray:
+        """Body-frame angular Jacobian of the fingertip for a batch:
+        ``R_tip(q + dq) ~= R_tip(q) Exp(J_w(q) dq)``, ``J_w[:, j] = vee(R^T dR/dq_j)``.
+
+        Args:
+            q: Joint angles (m, n) [rad].
+
+        Returns:
+            J_w, shape (m, 3, n) [rad/rad].
+        """
+        q = self._batch("q", q)
+        m, n = q.shape
+        return self._eval("tip_omega", q)[0].reshape(m, 3, n)
 
     def tip_jacobians(self, q: np.ndarray, qd: np.ndarray) -> TipJacobians:
         """Jacobians of the fingertip states for a batch.

@@ -32,7 +32,7 @@ def _inputs(sizes: tuple[int, ...], m: int, seed: int) -> list[np.ndarray]:
     return [rng.uniform(-2.0, 2.0, (m, n)) for n in sizes]
 
 
-@pytest.mark.parametrize("key", ["tip", "tip_jac", "tau", "tau_jac", "tau_jvp"])
+@pytest.mark.parametrize("key", ["tip", "tip_jac", "tau", "tau_jac", "tau_jvp", "tip_omega"])
 def test_every_flat_function_equals_the_interpreter_bit_for_bit(xarm, key, tmp_path):
     fun = xarm._flat[key]
     batch = compile_batch(fun, cache=tmp_path)
@@ -60,11 +60,12 @@ def test_the_model_methods_are_the_same_native_or_interpreted(path):
             (fast.torque_jvp(q, qd, qdd, dq, dqd, dqdd),),
             (slow.torque_jvp(q, qd, qdd, dq, dqd, dqdd),),
         ),
+        ((fast.tip_angular_jacobians(q),), (slow.tip_angular_jacobians(q),)),
     ]
     for a, b in pairs:
         for x, y in zip(a, b, strict=True):
             np.testing.assert_array_equal(x, y)
-    assert all(v is not None for v in fast._native.values()) and len(fast._native) == 5
+    assert all(v is not None for v in fast._native.values()) and len(fast._native) == 6
     assert slow._native == {}
 
 
