@@ -135,6 +135,19 @@ def test_a_renderer_bound_again_draws_what_a_new_one_draws(record):
             np.testing.assert_array_equal(img, fresh.render(t, "caption"))
 
 
+@pytest.mark.parametrize("close_up", [False, True])
+def test_the_skipped_shadow_and_reflection_passes_would_draw_nothing(record, close_up):
+    import mujoco
+
+    params = dataclasses.replace(SMALL, width=320, height=240, close_up=close_up)
+    t = trial_end(record)
+    with TrialRenderer(record, params) as r:
+        plain = r.render(t)
+        for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION):
+            r.scene.flags[flag] = True
+        np.testing.assert_array_equal(r.render(t), plain)
+
+
 def test_a_renderer_names_what_it_cannot_draw(record):
     raised = dataclasses.replace(record, base_pose=np.r_[0.0, 0.0, 1.4, 1.0, 0.0, 0.0, 0.0])
     with TrialRenderer(record, SMALL) as r:
