@@ -1,4 +1,4 @@
-"""The command line refuses what would silently lose or mix up work (issue 14)."""
+"""The command line refuses what would silently lose or mix up work."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The confirmed-success stop rule of the ILC loop (issue 11): a tie must repeat k of n."""
+"""The confirmed-success stop rule of the ILC loop: a tie must repeat k of n."""
 
 from __future__ import annotations
 

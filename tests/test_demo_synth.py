@@ -573,7 +573,7 @@ def test_cli_replay_json_and_saved_replays(tmp_path, capsys):
     assert code == 0
     result = json.loads(capsys.readouterr().out)
     assert result["repeats"] == 1 and len(result["outcomes"]) == 1
-    # Air drag (issue 10) moves the nominal replay's first contact by a few ms.
+    # Air drag moves the nominal replay's first contact by a few ms.
     assert result["t_c"][0] == pytest.approx(_shipped("fast").t_c, abs=0.01)
     saved = Demonstration.load(out / "replay_000.npz")
     assert saved.t_c == result["t_c"][0]

@@ -30,11 +30,12 @@ def test_the_test_command_is_what_ci_runs_and_installs_the_browser():
 
 
 def test_code_and_docs_say_what_is_not_what_was():
-    """No history narration ("issue 10", "session 4") in the packages, README, docs, data."""
+    """No history narration (an issue's or a session's number) in the packages, tests,
+    README, docs, data."""
     pattern = re.compile(r"\b(issue|session) [0-9]+", re.IGNORECASE)
     roots = ["flyknot", "flyknot_sim", "flyknot_hw", "learner", "flyknot_app", "flyknot_tools"]
     files = [ROOT / "README.md"]
-    for d in ["docs", "scenarios", "assets", *roots]:
+    for d in ["docs", "scenarios", "assets", "tests", *roots]:
         files += [p for p in (ROOT / d).rglob("*") if p.suffix in (".py", ".md", ".toml")]
     hits = [
         f"{p.relative_to(ROOT)}:{n}"
