@@ -24,6 +24,7 @@ from flyknot.errors import ConfigError, HardwareError
 from flyknot.record import Cell, JointCommand, TrialRecord
 from flyknot_hw.config import parse_lab_config
 from flyknot_hw.mocap import RawStream
+from flyknot_hw.mocap.trial import MAX_TIP_RESIDUAL_M
 from flyknot_hw.preflight import PreflightError
 from flyknot_hw.xarm_cell import XArmCell
 from tests.knot_curves import verdict
@@ -167,9 +168,13 @@ def test_stream_plays_the_command_and_records_it(make_fake, cells):
     assert rec.t_marker[0] < 0 < rec.t_marker[-1] and rec.markers.shape[1:] == (11, 3)
     meta = rec.metadata["mocap"]
     assert "error" not in meta and meta["aligned_on"] == "fingertip body"
-    assert meta["residual_rms_m"] < 1e-3  # the stand-in sees the fake arm's own fingertip
+    # The stand-in sees the fake arm's own fingertip on the host clock (t_robot = t_perf -
+    # t0), stamped in a thread that shares the GIL with the controller's: a stamp can lag its
+    # reading by a thread switch (2.5 mm rms seen on a loaded machine, 1 ms at the throw's
+    # speed). Another instant of the throw would be centimetres and tens of ms off.
+    assert meta["residual_rms_m"] < MAX_TIP_RESIDUAL_M  # what the cell accepts
     t0 = rec.metadata["timing"]["t0_perf_counter_s"]
-    assert abs(meta["offset_s"] + t0) < 2e-3  # host clock: t_robot = t_perf - t0
+    assert abs(meta["offset_s"] + t0) < 5e-3
     k = rec.t_marker * 200.0
     np.testing.assert_allclose(k, np.round(k), atol=1e-6)
     i = np.searchsorted(rec.t_marker, 0.5)
