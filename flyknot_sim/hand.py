@@ -331,23 +331,54 @@ class HandLab:
         if variation is None:
             variation = self.draw_variation(rng) if rng is not None else _nominal_variation()
         tic = time.perf_counter()
-        p, m, d, s = self.params, self.model, self.data, self.scene
-        dt = m.opt.timestep
-        tempo = float(variation["tempo"])
-        motion_start = p.hang_s + float(variation["delay"])
-        motion_len = float(motion.duration) * tempo
-        rule = p.settle_rule
+        p, rule = self.params, self.params.settle_rule
         wait = rule.max_s if judge else rule.min_s  # unjudged trials need no rest
-        n_steps = math.ceil((motion_start + motion_len + wait) / dt - 1e-9)
-        t = dt * np.arange(n_steps + 1)
-        tau = (t - motion_start) / tempo
-        q_t, qd_t, qdd_t = motion.joint_targets(tau)
-        qd_t = qd_t / tempo
-        qdd_t = qdd_t / tempo**2
+        plan = _Plan.of(motion, variation, p.hang_s, wait, self.model.opt.timestep, self._inertia)
+        self._start(plan.q[0], variation)
+        monitor = SettleMonitor(rule, t_end=plan.motion_end, diameter=p.rope_params.diameter)
+        played = self._play(plan, monitor if judge else None)
+        t, verts = played.t, played.vertices
+        knot: str | None = None
+        final: Verdict | None = None
+        knot_any = False
+        settle_fraction = 0.0
+        judged = np.zeros(0, dtype=int)
+        settle_meta = None
+        if judge and not played.diverged:
+            judged = judged_frames(t, plan.motion_start, p.judge_rate_hz)
+            knot, knot_any, settle_fraction = _judge(t, verts, judged, plan.motion_end)
+            if monitor.observe(float(t[-1]), float("nan"), self._verdict):  # the cap reached
+                settle_meta = monitor.outcome.as_metadata(rule)
+            final = judge_centreline(verts[-1])
+            knot = final.knot
+        return HandTrial(
+            t=t,
+            hand_pos=played.pos,
+            hand_quat=quat_sign_continuous(played.quat),
+            q=played.q,
+            q_target=plan.q[: len(t)],
+            vertices=verts,
+            first_contact=played.first_contact,
+            motion_start=plan.motion_start,
+            motion_end=plan.motion_end,
+            knot=knot,
+            verdict=final,
+            knot_any=knot_any,
+            settle_fraction=settle_fraction,
+            judged=judged,
+            diverged=played.diverged,
+            variation=dict(variation),
+            wall_s=time.perf_counter() - tic,
+            settle=settle_meta,
+        )
 
+    def _start(self, q0: np.ndarray, variation: Mapping[str, Any]) -> None:
+        """Reset to the hand at ``q0`` (6,) with the variation's servo gains and the rope
+        hanging at rest, tilted by its sway."""
+        m, d, s = self.model, self.data, self.scene
         mujoco.mj_resetData(m, d)
         self._apply_gains(np.asarray(variation["kp_factor"]), np.asarray(variation["kv_factor"]))
-        d.qpos[s.qpos] = q_t[0]
+        d.qpos[s.qpos] = q0
         mujoco.mj_kinematics(m, d)
         s.rope.set_hanging(
             m,
@@ -356,99 +387,129 @@ class HandLab:
             float(variation["azimuth"]),
             float(variation.get("sway_rate", 0.0)),
         )
-        rope = s.rope
-        monitor = SettleMonitor(
-            rule, t_end=motion_start + motion_len, diameter=p.rope_params.diameter
-        )
-        drag_every = max(1, round(DRAG_HOLD_S / dt))
+
+    def _verdict(self) -> str:
+        """The knot type of the rope as it is now."""
+        rope = self.scene.rope
+        return tube_knot(self.data.qpos[rope.vert_qpos] + rope.body_pos0)
+
+    def _knot_region(self) -> tuple[tuple[int, int] | None, np.ndarray]:
+        """The rope's self-contact span and its vertices now."""
+        rope, d = self.scene.rope, self.data
+        return rope.self_contact_span(self.model, d), d.qpos[rope.vert_qpos] + rope.body_pos0
+
+    def _sample(self, out: _Played, k: int) -> None:
+        """Store the state after the last step as sample ``k`` (MuJoCo's positions of it)."""
+        d, s = self.data, self.scene
+        out.vertices[k] = d.flexvert_xpos[s.rope.vert_adr : s.rope.vert_adr + s.rope.n_vert]
+        out.q[k] = d.qpos[s.qpos]
+        out.pos[k] = d.site_xpos[s.fingertip]
+        mujoco.mju_mat2Quat(out.quat[k], d.site_xmat[s.fingertip])
+
+    def _play(self, plan: _Plan, monitor: SettleMonitor | None) -> _Played:
+        """Step through ``plan`` from the state :meth:`_start` set, recording every step,
+        until its end, a settle end of ``monitor`` (None: no settle rule) or a divergence
+        (MuJoCo resets a diverged state: the samples after it are NaN)."""
+        m, d, s = self.model, self.data, self.scene
+        rope, n_steps = s.rope, len(plan.t) - 1
+        out = _Played.empty(plan.t, rope.n_vert)
+        drag_every = max(1, round(DRAG_HOLD_S / m.opt.timestep))
         end_dof = rope.vert_dof[-1]
-
-        def verdict() -> str:
-            return tube_knot(d.qpos[rope.vert_qpos] + rope.body_pos0)
-
-        def knot_region() -> tuple[tuple[int, int] | None, np.ndarray]:
-            return rope.self_contact_span(m, d), d.qpos[rope.vert_qpos] + rope.body_pos0
-
-        nv = s.rope.n_vert
-        verts = np.empty((n_steps + 1, nv, 3))
-        q = np.empty((n_steps + 1, N_HAND_DOF))
-        pos = np.empty((n_steps + 1, 3))
-        quat = np.empty((n_steps + 1, 4))
-        first_contact: float | None = None
-        diverged = False
-        ff = qdd_t * self._inertia  # inertial feed-forward [N, N m]
         for k in range(n_steps + 1):
-            verts[k] = d.flexvert_xpos[s.rope.vert_adr : s.rope.vert_adr + nv]
-            q[k] = d.qpos[s.qpos]
-            pos[k] = d.site_xpos[s.fingertip]
-            mujoco.mju_mat2Quat(quat[k], d.site_xmat[s.fingertip])
-            if first_contact is None and k > 0 and s.rope.self_contact(m, d):
-                first_contact = float(t[k])
+            self._sample(out, k)
+            if out.first_contact is None and k > 0 and rope.self_contact(m, d):
+                out.first_contact = float(plan.t[k])
             if k == n_steps:
                 break
-            d.ctrl[s.act_pos] = q_t[k + 1]
-            d.ctrl[s.act_vel] = qd_t[k + 1]
-            d.ctrl[s.act_ff] = ff[k + 1]
+            d.ctrl[s.act_pos] = plan.q[k + 1]
+            d.ctrl[s.act_vel] = plan.qd[k + 1]
+            d.ctrl[s.act_ff] = plan.ff[k + 1]
             before = d.time
             if k % drag_every == 0:
                 self._drag.apply(d)
             self._bend.apply(d)
             mujoco.mj_step(m, d)
-            if d.time < before:  # MuJoCo reset a diverged state
-                diverged = True
-                verts[k + 1 :] = np.nan
-                q[k + 1 :] = np.nan
-                pos[k + 1 :] = np.nan
-                quat[k + 1 :] = np.nan
+            if d.time < before:
+                out.diverged = True
+                for a in (out.vertices, out.q, out.pos, out.quat):
+                    a[k + 1 :] = np.nan
                 break
-            if judge and t[k + 1] >= monitor.t_end - 1e-9:
+            t_next = float(plan.t[k + 1])
+            if monitor is not None and t_next >= monitor.t_end - 1e-9:
                 speed = float(np.linalg.norm(d.qvel[end_dof]))
                 touching = rope.self_contact(m, d)
-                if monitor.observe(float(t[k + 1]), speed, verdict, touching, knot_region):
-                    n_steps = k + 1
+                if monitor.observe(t_next, speed, self._verdict, touching, self._knot_region):
                     # The state after this step is the last sample.
-                    verts[n_steps] = d.qpos[rope.vert_qpos] + rope.body_pos0
-                    q[n_steps] = d.qpos[s.qpos]
+                    out.vertices[k + 1] = d.qpos[rope.vert_qpos] + rope.body_pos0
+                    out.q[k + 1] = d.qpos[s.qpos]
                     mujoco.mj_kinematics(m, d)
-                    pos[n_steps] = d.site_xpos[s.fingertip]
-                    mujoco.mju_mat2Quat(quat[n_steps], d.site_xmat[s.fingertip])
-                    break
-        t, verts, q, pos, quat = (a[: n_steps + 1] for a in (t, verts, q, pos, quat))
-        q_t = q_t[: n_steps + 1]
-        quat = quat_sign_continuous(quat)
-        knot: str | None = None
-        final: Verdict | None = None
-        knot_any = False
-        settle_fraction = 0.0
-        judged = np.zeros(0, dtype=int)
-        settle_meta = None
-        if judge and not diverged:
-            judged = judged_frames(t, motion_start, p.judge_rate_hz)
-            knot, knot_any, settle_fraction = _judge(t, verts, judged, motion_start + motion_len)
-            if monitor.observe(float(t[-1]), float("nan"), verdict):  # cap reached in the loop
-                settle_meta = monitor.outcome.as_metadata(rule)
-            final = judge_centreline(verts[-1])
-            knot = final.knot
-        return HandTrial(
-            t=t,
-            hand_pos=pos,
-            hand_quat=quat,
-            q=q,
-            q_target=q_t,
-            vertices=verts,
-            first_contact=first_contact,
-            motion_start=motion_start,
-            motion_end=motion_start + motion_len,
-            knot=knot,
-            verdict=final,
-            knot_any=knot_any,
-            settle_fraction=settle_fraction,
-            judged=judged,
-            diverged=diverged,
-            variation=dict(variation),
-            wall_s=time.perf_counter() - tic,
-            settle=settle_meta,
+                    out.pos[k + 1] = d.site_xpos[s.fingertip]
+                    mujoco.mju_mat2Quat(out.quat[k + 1], d.site_xmat[s.fingertip])
+                    return out.upto(k + 1)
+        return out
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """A trial's clock and the hand's targets on it: every step's time t (n + 1,) [s] and the
+    joint targets q, rates qd and inertial feed-forward ff (n + 1, 6), the motion played
+    ``tempo`` times slower from ``motion_start``."""
+
+    t: np.ndarray
+    q: np.ndarray
+    qd: np.ndarray
+    ff: np.ndarray
+    motion_start: float
+    motion_end: float
+
+    @staticmethod
+    def of(
+        motion: JointTrajectory,
+        variation: Mapping[str, Any],
+        hang_s: float,
+        wait_s: float,
+        dt: float,
+        inertia: np.ndarray,
+    ) -> _Plan:
+        """The plan of ``motion`` under ``variation`` after ``hang_s`` still, waiting
+        ``wait_s`` after it, on steps of ``dt`` [s]; ``inertia`` (6,) the joints' [kg, kg m^2]."""
+        tempo = float(variation["tempo"])
+        motion_start = hang_s + float(variation["delay"])
+        motion_end = motion_start + float(motion.duration) * tempo
+        n_steps = math.ceil((motion_end + wait_s) / dt - 1e-9)
+        t = dt * np.arange(n_steps + 1)
+        q, qd, qdd = motion.joint_targets((t - motion_start) / tempo)
+        return _Plan(t, q, qd / tempo, qdd / tempo**2 * inertia, motion_start, motion_end)
+
+
+@dataclass
+class _Played:
+    """What :meth:`HandLab._play` recorded, one row per step (module docstring)."""
+
+    t: np.ndarray
+    vertices: np.ndarray
+    q: np.ndarray
+    pos: np.ndarray
+    quat: np.ndarray
+    first_contact: float | None = None
+    diverged: bool = False
+
+    @staticmethod
+    def empty(t: np.ndarray, n_vert: int) -> _Played:
+        """Room for a sample at every time of ``t``."""
+        n = len(t)
+        return _Played(
+            t,
+            np.empty((n, n_vert, 3)),
+            np.empty((n, N_HAND_DOF)),
+            np.empty((n, 3)),
+            np.empty((n, 4)),
         )
+
+    def upto(self, k: int) -> _Played:
+        """Samples 0 .. k."""
+        a = (self.t, self.vertices, self.q, self.pos, self.quat)
+        return _Played(*(x[: k + 1] for x in a), self.first_contact, self.diverged)
 
 
 def _nominal_variation() -> dict[str, Any]:
