@@ -351,61 +351,21 @@ def build_problem(
     f = ca.sum1(terms)
 
     # constraints, each block (7, n) vectorised column-major: sample a, joint j at 7 a + j
-    lim = params.limits
-    keep = 1.0 - params.limit_margin
     Ql = [C @ ca.DM(G.T) for G in Gl]  # q, qd, qdd at the limit samples, (7, n) each
-    rows: list[tuple[str, ca.MX, ca.MX, np.ndarray, np.ndarray]] = []
-    e_b = np.zeros((1, N_X))
-    e_b[0, N_X - 1] = 1.0
     P0 = lift_matrix([np.eye(1, N_FREE)], with_base=False)  # (7, 45): q(0) from x
-    if params.base_height is None:  # height in the demonstration frame
-        z_jac = fun.z_grad(q0) @ ca.DM(P0) + ca.DM(e_b)
-        rows.append(("z", robot.fk(q0)[0][2] + b[2], z_jac, [params.z_min], [np.inf]))
-    else:  # height above the lab's floor
-        z_jac = fun.z_grad(q0) @ ca.DM(P0)
-        z_expr = robot.fk(q0)[0][2] + params.base_height
-        rows.append(("z", z_expr, z_jac, [params.z_min], [np.inf]))
-    bounds = {
-        "pos": (lim.q_min + POSITION_MARGIN, lim.q_max - POSITION_MARGIN),
-        "vel": (-keep * lim.qd_max, keep * lim.qd_max),
-        "acc": (-keep * lim.qdd_max, keep * lim.qdd_max),
-    }
-    for r, name in enumerate(("pos", "vel", "acc")):
-        A = _sparse_dm(lift_matrix([Gl[r]], with_base=False))  # (7 n, 45)
-        rows.append((name, ca.vec(Ql[r]), A, *bounds[name]))
+    Y = ca.vertcat(*Ql)  # (21, n): column a is y_a = (q, qd, qdd)(t_a)
     P_tau = _sparse_dm(lift_matrix(Gl, with_base=False))  # (21 n, 45)
-    if params.torque_limits:
-        tau = robot.inverse_dynamics.map(n)(Ql[0], Ql[1], Ql[2])
-        Y = ca.vertcat(*Ql)  # (21, n): column a is y_a
-        dtau = ca.mtimes(ca.diagcat(*ca.horzsplit(fun.tau_jac.map(n)(Y), 3 * N_JOINTS)), P_tau)
-        rows.append(("tau", ca.vec(tau), dtau, -keep * lim.tau_max, keep * lim.tau_max))
-    g_parts, jac_parts, lbg, ubg, blocks = [], [], [], [], {}
-    start = 0
-    for name, expr, jac, lo, hi in rows:
-        size = expr.numel()
-        reps = size // len(lo)
-        g_parts.append(expr)
-        jac_parts.append(jac)
-        lbg.append(np.tile(lo, reps))
-        ubg.append(np.tile(hi, reps))
-        blocks[name] = (start, start + size)
-        start += size
-    g = ca.vertcat(*g_parts)
-    jac_g = ca.vertcat(*jac_parts)
+    rows = _constraint_rows(Ql, Gl, Y, P_tau, P0, q0, b, robot, fun, params)
+    g, jac_g, lbg, ubg, blocks = _stacked(rows)
 
     # Hessian of the Lagrangian
     lam_f = ca.MX.sym("lam_f")
-    lam_g = ca.MX.sym("lam_g", start)
+    lam_g = ca.MX.sym("lam_g", g.numel())
     empty = ca.MX.sym("p", 0, 1)
     Pc = _sparse_dm(lift_matrix(Gc[:2], with_base=True))  # (17 m, 45)
     Z = ca.vertcat(Qc[0], Qc[1], ca.repmat(b, 1, m))  # (17, m)
     H = lam_f * _sandwich(Pc, fun.cost_hess.map(m)(Z, Ph_dm, Rh_dm, vh_dm), 17)
-    G3 = Gc[2]
-    H_jerk = np.zeros((N_X, N_X))
-    H_jerk[: N_JOINTS * N_FREE, : N_JOINTS * N_FREE] = np.kron(
-        np.eye(N_JOINTS), 2.0 * params.w_j * G3.T @ G3
-    )
-    H = H + lam_f * _sparse_dm(H_jerk)
+    H = H + lam_f * _sparse_dm(_jerk_hessian(Gc[2], params.w_j))
     H = H + lam_g[0] * ca.mtimes([ca.DM(P0).T, fun.z_hess(q0), ca.DM(P0)])
     if params.torque_limits:
         a, z = blocks["tau"]
@@ -435,6 +395,86 @@ def build_problem(
         hess_lag=ca.Function("hess_lag", [x, empty, lam_f, lam_g], [ca.triu(H)]),
         params=params,
     )
+
+
+_Row = tuple[str, ca.MX, ca.MX, np.ndarray, np.ndarray]
+"""A constraint block: name, expression (k,), its Jacobian (k, 45), lower and upper bounds
+(per joint or per block, tiled over the block)."""
+
+
+def _constraint_rows(
+    Ql: list[ca.MX],
+    Gl: list[np.ndarray],
+    Y: ca.MX,
+    P_tau: ca.DM,
+    P0: np.ndarray,
+    q0: ca.MX,
+    b: ca.MX,
+    robot: RobotModel,
+    fun: _SampleFunctions,
+    params: InitialGuessParams,
+) -> list[_Row]:
+    """The constraint blocks with their structured Jacobians: the fingertip's height at t = 0
+    (in the demonstration frame, or above the lab's floor with ``params.base_height``), the
+    joint positions, rates and accelerations at the limit samples within the limits less
+    their margins, and the joint torques (``params.torque_limits``).
+
+    ``Ql``: q, qd, qdd at the n limit samples, (7, n) each, with their bases ``Gl`` (n, 6)
+    each; ``Y`` their stack (21, n) and ``P_tau`` its lift from x (21 n, 45); ``P0`` the lift
+    of q(0) (7, 45); ``q0`` (7,) and ``b`` (3,) the parts of x they name."""
+    lim = params.limits
+    keep = 1.0 - params.limit_margin
+    rows: list[_Row] = []
+    if params.base_height is None:  # height in the demonstration frame
+        e_b = np.zeros((1, N_X))
+        e_b[0, N_X - 1] = 1.0
+        z_jac = fun.z_grad(q0) @ ca.DM(P0) + ca.DM(e_b)
+        rows.append(("z", robot.fk(q0)[0][2] + b[2], z_jac, [params.z_min], [np.inf]))
+    else:  # height above the lab's floor
+        z_jac = fun.z_grad(q0) @ ca.DM(P0)
+        z_expr = robot.fk(q0)[0][2] + params.base_height
+        rows.append(("z", z_expr, z_jac, [params.z_min], [np.inf]))
+    bounds = {
+        "pos": (lim.q_min + POSITION_MARGIN, lim.q_max - POSITION_MARGIN),
+        "vel": (-keep * lim.qd_max, keep * lim.qd_max),
+        "acc": (-keep * lim.qdd_max, keep * lim.qdd_max),
+    }
+    for r, name in enumerate(("pos", "vel", "acc")):
+        A = _sparse_dm(lift_matrix([Gl[r]], with_base=False))  # (7 n, 45)
+        rows.append((name, ca.vec(Ql[r]), A, *bounds[name]))
+    if params.torque_limits:
+        n = Y.shape[1]
+        tau = robot.inverse_dynamics.map(n)(Ql[0], Ql[1], Ql[2])
+        dtau = ca.mtimes(ca.diagcat(*ca.horzsplit(fun.tau_jac.map(n)(Y), 3 * N_JOINTS)), P_tau)
+        rows.append(("tau", ca.vec(tau), dtau, -keep * lim.tau_max, keep * lim.tau_max))
+    return rows
+
+
+def _stacked(
+    rows: list[_Row],
+) -> tuple[ca.MX, ca.MX, list[np.ndarray], list[np.ndarray], dict[str, tuple[int, int]]]:
+    """The blocks stacked: g (k,), its Jacobian (k, 45), the bounds (k,) and each block's
+    [start, end) rows by name."""
+    g_parts, jac_parts, lbg, ubg, blocks = [], [], [], [], {}
+    start = 0
+    for name, expr, jac, lo, hi in rows:
+        size = expr.numel()
+        reps = size // len(lo)
+        g_parts.append(expr)
+        jac_parts.append(jac)
+        lbg.append(np.tile(lo, reps))
+        ubg.append(np.tile(hi, reps))
+        blocks[name] = (start, start + size)
+        start += size
+    return ca.vertcat(*g_parts), ca.vertcat(*jac_parts), lbg, ubg, blocks
+
+
+def _jerk_hessian(G3: np.ndarray, w_j: float) -> np.ndarray:
+    """The jerk term's constant Hessian (45, 45): 2 w_j I_7 (x) G_3^T G_3 on the knots, zero
+    on the offset b."""
+    H = np.zeros((N_X, N_X))
+    H[: N_JOINTS * N_FREE, : N_JOINTS * N_FREE] = np.kron(np.eye(N_JOINTS), 2.0 * w_j * G3.T @ G3)
+    return H
 
 
 __all__ = ["InitialGuessProblem", "build_problem", "lift_matrix"]
