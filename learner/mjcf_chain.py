@@ -94,123 +94,11 @@ def read_chain(
     Raises:
         ConfigError: names or chain structure do not fit.
     """
-    n = len(joint_names)
-    jids = []
-    for name in joint_names:
-        j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
-        if j < 0:
-            all_joints = [
-                mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, i) for i in range(model.njnt)
-            ]
-            raise ConfigError("joint_names", f"joint {name!r} not in the MJCF", all_joints)
-        if model.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE:
-            raise ConfigError("joint_names", f"joint {name!r} is not a hinge")
-        jids.append(j)
-    sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, site_name)
-    if sid < 0:
-        sites = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_SITE, i) for i in range(model.nsite)]
-        raise ConfigError("site", f"site {site_name!r} not in the MJCF", sites)
-    jbody = [int(model.jnt_bodyid[j]) for j in jids]
-    if base_body is None:
-        base = int(model.body_parentid[jbody[0]])
-    else:
-        base = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, base_body)
-        if base < 0:
-            bodies = [_body_name(model, i) for i in range(model.nbody)]
-            raise ConfigError("base_body", f"body {base_body!r} not in the MJCF", bodies)
-    # The base must be welded to the world so that gravity has a fixed direction in it.
-    for b in [*_ancestors(model, base)]:
-        if model.body_jntnum[b] > 0:
-            raise ConfigError("base_body", f"{_body_name(model, base)!r} is not fixed to the world")
+    jids, sid, base = _chain_ids(model, joint_names, site_name, base_body)
     site_body = int(model.site_bodyid[sid])
-    path = list(reversed(_ancestors(model, site_body)))  # world child ... site body
-    if base != 0:
-        if base not in path:
-            raise ConfigError(
-                "site", f"site {site_name!r} is not below {_body_name(model, base)!r}"
-            )
-        path = path[path.index(base) + 1 :]
-    # Joints along the path must be exactly the chain joints, in order, one per body.
-    seen = []
-    for b in path:
-        nj = int(model.body_jntnum[b])
-        ids = list(range(model.body_jntadr[b], model.body_jntadr[b] + nj))
-        for j in ids:
-            if j not in jids:
-                name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j)
-                raise ConfigError(
-                    "joint_names", f"joint {name!r} lies on the chain but is not listed"
-                )
-        if nj > 1:
-            raise ConfigError("mjcf", f"body {_body_name(model, b)!r} has {nj} joints (need <= 1)")
-        seen.extend(ids)
-    if seen != jids:
-        raise ConfigError(
-            "joint_names",
-            "must list the hinges from base to site in chain order; the chain has "
-            + ", ".join(repr(mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j)) for j in seen),
-        )
-    # Segment of every body: index of the last chain joint at or above it (-1: fixed to base).
-    seg_of_path = {}
-    k = -1
-    for b in path:
-        if model.body_jntnum[b] == 1:
-            k += 1
-        seg_of_path[b] = k
-    # Lump every body below the base into the segment of its nearest path ancestor.
-    masses = [[] for _ in range(n)]
-    for b in range(1, model.nbody):
-        anc = _ancestors(model, b)
-        on_path = next((a for a in anc if a in seg_of_path), None)
-        if on_path is None or seg_of_path[on_path] < 0:
-            continue
-        between = anc[: anc.index(on_path)]  # b and its ancestors below the path body
-        if any(_has_free_joint(model, a) for a in between):
-            continue  # a free body is not carried by the arm
-        k = seg_of_path[on_path]
-        p, R = _static_pose(model, jbody[k], b) if b != jbody[k] else (np.zeros(3), np.eye(3))
-        Ri = R @ quat_to_matrix(model.body_iquat[b])
-        masses[k].append(
-            (
-                float(model.body_mass[b]),
-                p + R @ model.body_ipos[b],
-                Ri @ np.diag(model.body_inertia[b]) @ Ri.T,
-            )
-        )
-    links = []
-    prev = base
-    for k in range(n):
-        b = jbody[k]
-        parent = int(model.body_parentid[b])
-        p_par, R_par = (
-            (np.zeros(3), np.eye(3)) if parent == prev else _static_pose(model, prev, parent)
-        )
-        s = p_par + R_par @ model.body_pos[b]
-        S = R_par @ quat_to_matrix(model.body_quat[b])
-        m_tot = sum(m for m, _, _ in masses[k])
-        if m_tot > 0:
-            com = sum(m * c for m, c, _ in masses[k]) / m_tot
-            inertia = sum(
-                inertia_b + m * (np.dot(c - com, c - com) * np.eye(3) - np.outer(c - com, c - com))
-                for m, c, inertia_b in masses[k]
-            )
-        else:
-            com, inertia = np.zeros(3), np.zeros((3, 3))
-        j = jids[k]
-        axis = np.asarray(model.jnt_axis[j], dtype=float)
-        links.append(
-            ChainLink(
-                s=s,
-                S=S,
-                axis=axis / np.linalg.norm(axis),
-                anchor=np.array(model.jnt_pos[j], dtype=float),
-                ref=float(model.qpos0[model.jnt_qposadr[j]]),
-                mass=float(m_tot),
-                com=com,
-                inertia=np.asarray(inertia, dtype=float),
-            )
-        )
-        prev = b
+    path = _chain_path(model, jids, site_name, site_body, base)
+    jbody = [int(model.jnt_bodyid[j]) for j in jids]
+    links = _chain_links(model, jids, jbody, base, _lumped_masses(model, path, jbody))
     p_site_body, R_site_body = (
         (np.zeros(3), np.eye(3))
         if site_body == jbody[-1]
@@ -232,6 +120,156 @@ def read_chain(
         "base_name": _body_name(model, base) if base != 0 else "world",
         "q_range": np.array([model.jnt_range[j] for j in jids]),
     }
+
+
+def _chain_ids(
+    model: mujoco.MjModel, joint_names: tuple[str, ...], site_name: str, base_body: str | None
+) -> tuple[list[int], int, int]:
+    """The listed hinges' ids, the site's id and the base body's id (default: the first
+    joint's body's parent), checked: every name exists, every joint is a hinge, the base is
+    welded to the world (so that gravity has a fixed direction in it)."""
+    jids = []
+    for name in joint_names:
+        j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+        if j < 0:
+            all_joints = [
+                mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, i) for i in range(model.njnt)
+            ]
+            raise ConfigError("joint_names", f"joint {name!r} not in the MJCF", all_joints)
+        if model.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE:
+            raise ConfigError("joint_names", f"joint {name!r} is not a hinge")
+        jids.append(j)
+    sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, site_name)
+    if sid < 0:
+        sites = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_SITE, i) for i in range(model.nsite)]
+        raise ConfigError("site", f"site {site_name!r} not in the MJCF", sites)
+    if base_body is None:
+        base = int(model.body_parentid[int(model.jnt_bodyid[jids[0]])])
+    else:
+        base = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, base_body)
+        if base < 0:
+            bodies = [_body_name(model, i) for i in range(model.nbody)]
+            raise ConfigError("base_body", f"body {base_body!r} not in the MJCF", bodies)
+    for b in [*_ancestors(model, base)]:
+        if model.body_jntnum[b] > 0:
+            raise ConfigError("base_body", f"{_body_name(model, base)!r} is not fixed to the world")
+    return jids, sid, base
+
+
+def _chain_path(
+    model: mujoco.MjModel, jids: list[int], site_name: str, site_body: int, base: int
+) -> list[int]:
+    """The bodies from below the base down to the site's body, checked: the joints along
+    them are exactly ``jids``, in order, at most one per body."""
+    path = list(reversed(_ancestors(model, site_body)))  # world child ... site body
+    if base != 0:
+        if base not in path:
+            raise ConfigError(
+                "site", f"site {site_name!r} is not below {_body_name(model, base)!r}"
+            )
+        path = path[path.index(base) + 1 :]
+    seen = []
+    for b in path:
+        nj = int(model.body_jntnum[b])
+        ids = list(range(model.body_jntadr[b], model.body_jntadr[b] + nj))
+        for j in ids:
+            if j not in jids:
+                name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j)
+                raise ConfigError(
+                    "joint_names", f"joint {name!r} lies on the chain but is not listed"
+                )
+        if nj > 1:
+            raise ConfigError("mjcf", f"body {_body_name(model, b)!r} has {nj} joints (need <= 1)")
+        seen.extend(ids)
+    if seen != jids:
+        raise ConfigError(
+            "joint_names",
+            "must list the hinges from base to site in chain order; the chain has "
+            + ", ".join(repr(mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j)) for j in seen),
+        )
+    return path
+
+
+_Mass = tuple[float, np.ndarray, np.ndarray]
+"""A body lumped into a link: mass [kg], centre of mass (3,) [m] and inertia about it (3, 3)
+[kg m^2], both in the link's joint body's frame."""
+
+
+def _lumped_masses(model: mujoco.MjModel, path: list[int], jbody: list[int]) -> list[list[_Mass]]:
+    """Every body below the base, lumped into the link of its nearest ancestor on ``path``
+    (the last chain joint at or above it) at its reference pose; bodies fixed to the base
+    and the subtrees below a free joint are left out."""
+    seg_of_path = {}
+    k = -1
+    for b in path:
+        if model.body_jntnum[b] == 1:
+            k += 1
+        seg_of_path[b] = k
+    masses: list[list[_Mass]] = [[] for _ in jbody]
+    for b in range(1, model.nbody):
+        anc = _ancestors(model, b)
+        on_path = next((a for a in anc if a in seg_of_path), None)
+        if on_path is None or seg_of_path[on_path] < 0:
+            continue
+        between = anc[: anc.index(on_path)]  # b and its ancestors below the path body
+        if any(_has_free_joint(model, a) for a in between):
+            continue  # a free body is not carried by the arm
+        k = seg_of_path[on_path]
+        p, R = _static_pose(model, jbody[k], b) if b != jbody[k] else (np.zeros(3), np.eye(3))
+        Ri = R @ quat_to_matrix(model.body_iquat[b])
+        masses[k].append(
+            (
+                float(model.body_mass[b]),
+                p + R @ model.body_ipos[b],
+                Ri @ np.diag(model.body_inertia[b]) @ Ri.T,
+            )
+        )
+    return masses
+
+
+def _chain_links(
+    model: mujoco.MjModel,
+    jids: list[int],
+    jbody: list[int],
+    base: int,
+    masses: list[list[_Mass]],
+) -> list[ChainLink]:
+    """One :class:`ChainLink` per joint: its body's pose in the previous joint's body (the
+    base for the first), the joint's axis, anchor and reference angle, and the link's lumped
+    mass, centre of mass and inertia about it (parallel-axis sum)."""
+    links = []
+    prev = base
+    for k, (j, b) in enumerate(zip(jids, jbody, strict=True)):
+        parent = int(model.body_parentid[b])
+        p_par, R_par = (
+            (np.zeros(3), np.eye(3)) if parent == prev else _static_pose(model, prev, parent)
+        )
+        s = p_par + R_par @ model.body_pos[b]
+        S = R_par @ quat_to_matrix(model.body_quat[b])
+        m_tot = sum(m for m, _, _ in masses[k])
+        if m_tot > 0:
+            com = sum(m * c for m, c, _ in masses[k]) / m_tot
+            inertia = sum(
+                inertia_b + m * (np.dot(c - com, c - com) * np.eye(3) - np.outer(c - com, c - com))
+                for m, c, inertia_b in masses[k]
+            )
+        else:
+            com, inertia = np.zeros(3), np.zeros((3, 3))
+        axis = np.asarray(model.jnt_axis[j], dtype=float)
+        links.append(
+            ChainLink(
+                s=s,
+                S=S,
+                axis=axis / np.linalg.norm(axis),
+                anchor=np.array(model.jnt_pos[j], dtype=float),
+                ref=float(model.qpos0[model.jnt_qposadr[j]]),
+                mass=float(m_tot),
+                com=com,
+                inertia=np.asarray(inertia, dtype=float),
+            )
+        )
+        prev = b
+    return links
 
 
 __all__ = ["ChainLink", "read_chain"]

@@ -284,5 +284,17 @@ def test_bad_shapes_and_names_raise_with_exact_messages():
         "joint_names: must list the hinges from base to site in chain order; the chain has "
         "'joint1', 'joint2', 'joint3', 'joint4', 'joint5', 'joint6', 'joint7'"
     )
+    with pytest.raises(ConfigError) as exc:
+        RobotModel.from_mjcf(CHAIN7, joint_names=tuple(f"joint{i}" for i in range(1, 7)))
+    assert str(exc.value) == "joint_names: joint 'joint7' lies on the chain but is not listed"
+    with pytest.raises(ConfigError) as exc:
+        RobotModel.from_mjcf(CHAIN7, base_body="nope")
+    assert str(exc.value) == (
+        "base_body: body 'nope' not in the MJCF (valid choices: world, pedestal, link_base, "
+        "link1, link2, link3, link3_cover, link4, link5, link6, link7, tube)"
+    )
+    with pytest.raises(ConfigError) as exc:
+        RobotModel.from_mjcf(CHAIN7, base_body="link7")
+    assert str(exc.value) == "base_body: 'link7' is not fixed to the world"
     with pytest.raises(ConfigError, match=r"^path: MJCF file '.*nowhere\.xml' does not exist$"):
         RobotModel.from_mjcf(CHAIN7.parent / "nowhere.xml")
