@@ -294,7 +294,26 @@ def build_parser() -> argparse.ArgumentParser:
         description="Learn the overhand flying knot with Task-Level ILC (simulated or real lab).",
     )
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+    _add_run_parser(sub)
+    add_trial_parsers(sub)
+    add_paper_parser(sub)
+    _add_showcase_parser(sub)
+    from flyknot_app.demo_cli import add_demo_parser
 
+    add_demo_parser(sub)
+    _add_view_parser(sub)
+    _add_render_parser(sub)
+    _add_model_check_parser(sub)
+    _add_explain_parser(sub)
+    _add_baseline_parser(sub)
+    _add_calibrate_parser(sub)
+    _add_compare_parser(sub)
+    _add_bench_parser(sub)
+    return p
+
+
+def _add_run_parser(sub: argparse._SubParsersAction) -> None:
+    """``flyknot run``: a scenario headless."""
     r = sub.add_parser(
         "run",
         help="run a scenario (an experiment of the paper) headless",
@@ -360,9 +379,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--port", type=int, default=8080, help="with --view: the viewer's port")
     r.set_defaults(func=_cmd_run)
 
-    add_trial_parsers(sub)
-    add_paper_parser(sub)
 
+def _add_showcase_parser(sub: argparse._SubParsersAction) -> None:
+    """``flyknot showcase``: one fast showcase trial."""
     s = sub.add_parser("showcase", help="one fast showcase trial on the simulated lab")
     s.add_argument(
         "--rope", type=parse_rope_arg, default=1, help="rope id 1..7 or a rope's name (default 1)"
@@ -371,10 +390,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default="runs/showcase", help="output directory")
     s.set_defaults(func=_cmd_showcase)
 
-    from flyknot_app.demo_cli import add_demo_parser
 
-    add_demo_parser(sub)
-
+def _add_view_parser(sub: argparse._SubParsersAction) -> None:
+    """``flyknot view``: the 3D viewer."""
     v = sub.add_parser(
         "view", help="3D viewer of a trial record or a run directory in the browser (viser)"
     )
@@ -387,6 +405,9 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--port", type=int, default=8080, help="port to serve on")
     v.set_defaults(func=_cmd_view)
 
+
+def _add_render_parser(sub: argparse._SubParsersAction) -> None:
+    """``flyknot render``: a trial offscreen."""
     rn = sub.add_parser("render", help="render a trial offscreen (MuJoCo) to a .png or an .mp4")
     rn.add_argument("record", help="trial record (.json/.npz or stem)")
     rn.add_argument("--out", required=True, help="image (.png, one frame) or video (.mp4)")
@@ -400,6 +421,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     rn.set_defaults(func=_cmd_render)
 
+
+def _add_model_check_parser(sub: argparse._SubParsersAction) -> None:
+    """``flyknot model-check``: the learner's rope model against the lab."""
     m = sub.add_parser(
         "model-check",
         help="compare the learner's rope-model Jacobian with the lab's measured response",
@@ -436,6 +460,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--json", action="store_true", help="print one JSON object")
     m.set_defaults(func=_cmd_model_check)
 
+
+def _add_explain_parser(sub: argparse._SubParsersAction) -> None:
+    """``flyknot explain``: the failure anatomy."""
     e = sub.add_parser(
         "explain",
         help="failure anatomy: why each trial under a run or replay directory failed",
@@ -454,6 +481,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.set_defaults(func=_cmd_explain)
 
+
+def _add_baseline_parser(sub: argparse._SubParsersAction) -> None:
+    """``flyknot baseline``: a baseline through the gym envs."""
     bl = sub.add_parser(
         "baseline",
         help="a baseline through the gym envs: random search, CMA-ES, PPO (the rl extra)",
@@ -478,6 +508,9 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--quiet", action="store_true", help="no progress bar")
     bl.set_defaults(func=_cmd_baseline)
 
+
+def _add_calibrate_parser(sub: argparse._SubParsersAction) -> None:
+    """``flyknot calibrate``: the robot base's pose in the mocap frame."""
     c = sub.add_parser(
         "calibrate",
         help="drive the arm through joint poses, see its fingertip in the motion capture, fit "
@@ -504,11 +537,17 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", default=None, help="also write the fitted [base] table to this file")
     c.set_defaults(func=_cmd_calibrate)
 
+
+def _add_compare_parser(sub: argparse._SubParsersAction) -> None:
+    """``flyknot compare``: run directories side by side."""
     cp = sub.add_parser("compare", help="several run directories side by side: table and figures")
     cp.add_argument("dirs", nargs="+", metavar="RUN_DIR", help="flyknot run or baseline output")
     cp.add_argument("--out", default="runs/compare", help="directory (default runs/compare)")
     cp.set_defaults(func=_cmd_compare)
 
+
+def _add_bench_parser(sub: argparse._SubParsersAction) -> None:
+    """``flyknot bench``: the benchmarks."""
     b = sub.add_parser(
         "bench",
         help="benchmarks: sim (lab speed per rope), learner, sweep (2 workers vs 1), protocol "
@@ -533,7 +572,6 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", default=None, help="protocol: keep the runs in this new directory (default: none)"
     )
     b.set_defaults(func=_cmd_bench)
-    return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
