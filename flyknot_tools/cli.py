@@ -300,7 +300,8 @@ def _cmd_rope_validate(args: argparse.Namespace) -> int:
 
 
 def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Add ``demo synthesize|robot|record`` to a ``flyknot-tools`` subparser set.
+    """Add ``demo synthesize|robot|robot-rate|record|rerecord`` to a ``flyknot-tools``
+    subparser set.
 
     Args:
         subparsers: The object returned by ``parser.add_subparsers()``.
@@ -308,12 +309,21 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
     Returns:
         The ``demo`` parser.
     """
-    from flyknot_tools.hand_demos.variants import VARIANTS
-
     d = subparsers.add_parser(
         "demo", help="make a flying-knot demonstration (hand motion search, robot command)"
     )
     dsub = d.add_subparsers(dest="demo_cmd", required=True, metavar="ACTION")
+    _add_demo_synthesize_parser(dsub)
+    _add_demo_robot_parser(dsub)
+    _add_demo_robot_rate_parser(dsub)
+    _add_demo_record_parser(dsub)
+    _add_demo_rerecord_parser(dsub)
+    return d
+
+
+def _add_demo_synthesize_parser(dsub: argparse._SubParsersAction) -> None:
+    """``demo synthesize``: a hand motion searched."""
+    from flyknot_tools.hand_demos.variants import VARIANTS
 
     s = dsub.add_parser(
         "synthesize", help="search a hand motion that ties the knot and save it as a demo"
@@ -369,6 +379,9 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=_cmd_synthesize)
 
+
+def _add_demo_robot_parser(dsub: argparse._SubParsersAction) -> None:
+    """``demo robot``: a robot command searched."""
     rb = dsub.add_parser(
         "robot",
         help="search a command the simulated arm ties the knot with; save its trial as a demo",
@@ -397,6 +410,9 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
     rb.add_argument("--quiet", action="store_true", help="no progress bar")
     rb.set_defaults(func=_cmd_robot)
 
+
+def _add_demo_robot_rate_parser(dsub: argparse._SubParsersAction) -> None:
+    """``demo robot-rate``: a robot command that ties in most varied trials."""
     rr_ = dsub.add_parser(
         "robot-rate",
         help="from a tying robot command, search one that ties in most varied trials; save "
@@ -414,6 +430,9 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
     rr_.add_argument("--quiet", action="store_true", help="no progress bar")
     rr_.set_defaults(func=_cmd_robot_rate)
 
+
+def _add_demo_record_parser(dsub: argparse._SubParsersAction) -> None:
+    """``demo record``: a robot command's nominal trial."""
     rc = dsub.add_parser("record", help="record a robot command's nominal trial as a demo")
     rc.add_argument("--command", required=True, help="command file (.npz with knots, T)")
     rc.add_argument("--out", required=True, help="output file (.npz)")
@@ -421,6 +440,9 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
     rc.add_argument("--json", action="store_true", help="print a JSON summary")
     rc.set_defaults(func=_cmd_record)
 
+
+def _add_demo_rerecord_parser(dsub: argparse._SubParsersAction) -> None:
+    """``demo rerecord``: a demonstration's stored motion recorded again."""
     rr = dsub.add_parser(
         "rerecord",
         help="record a demo's stored motion again in today's lab (no search) and check it",
@@ -430,7 +452,6 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
     rr.add_argument("--check", type=int, default=20, help="varied trials of the check (20)")
     rr.add_argument("--json", action="store_true", help="print a JSON summary")
     rr.set_defaults(func=_cmd_rerecord)
-    return d
 
 
 def _cmd_rerecord(args: argparse.Namespace) -> int:
@@ -483,6 +504,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
     add_demo_parser(sub)
+    _add_rope_study_parser(sub)
+    _add_lab_study_parser(sub)
+    _add_rope_validate_parser(sub)
+    _add_closure_study_parser(sub)
+    _add_settle_compare_parser(sub)
+    return p
+
+
+def _add_rope_study_parser(sub: argparse._SubParsersAction) -> None:
+    """``flyknot-tools rope-study``: handed to the rope study's own parser."""
     rs = sub.add_parser(
         ROPE_STUDY,
         help="measure the rope model variants (the table of docs/rope-model.md)",
@@ -490,6 +521,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     rs.add_argument("args", nargs=argparse.REMAINDER, help="the rope study's own options")
     rs.set_defaults(func=_cmd_rope_study)
+
+
+def _add_lab_study_parser(sub: argparse._SubParsersAction) -> None:
+    """``flyknot-tools lab-study``: the rope model's sensitivity."""
     ls = sub.add_parser(
         "lab-study",
         help="the rope model's sensitivity: the robot command and Swipe over the brackets",
@@ -526,6 +561,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ls.add_argument("--out", default=None, help="directory for lab_study.json / .md")
     ls.set_defaults(func=_cmd_lab_study)
+
+
+def _add_rope_validate_parser(sub: argparse._SubParsersAction) -> None:
+    """``flyknot-tools rope-validate``: the rope validation suite."""
     rv = sub.add_parser(
         "rope-validate",
         help="what every real rope of its kind does, measured on the lab's ropes (exit 1 on a "
@@ -551,6 +590,10 @@ def build_parser() -> argparse.ArgumentParser:
     rv.add_argument("--workers", type=int, default=1, help="worker processes")
     rv.add_argument("--json", action="store_true", help="print the results as JSON")
     rv.set_defaults(func=_cmd_rope_validate)
+
+
+def _add_closure_study_parser(sub: argparse._SubParsersAction) -> None:
+    """``flyknot-tools closure-study``: free-ray vs tube closures."""
     cs = sub.add_parser(
         "closure-study",
         help="the held end closed by free rays vs the tube, over recorded trials (docs/judge.md)",
@@ -558,6 +601,10 @@ def build_parser() -> argparse.ArgumentParser:
     cs.add_argument("dirs", nargs="+", help="run or replay directories")
     cs.add_argument("--json", action="store_true", help="print one JSON object, trial by trial")
     cs.set_defaults(func=_cmd_closure_study)
+
+
+def _add_settle_compare_parser(sub: argparse._SubParsersAction) -> None:
+    """``flyknot-tools settle-compare``: the settle with and without an early end."""
     sc = sub.add_parser(
         "settle-compare",
         help="a demonstration's trials with and without an early end of the settle "
@@ -575,7 +622,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sc.add_argument("--json", action="store_true", help="print one JSON list, trial by trial")
     sc.set_defaults(func=_cmd_settle_compare)
-    return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
