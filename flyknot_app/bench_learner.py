@@ -32,11 +32,13 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
 from flyknot.errors import ConfigError
 from flyknot.progress import bar_disable
+from flyknot.record import TrialRecord
 from learner import rope_sensitivity
 from learner.bezier import BezierCommand
 from learner.follow_through import follow_through_terms
@@ -120,99 +122,24 @@ def bench_learner(repeats: int = 1, progress: bool = True) -> dict:
     if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
         raise ConfigError("repeats", f"must be an integer >= 1, got {repeats!r}")
     bar = tqdm(total=10, desc="bench learner", disable=bar_disable(progress), unit="stage")
-    robot = RobotModel.from_mjcf()
-    params = RopeModelParams()
-    weights = InverseModelWeights()
-    command = bench_command()
-    T = command.T
-    rng = np.random.default_rng(0)
-    star = command.knots.copy()
-    star[:7, 1:] += 0.03 * rng.standard_normal((7, 7))
-    target = DemoTarget.from_demonstration(
-        model_demonstration(BezierCommand(star, T), T_C, robot, params)
-    )
-    record = model_record(command, robot, params)
-    k_c = critical_step(T_C, params.dt, T)
+    pb = _Problem.make()
     bar.update()
-
     res: dict = {}
-    res["rollout_s"], ro = _best(
-        lambda: rollout_from_joints(
-            record.t_joint, record.q_meas, command.base_offset, robot, params, T, n_steps=k_c
-        ),
-        repeats,
-    )
-    _StepSolver.compiled = False
-    try:
-        res["rollout_numpy_s"], ro_np = _best(
-            lambda: rollout_from_joints(
-                record.t_joint, record.q_meas, command.base_offset, robot, params, T, n_steps=k_c
-            ),
-            repeats,
-        )
-    finally:
-        _StepSolver.compiled = True
-    res["compiled_over_numpy"] = res["rollout_numpy_s"] / res["rollout_s"]
-    res["compiled_max_dx"] = float(np.abs(ro.traj.x - ro_np.traj.x).max())
+    ro = _time_rollouts(pb, repeats, res)
     bar.update()
-    res["linearise_s"], M = _best(lambda: linearise(ro, T, [k_c])[0], repeats)
-    rope_sensitivity.COMPILED = False
-    try:
-        res["linearise_numpy_s"], _ = _best(lambda: linearise(ro, T, [k_c])[0], repeats)
-    finally:
-        rope_sensitivity.COMPILED = True
+    M = _time_linearisations(pb, ro, repeats, res)
     bar.update()
-    err = np.zeros(66)  # values do not change the timing; the update below uses the real one
-
-    def build():
-        t_ft = np.concatenate([[T_C], target.t[target.t > T_C + 1e-9]])
-        follow = follow_through_terms(command.knots, T, t_ft, T_C, *target.hand_at(t_ft), robot)
-        rows = limit_rows(command.knots, T, command.sample_times(), robot)
-        sub = subset_rows(rows, initial_active_rows(rows, 0.5))
-        return build_inverse_qp(M_crit=M, err_crit=err, weights=weights, follow=follow, limits=sub)
-
-    res["qp_build_s"], qp = _best(build, repeats)
-    bar.update()
-    res["qp_osqp_s"], _ = _best(lambda: solve_qp(qp, "osqp"), repeats)
-    bar.update()
-    res["qp_clarabel_s"], _ = _best(lambda: solve_qp(qp, "clarabel"), repeats)
-    bar.update()
-    res["update_s"], upd = _best(
-        lambda: ilc_update(record, command, target, robot, params, UpdateSettings(weights=weights)),
-        repeats,
-    )
-    bar.update()
-    interpreted = RobotModel.from_mjcf(native=False)
-    res["update_interpreted_s"], upd_i = _best(
-        lambda: ilc_update(
-            record, command, target, interpreted, params, UpdateSettings(weights=weights)
-        ),
-        repeats,
-    )
-    res["native_over_interpreted"] = res["update_interpreted_s"] / res["update_s"]
-    res["native_max_dknots"] = float(np.abs(upd.new_knots - upd_i.new_knots).max())
-    bar.update()
-
-    def fd():
-        out = np.empty((66, 80))
-        for c in range(80):
-            e = np.zeros(80)
-            e[c] = FD_EPS
-            e = e.reshape(10, 8)
-            xp = simulate_command(command.knots + e, T, robot, params, n_steps=k_c).x[k_c]
-            xm = simulate_command(command.knots - e, T, robot, params, n_steps=k_c).x[k_c]
-            out[:, c] = (xp - xm) / (2.0 * FD_EPS)
-        return out
-
-    res["fd_jacobian_s"], M_fd = _best(fd, 1, warm=False)
+    qp = _time_qp(pb, M, repeats, res, bar)
+    upd = _time_updates(pb, repeats, res, bar)
+    res["fd_jacobian_s"], M_fd = _best(lambda: _fd_jacobian(pb), 1, warm=False)
     bar.update()
     bar.close()
     res["ift_over_fd"] = res["fd_jacobian_s"] / res["linearise_s"]
     res["fd_rel_err"] = float(np.linalg.norm(M - M_fd) / np.linalg.norm(M_fd))
     res["problem"] = {
-        "T_s": T,
+        "T_s": pb.command.T,
         "t_c_s": T_C,
-        "model_steps_to_t_c": k_c,
+        "model_steps_to_t_c": pb.k_c,
         "qp_rows_first_round": int(qp.m),
         "limit_rows_total": upd.n_limit_rows_total,
         "update_status": upd.qp_status,
@@ -221,6 +148,125 @@ def bench_learner(repeats: int = 1, progress: bool = True) -> dict:
         "repeats": repeats,
     }
     return res
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """The benchmark's update problem (module docstring): the robot and rope models, the
+    played command, its record on the model, the target and the critical step."""
+
+    robot: RobotModel
+    params: RopeModelParams
+    weights: InverseModelWeights
+    command: BezierCommand
+    target: DemoTarget
+    record: TrialRecord
+    k_c: int
+
+    @staticmethod
+    def make() -> _Problem:
+        """The fixed problem: the target is the model's motion under the command's knots
+        moved by 0.03 rad (seed 0)."""
+        robot, params = RobotModel.from_mjcf(), RopeModelParams()
+        command = bench_command()
+        T = command.T
+        rng = np.random.default_rng(0)
+        star = command.knots.copy()
+        star[:7, 1:] += 0.03 * rng.standard_normal((7, 7))
+        target = DemoTarget.from_demonstration(
+            model_demonstration(BezierCommand(star, T), T_C, robot, params)
+        )
+        record = model_record(command, robot, params)
+        k_c = critical_step(T_C, params.dt, T)
+        return _Problem(robot, params, InverseModelWeights(), command, target, record, k_c)
+
+    def rollout(self):
+        """The rope model driven by the record's joints to t_c."""
+        r, c = self.record, self.command
+        return rollout_from_joints(
+            r.t_joint, r.q_meas, c.base_offset, self.robot, self.params, c.T, n_steps=self.k_c
+        )
+
+    def update(self, robot: RobotModel):
+        """One ILC update with ``robot``."""
+        settings = UpdateSettings(weights=self.weights)
+        return ilc_update(self.record, self.command, self.target, robot, self.params, settings)
+
+
+def _time_rollouts(pb: _Problem, repeats: int, res: dict):
+    """The rollout with the compiled and the NumPy Newton step; the compiled one's result."""
+    res["rollout_s"], ro = _best(pb.rollout, repeats)
+    _StepSolver.compiled = False
+    try:
+        res["rollout_numpy_s"], ro_np = _best(pb.rollout, repeats)
+    finally:
+        _StepSolver.compiled = True
+    res["compiled_over_numpy"] = res["rollout_numpy_s"] / res["rollout_s"]
+    res["compiled_max_dx"] = float(np.abs(ro.traj.x - ro_np.traj.x).max())
+    return ro
+
+
+def _time_linearisations(pb: _Problem, ro, repeats: int, res: dict) -> np.ndarray:
+    """M(t_c) compiled and by the NumPy loop; the compiled one."""
+    T, k_c = pb.command.T, pb.k_c
+    res["linearise_s"], M = _best(lambda: linearise(ro, T, [k_c])[0], repeats)
+    rope_sensitivity.COMPILED = False
+    try:
+        res["linearise_numpy_s"], _ = _best(lambda: linearise(ro, T, [k_c])[0], repeats)
+    finally:
+        rope_sensitivity.COMPILED = True
+    return M
+
+
+def _time_qp(pb: _Problem, M: np.ndarray, repeats: int, res: dict, bar):
+    """The QP's build (follow-through terms, limit rows, assembly) and its OSQP and Clarabel
+    solves; the QP."""
+    c, target, robot = pb.command, pb.target, pb.robot
+    err = np.zeros(66)  # values do not change the timing; the update below uses the real one
+
+    def build():
+        t_ft = np.concatenate([[T_C], target.t[target.t > T_C + 1e-9]])
+        follow = follow_through_terms(c.knots, c.T, t_ft, T_C, *target.hand_at(t_ft), robot)
+        rows = limit_rows(c.knots, c.T, c.sample_times(), robot)
+        sub = subset_rows(rows, initial_active_rows(rows, 0.5))
+        return build_inverse_qp(
+            M_crit=M, err_crit=err, weights=pb.weights, follow=follow, limits=sub
+        )
+
+    res["qp_build_s"], qp = _best(build, repeats)
+    bar.update()
+    res["qp_osqp_s"], _ = _best(lambda: solve_qp(qp, "osqp"), repeats)
+    bar.update()
+    res["qp_clarabel_s"], _ = _best(lambda: solve_qp(qp, "clarabel"), repeats)
+    bar.update()
+    return qp
+
+
+def _time_updates(pb: _Problem, repeats: int, res: dict, bar):
+    """The whole update with the compiled and the interpreted robot model; the compiled
+    one's result."""
+    res["update_s"], upd = _best(lambda: pb.update(pb.robot), repeats)
+    bar.update()
+    interpreted = RobotModel.from_mjcf(native=False)
+    res["update_interpreted_s"], upd_i = _best(lambda: pb.update(interpreted), repeats)
+    res["native_over_interpreted"] = res["update_interpreted_s"] / res["update_s"]
+    res["native_max_dknots"] = float(np.abs(upd.new_knots - upd_i.new_knots).max())
+    bar.update()
+    return upd
+
+
+def _fd_jacobian(pb: _Problem) -> np.ndarray:
+    """M(t_c) by central differences of the model over the 80 knot values, (66, 80)."""
+    c, k_c = pb.command, pb.k_c
+    out = np.empty((66, 80))
+    for col in range(80):
+        e = np.zeros(80)
+        e[col] = FD_EPS
+        e = e.reshape(10, 8)
+        xp = simulate_command(c.knots + e, c.T, pb.robot, pb.params, n_steps=k_c).x[k_c]
+        xm = simulate_command(c.knots - e, c.T, pb.robot, pb.params, n_steps=k_c).x[k_c]
+        out[:, col] = (xp - xm) / (2.0 * FD_EPS)
+    return out
 
 
 def format_learner(res: dict) -> str:
