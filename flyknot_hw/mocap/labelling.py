@@ -246,33 +246,11 @@ def label_rope_markers(
     m = t.shape[0]
     out = np.full((m, N_MARKERS, 3), np.nan)
 
-    # --- 1. initialisation -------------------------------------------------------------
-    init = -1
-    for f in range(m):
-        tip_f = tip[f] if np.all(np.isfinite(tip[f])) else tip[0]
-        if not np.all(np.isfinite(tip_f)):
-            continue
-        obs = _frame_points(pts[f], tip[f] if tip_track else None, p.exclude_radius_m)
-        tip_f = _hanging_line(tip_f, obs, gravity_dir, s, p)
-        hang = hanging_markers(tip_f, gravity_dir, s)
-        d2 = _sqdist(hang, obs)
-        cost = np.where(d2 <= p.init_gate_m**2, d2, _FORBIDDEN)
-        match = _assign(cost, np.full(N_MARKERS, p.init_gate_m**2))
-        if np.count_nonzero(match >= 0) >= p.init_min_markers:
-            init = f
-            out[f, match >= 0] = obs[match[match >= 0]]
-            break
-    if init < 0:
-        raise HardwareError(
-            f"labelling: no frame shows the rope hanging from the fingertip (need "
-            f"{p.init_min_markers} of {N_MARKERS} markers within {p.init_gate_m} m of the "
-            "hanging pose); check the fingertip position, gravity direction and base pose"
-        )
+    init, tip0 = _initial_frame(t, pts, tip, tip_track, gravity_dir, s, p, out)
 
     # Per-marker state: last position (the hanging pose for a marker not found at the
     # start), time seen (-inf: never), frame of that position, velocity.
     found = np.all(np.isfinite(out[init]), axis=1)
-    tip0 = tip_f  # the hanging line's top at the initial frame
     last_x = np.where(found[:, None], out[init], hanging_markers(tip0, gravity_dir, s))
     last_t = np.where(found, t[init], -np.inf)
     last_f = np.full(N_MARKERS, init)
@@ -288,36 +266,8 @@ def label_rope_markers(
         gate = np.where(prev, p.gate_m, p.reacquire_gate_m)
         grow = p.gate_m + 0.5 * p.accel_m_s2 * np.where(coasting, dt_seen, 0.0) ** 2
         gate = np.where(coasting, np.minimum(grow, p.reacquire_gate_m), gate)
-        match = np.full(N_MARKERS, -1)
-        # Stages: tracked in the previous frame, coasting, long lost; each takes the points
-        # the stages before it left.
-        for stage, idx in enumerate(
-            (np.flatnonzero(prev), np.flatnonzero(coasting), np.flatnonzero(~prev & ~coasting))
-        ):
-            free = np.setdiff1d(np.arange(obs.shape[0]), match[match >= 0])
-            if idx.size == 0 or free.size == 0:
-                continue
-            cur = np.full((N_MARKERS, 3), np.nan)
-            cur[match >= 0] = obs[match[match >= 0]]
-            if stage == 2:
-                for i in idx:
-                    pred[i] = _rope_prediction(i, pred[i], last_x[i], out[last_f[i]], cur, tip_f, s)
-            d2 = _sqdist(pred[idx], obs[free])
-            ok = d2 <= gate[idx, None] ** 2
-            lose = gate[idx] ** 2
-            if stage > 0:
-                reach_ok, reach = _reach(idx, obs[free], cur, tip_f, s, p.stretch_m)
-                ok &= reach_ok
-                if stage == 2:
-                    # Anchored close by along the rope: the rope alone gates. The most
-                    # markers are matched, and a match is kept only if it is forced.
-                    anchored = reach <= p.anchor_reach_m
-                    ok[anchored] = reach_ok[anchored] & (d2[anchored] <= p.anchored_gate_m**2)
-                    lose = np.full(idx.size, _LOSE_ANCHORED)
-            sub = _assign(np.where(ok, d2, _FORBIDDEN), lose)
-            if stage == 2:
-                sub[~_forced(ok, sub)] = -1
-            match[idx[sub >= 0]] = free[sub[sub >= 0]]
+        stages = (np.flatnonzero(prev), np.flatnonzero(coasting), np.flatnonzero(~prev & ~coasting))
+        match = _match_stages(obs, stages, pred, gate, last_x, out[last_f], tip_f, s, p)
 
         amb = _ambiguous(match, pred, gate, obs, p.ambiguity_m)
         n_amb += int(np.count_nonzero(amb))
@@ -335,6 +285,88 @@ def label_rope_markers(
         last_f = np.where(seen, f, last_f)
         out[f, seen] = x_new[seen]
     return LabelResult(out, init, n_amb, n_reacq)
+
+
+def _initial_frame(
+    t: np.ndarray,
+    pts: np.ndarray,
+    tip: np.ndarray,
+    tip_track: bool,
+    gravity_dir: np.ndarray,
+    s: np.ndarray,
+    p: LabelParams,
+    out: np.ndarray,
+) -> tuple[int, np.ndarray]:
+    """Step 1 (module docstring): the first frame in which at least ``init_min_markers``
+    points lie near the rope hanging from the fingertip; its matched markers are written to
+    ``out``. Returns the frame and the hanging line's top there (3,) [m].
+
+    Raises:
+        HardwareError: No frame shows the hanging rope.
+    """
+    for f in range(t.shape[0]):
+        tip_f = tip[f] if np.all(np.isfinite(tip[f])) else tip[0]
+        if not np.all(np.isfinite(tip_f)):
+            continue
+        obs = _frame_points(pts[f], tip[f] if tip_track else None, p.exclude_radius_m)
+        tip_f = _hanging_line(tip_f, obs, gravity_dir, s, p)
+        hang = hanging_markers(tip_f, gravity_dir, s)
+        d2 = _sqdist(hang, obs)
+        cost = np.where(d2 <= p.init_gate_m**2, d2, _FORBIDDEN)
+        match = _assign(cost, np.full(N_MARKERS, p.init_gate_m**2))
+        if np.count_nonzero(match >= 0) >= p.init_min_markers:
+            out[f, match >= 0] = obs[match[match >= 0]]
+            return f, tip_f
+    raise HardwareError(
+        f"labelling: no frame shows the rope hanging from the fingertip (need "
+        f"{p.init_min_markers} of {N_MARKERS} markers within {p.init_gate_m} m of the "
+        "hanging pose); check the fingertip position, gravity direction and base pose"
+    )
+
+
+def _match_stages(
+    obs: np.ndarray,
+    stages: tuple[np.ndarray, np.ndarray, np.ndarray],
+    pred: np.ndarray,
+    gate: np.ndarray,
+    last_x: np.ndarray,
+    last_frames: np.ndarray,
+    tip_f: np.ndarray | None,
+    s: np.ndarray,
+    p: LabelParams,
+) -> np.ndarray:
+    """One frame's matching (module docstring): the markers tracked in the previous frame,
+    then the coasting ones, then the long-lost ones, each stage taking the points the stages
+    before it left. Returns each marker's point index (11,), -1 unmatched; a long-lost
+    marker's prediction in ``pred`` (11, 3) is replaced by the rope's
+    (:func:`_rope_prediction`, from the frame it was last seen in, ``last_frames[i]``)."""
+    match = np.full(N_MARKERS, -1)
+    for stage, idx in enumerate(stages):
+        free = np.setdiff1d(np.arange(obs.shape[0]), match[match >= 0])
+        if idx.size == 0 or free.size == 0:
+            continue
+        cur = np.full((N_MARKERS, 3), np.nan)
+        cur[match >= 0] = obs[match[match >= 0]]
+        if stage == 2:
+            for i in idx:
+                pred[i] = _rope_prediction(i, pred[i], last_x[i], last_frames[i], cur, tip_f, s)
+        d2 = _sqdist(pred[idx], obs[free])
+        ok = d2 <= gate[idx, None] ** 2
+        lose = gate[idx] ** 2
+        if stage > 0:
+            reach_ok, reach = _reach(idx, obs[free], cur, tip_f, s, p.stretch_m)
+            ok &= reach_ok
+            if stage == 2:
+                # Anchored close by along the rope: the rope alone gates. The most markers
+                # are matched, and a match is kept only if it is forced.
+                anchored = reach <= p.anchor_reach_m
+                ok[anchored] = reach_ok[anchored] & (d2[anchored] <= p.anchored_gate_m**2)
+                lose = np.full(idx.size, _LOSE_ANCHORED)
+        sub = _assign(np.where(ok, d2, _FORBIDDEN), lose)
+        if stage == 2:
+            sub[~_forced(ok, sub)] = -1
+        match[idx[sub >= 0]] = free[sub[sub >= 0]]
+    return match
 
 
 def _hanging_line(
