@@ -292,62 +292,13 @@ def align_clocks(
         raise ConfigError("q_meas", f"must have {tj.shape[0]} rows (t_joint), got {pr.shape[0]}")
     check_positive("search_s", search_s)
     check_positive("grid_hz", grid_hz)
-    if coarse_offset_s is None and departure:
-        if base_pose is None:
-            raise ConfigError("departure", "needs base_pose (the start pose in the mocap frame)")
-        rest = apply_pose(np.asarray(base_pose, dtype=float), pr[:1])[0]
-        coarse = departure_time(tj, pr, pr[0], threshold_m=threshold_m) - departure_time(
-            tm, pm, rest, threshold_m=threshold_m
-        )
-    elif coarse_offset_s is None:
-        coarse = start_event_time(tj, pr, threshold_m=threshold_m) - start_event_time(
-            tm, pm, threshold_m=threshold_m
-        )
+    if coarse_offset_s is None:
+        coarse = _coarse_offset(tm, pm, tj, pr, base_pose, departure, threshold_m)
     else:
         coarse = float(coarse_offset_s)
-
-    # Speeds on a common grid of robot time, tau_k = grid[0] + k h. The mocap speed is
-    # sampled at mocap times tau_j - coarse (j from j0), so that for an offset coarse + L h
-    # the mocap sample matching tau_k is b[k - L - j0].
     h = 1.0 / grid_hz
-    grid = np.arange(tj[0], tj[-1] + 0.5 * h, h)
-    a = np.interp(grid, tj, fingertip_speed(tj, pr))
-    s_m = fingertip_speed(tm, pm)
-    ok = np.isfinite(s_m)
-    if ok.sum() < 3:
-        raise HardwareError("clock alignment: the mocap fingertip track has too few samples")
-    j0 = int(np.ceil((tm[ok][0] + coarse - grid[0]) / h))
-    j1 = int(np.floor((tm[ok][-1] + coarse - grid[0]) / h))
-    b = np.interp(grid[0] + np.arange(j0, j1 + 1) * h - coarse, tm[ok], s_m[ok])
-    n_lag = round(search_s / h)
-    lags = np.arange(-n_lag, n_lag + 1)
-    corr = _xcorr(a, b, lags + j0)
-    if not np.any(np.isfinite(corr)):
-        raise HardwareError("clock alignment: the mocap and robot tracks do not overlap")
-    r = int(np.nanargmax(corr))
-    frac = 0.0
-    if 0 < r < len(lags) - 1 and np.all(np.isfinite(corr[r - 1 : r + 2])):
-        c0, c1, c2 = corr[r - 1 : r + 2]
-        den = c0 - 2 * c1 + c2
-        frac = 0.5 * (c0 - c2) / den if den < 0 else 0.0
-    offset = coarse + (lags[r] + frac) * h
-    peak = float(corr[r])
-
-    spline = CubicSpline(tj, pr, axis=0)
-    valid = np.all(np.isfinite(pm), axis=1)
-
-    def residual(off: float) -> tuple[np.ndarray, np.ndarray]:
-        tr = tm + off
-        use = valid & (tr >= tj[0]) & (tr <= tj[-1])
-        if use.sum() < 3:
-            return np.full(1, np.inf), np.full(7, np.nan)
-        a = spline(tr[use])
-        if base_pose is not None:
-            pose = np.asarray(base_pose, dtype=float)
-            return np.linalg.norm(apply_pose(pose, a) - pm[use], axis=1), pose
-        R, t = rigid_fit(a, pm[use])
-        return np.linalg.norm(a @ R.T + t - pm[use], axis=1), pose_from_rt(R, t)
-
+    offset, peak = _correlated_offset(tm, pm, tj, pr, coarse, search_s, h)
+    residual = _position_residual(tm, pm, tj, pr, base_pose)
     if refine:
         span = 2.0 * max(h, float(np.median(np.diff(tm))))
         res = minimize_scalar(
@@ -369,3 +320,92 @@ def align_clocks(
         n_samples=int(err.shape[0]),
         base_pose=pose,
     )
+
+
+def _coarse_offset(
+    tm: np.ndarray,
+    pm: np.ndarray,
+    tj: np.ndarray,
+    pr: np.ndarray,
+    base_pose: np.ndarray | None,
+    departure: bool,
+    threshold_m: float,
+) -> float:
+    """Step 1 (module docstring): the offset [s] between the departures from the start pose
+    (``departure``, in the mocap frame by ``base_pose``) or the start events of the robot's
+    fingertip ``pr`` (n, 3) at ``tj`` and the mocap's ``pm`` (m, 3) at ``tm``."""
+    if departure:
+        if base_pose is None:
+            raise ConfigError("departure", "needs base_pose (the start pose in the mocap frame)")
+        rest = apply_pose(np.asarray(base_pose, dtype=float), pr[:1])[0]
+        return departure_time(tj, pr, pr[0], threshold_m=threshold_m) - departure_time(
+            tm, pm, rest, threshold_m=threshold_m
+        )
+    return start_event_time(tj, pr, threshold_m=threshold_m) - start_event_time(
+        tm, pm, threshold_m=threshold_m
+    )
+
+
+def _correlated_offset(
+    tm: np.ndarray,
+    pm: np.ndarray,
+    tj: np.ndarray,
+    pr: np.ndarray,
+    coarse: float,
+    search_s: float,
+    h: float,
+) -> tuple[float, float]:
+    """Step 2 (module docstring): the offset [s] within ``search_s`` of ``coarse`` that best
+    correlates the two fingertip speeds on a grid of step ``h`` [s], refined by a parabola
+    through the peak; and the peak's correlation.
+
+    Speeds on a common grid of robot time, tau_k = grid[0] + k h. The mocap speed is sampled
+    at mocap times tau_j - coarse (j from j0), so that for an offset coarse + L h the mocap
+    sample matching tau_k is b[k - L - j0].
+    """
+    grid = np.arange(tj[0], tj[-1] + 0.5 * h, h)
+    a = np.interp(grid, tj, fingertip_speed(tj, pr))
+    s_m = fingertip_speed(tm, pm)
+    ok = np.isfinite(s_m)
+    if ok.sum() < 3:
+        raise HardwareError("clock alignment: the mocap fingertip track has too few samples")
+    j0 = int(np.ceil((tm[ok][0] + coarse - grid[0]) / h))
+    j1 = int(np.floor((tm[ok][-1] + coarse - grid[0]) / h))
+    b = np.interp(grid[0] + np.arange(j0, j1 + 1) * h - coarse, tm[ok], s_m[ok])
+    n_lag = round(search_s / h)
+    lags = np.arange(-n_lag, n_lag + 1)
+    corr = _xcorr(a, b, lags + j0)
+    if not np.any(np.isfinite(corr)):
+        raise HardwareError("clock alignment: the mocap and robot tracks do not overlap")
+    r = int(np.nanargmax(corr))
+    frac = 0.0
+    if 0 < r < len(lags) - 1 and np.all(np.isfinite(corr[r - 1 : r + 2])):
+        c0, c1, c2 = corr[r - 1 : r + 2]
+        den = c0 - 2 * c1 + c2
+        frac = 0.5 * (c0 - c2) / den if den < 0 else 0.0
+    return coarse + (lags[r] + frac) * h, float(corr[r])
+
+
+def _position_residual(
+    tm: np.ndarray, pm: np.ndarray, tj: np.ndarray, pr: np.ndarray, base_pose: np.ndarray | None
+) -> Callable[[float], tuple[np.ndarray, np.ndarray]]:
+    """Step 3's residual (module docstring): for an offset [s], the distances (k,) [m]
+    between the mocap fingertip and the robot's (a cubic spline in time, placed by
+    ``base_pose`` or by the rigid fit it returns with them) over the k mocap frames inside
+    the robot's time span; inf when fewer than 3."""
+    spline = CubicSpline(tj, pr, axis=0)
+    valid = np.all(np.isfinite(pm), axis=1)
+
+    def residual(off: float) -> tuple[np.ndarray, np.ndarray]:
+        tr = tm + off
+        use = valid & (tr >= tj[0]) & (tr <= tj[-1])
+        if use.sum() < 3:
+            return np.full(1, np.inf), np.full(7, np.nan)
+        a = spline(tr[use])
+        if base_pose is not None:
+            pose = np.asarray(base_pose, dtype=float)
+            return np.linalg.norm(apply_pose(pose, a) - pm[use], axis=1), pose
+        R, t = rigid_fit(a, pm[use])
+        return np.linalg.norm(a @ R.T + t - pm[use], axis=1), pose_from_rt(R, t)
+
+    return residual
