@@ -53,7 +53,7 @@ from flyknot.options import NOT_AN_OPTION, ReadOnlyMap
 from flyknot.record import TrialRecord
 from learner.bezier import BezierCommand
 from learner.critical_state import MarkerFitParams, critical_state_from_record
-from learner.follow_through import follow_through_terms
+from learner.follow_through import FollowThrough, follow_through_terms
 from learner.inverse_qp import (
     BACKENDS,
     BASE_UPDATES,
@@ -64,6 +64,7 @@ from learner.inverse_qp import (
 )
 from learner.kinematics import RobotModel
 from learner.limit_rows import (
+    GeneratedSolve,
     LimitRows,
     generate_constraints,
     limit_rows,
@@ -403,6 +404,33 @@ def _checked_step(
     return dk, new_knots, float(np.sum(qw * r**2)), viol, sampled
 
 
+def _generated(
+    qp_terms: dict,
+    follow: FollowThrough | None,
+    rows: LimitRows | None,
+    s: UpdateSettings,
+    timings: dict[str, float],
+) -> GeneratedSolve:
+    """The inverse-model QP of ``qp_terms`` built and solved with the limit rows generated
+    as they are violated (:func:`learner.limit_rows.generate_constraints`); build and solve
+    times added to ``timings``."""
+
+    def solve(lim: LimitRows | None) -> QPResult:
+        with _timed(timings, "qp_build"):
+            qp = build_inverse_qp(
+                **qp_terms,
+                weights=s.weights,
+                follow=follow,
+                limits=lim,
+                base_update=s.base_update,
+                trust_region=s.trust_region,
+            )
+        with _timed(timings, "qp_solve"):
+            return solve_qp(qp, s.backend, **dict(s.solver_settings))
+
+    return generate_constraints(rows, solve, s.margin, s.max_rounds)
+
+
 def ilc_update(
     record: TrialRecord,
     command: BezierCommand,
@@ -494,21 +522,7 @@ def ilc_update(
         qp_terms = {"M_crit": M_c, "err_crit": err}
     else:
         qp_terms = {"equal": [(dX[steps.index(k)], e) for k, e in samples]}
-
-    def solve(lim: LimitRows | None) -> QPResult:
-        with _timed(timings, "qp_build"):
-            qp = build_inverse_qp(
-                **qp_terms,
-                weights=s.weights,
-                follow=follow,
-                limits=lim,
-                base_update=s.base_update,
-                trust_region=s.trust_region,
-            )
-        with _timed(timings, "qp_solve"):
-            return solve_qp(qp, s.backend, **dict(s.solver_settings))
-
-    gen = generate_constraints(rows, solve, s.margin, s.max_rounds)
+    gen = _generated(qp_terms, follow, rows, s, timings)
     res, viol = gen.result, gen.violation
 
     # the update, checked
