@@ -213,6 +213,55 @@ def add_rope(
         ConfigError: Unknown anchor body, mocap anchor, zero axis, bad vectors, name clash.
     """
     settings = load_sim_settings() if settings is None else settings
+    body, pos, ax = _checked_anchor(spec, anchor_body, anchor_pos, axis, prefix)
+    flex_name = f"{prefix}_flex"
+    n, seg, c = params.segments, params.segment_length, params.clearance
+    xb, rb = _anchor_world_pose(spec, anchor_body)
+    ax_w = rb @ ax
+    p0 = xb + rb @ (pos + c * ax)
+    if twist:
+        centre = p0 + ax_w * params.length / 2
+        child = mujoco.MjSpec.from_string(
+            _flexcomp_xml(params, settings, centre, quat_from_x_to(ax_w), "flex")
+        )
+        frame = spec.worldbody.add_frame()
+        spec.attach(child, frame=frame, prefix=f"{prefix}_")
+    else:
+        x0 = p0 + seg * np.arange(n + 1)[:, None] * ax_w
+        _add_raw_flex(spec, params, settings, x0, flex_name)
+
+    vbodies = tuple(f"{flex_name}_{k}" for k in range(n + 1))
+    end_geom = _add_masses(spec, params, settings, vbodies, prefix)
+    holds = (pos + c * ax, pos + (c + seg) * ax)
+    sites, eqs = _add_holds(spec, body, holds, vbodies, prefix, settings)
+    edge_eq = f"{prefix}_edges"
+    for e in spec.equalities:
+        if e.type == mujoco.mjtEq.mjEQ_FLEX and e.name1 == flex_name:
+            e.name = edge_eq
+    twist = tuple(j.name for j in spec.joints if j.name.startswith(f"{flex_name}_twist"))
+    return RopeHandle(
+        params=params,
+        prefix=prefix,
+        flex=flex_name,
+        vertex_bodies=vbodies,
+        twist_joints=twist,
+        end_geom=end_geom,
+        anchor_body=anchor_body,
+        hold_sites=sites,
+        hold_equalities=eqs,
+        edge_equality=edge_eq,
+    )
+
+
+def _checked_anchor(
+    spec: mujoco.MjSpec,
+    anchor_body: str,
+    anchor_pos: Sequence[float],
+    axis: Sequence[float],
+    prefix: str,
+) -> tuple[mujoco.MjsBody, np.ndarray, np.ndarray]:
+    """The anchor body, the anchor point (3,) [m] and the unit axis (3,) in its frame,
+    checked (:func:`add_rope`'s Raises)."""
     body = spec.body(anchor_body)
     if body is None:
         names = [b.name for b in spec.bodies if b.name and b.name != "world"]
@@ -232,24 +281,20 @@ def add_rope(
     flex_name = f"{prefix}_flex"
     if spec.body(f"{flex_name}_0") is not None or spec.flex(flex_name) is not None:
         raise ConfigError("prefix", f"a rope with prefix {prefix!r} is already in the spec")
+    return body, pos, ax
 
-    n, seg, c = params.segments, params.segment_length, params.clearance
-    xb, rb = _anchor_world_pose(spec, anchor_body)
-    ax_w = rb @ ax
-    p0 = xb + rb @ (pos + c * ax)
-    if twist:
-        centre = p0 + ax_w * params.length / 2
-        child = mujoco.MjSpec.from_string(
-            _flexcomp_xml(params, settings, centre, quat_from_x_to(ax_w), "flex")
-        )
-        frame = spec.worldbody.add_frame()
-        spec.attach(child, frame=frame, prefix=f"{prefix}_")
-    else:
-        x0 = p0 + seg * np.arange(n + 1)[:, None] * ax_w
-        _add_raw_flex(spec, params, settings, x0, flex_name)
 
-    vbodies = tuple(f"{flex_name}_{k}" for k in range(n + 1))
-    # Trapezoidal lumping of the rope's mass: l rho per interior vertex, l rho / 2 at the ends.
+def _add_masses(
+    spec: mujoco.MjSpec,
+    params: RopeParams,
+    settings: SimSettings,
+    vbodies: tuple[str, ...],
+    prefix: str,
+) -> str:
+    """The rope's mass lumped on its vertex bodies (trapezoidal: l rho per interior vertex,
+    l rho / 2 at the ends) and the end weight (its mass and its sphere, which collides like
+    the rope); returns the sphere's name."""
+    n, seg = params.segments, params.segment_length
     for k, bname in enumerate(vbodies):
         b = spec.body(bname)
         b.mass = params.density * seg * (0.5 if k in (0, n) else 1.0)
@@ -269,9 +314,22 @@ def add_rope(
         solimp=[*settings.contact_solimp, 0.5, 2.0],
         rgba=[0.3, 0.3, 0.32, 1.0],
     )
+    return end_geom
+
+
+def _add_holds(
+    spec: mujoco.MjSpec,
+    body: mujoco.MjsBody,
+    holds: tuple[np.ndarray, np.ndarray],
+    vbodies: tuple[str, ...],
+    prefix: str,
+    settings: SimSettings,
+) -> tuple[tuple[str, str], tuple[str, str]]:
+    """The grip: the rope's first two vertices connected to sites of the anchor ``body`` at
+    ``holds`` (its frame, (3,) each [m]); returns the sites' and the equalities' names."""
     sites = (f"{prefix}_hold0", f"{prefix}_hold1")
-    body.add_site(name=sites[0], pos=pos + c * ax, group=5)
-    body.add_site(name=sites[1], pos=pos + (c + seg) * ax, group=5)
+    for name, pos in zip(sites, holds, strict=True):
+        body.add_site(name=name, pos=pos, group=5)
     eqs = (f"{prefix}_hold0", f"{prefix}_hold1")
     for k in range(2):
         vsite = f"{prefix}_vertex{k}"
@@ -284,23 +342,7 @@ def add_rope(
             name2=sites[k],
             solref=[settings.edge_timeconst, 1.0],
         )
-    edge_eq = f"{prefix}_edges"
-    for e in spec.equalities:
-        if e.type == mujoco.mjtEq.mjEQ_FLEX and e.name1 == flex_name:
-            e.name = edge_eq
-    twist = tuple(j.name for j in spec.joints if j.name.startswith(f"{flex_name}_twist"))
-    return RopeHandle(
-        params=params,
-        prefix=prefix,
-        flex=flex_name,
-        vertex_bodies=vbodies,
-        twist_joints=twist,
-        end_geom=end_geom,
-        anchor_body=anchor_body,
-        hold_sites=sites,
-        hold_equalities=eqs,
-        edge_equality=edge_eq,
-    )
+    return sites, eqs
 
 
 def _vec3(name: str, v: Sequence[float]) -> np.ndarray:
