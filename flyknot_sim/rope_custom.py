@@ -102,57 +102,19 @@ def _material_defaults() -> dict[str, dict[str, float]]:
 
 
 def _custom_rope(entry: Mapping[str, Any], where: str, paper: Mapping[str, int]) -> RopeParams:
+    """One ``[[rope]]`` table (``where`` names it in errors) as :class:`RopeParams`: the
+    material's defaults scaled to its size, the table's own values over them."""
     if not isinstance(entry, Mapping):
         raise ConfigError(where, f"must be a table ([[rope]]), got {entry!r}")
     _check_keys(where, entry, CUSTOM_KEYS)
     missing = [k for k in CUSTOM_REQUIRED if k not in entry]
     if missing:
         raise ConfigError(where, f"missing key(s) {', '.join(missing)}")
-    name = entry["name"]
-    if not isinstance(name, str) or not name.strip():
-        raise ConfigError(f"{where}.name", f"must be a non-empty string, got {name!r}")
-    if name.strip().isdigit():
-        raise ConfigError(
-            f"{where}.name", f"must not be a number (1..7 are the paper's rope ids), got {name!r}"
-        )
-    if name in paper:
-        raise ConfigError(
-            f"{where}.name",
-            f"{name!r} is the paper's rope {paper[name]}; give your rope another name",
-        )
+    name = _checked_name(entry["name"], where, paper)
     material = entry["material"]
     check_choice(f"{where}.material", material, MATERIALS)
-    for k in ("diameter", "density", "length"):
-        check_positive(f"{where}.{k}", entry[k])
-    check_nonnegative(f"{where}.end_weight", entry["end_weight"])
-    diameter, length = float(entry["diameter"]), float(entry["length"])
-    span = MARKER_SPACING * (N_MARKERS - 1)
-    if length <= span:
-        raise ConfigError(
-            f"{where}.length",
-            f"must exceed {span:g} m (the {N_MARKERS} markers sit every {MARKER_SPACING:g} m "
-            f"from the held end, the last one at the free end), got {entry['length']!r}",
-        )
-    n_max = _max_segments(length, diameter)
-    if n_max < 2:
-        raise ConfigError(
-            f"{where}.diameter",
-            f"must be less than half the length ({length / 2:g} m), got {entry['diameter']!r}",
-        )
-    mat = _material_defaults()[material]
-    scale = _stiffness_scale(material, diameter, float(entry["density"]))
-    values: dict[str, Any] = {
-        "bend_modulus": mat["bend_modulus"] * scale,
-        "shear_modulus": mat["shear_modulus"] * scale,
-        "damping": mat["damping"],
-        "friction": mat["friction"],
-        "cd": None,
-        "condim": 3,
-        "torsional_friction": None,
-        "bend_hysteresis": mat.get("bend_hysteresis", 0.0),
-        "segments": min(DEFAULT_SEGMENTS, n_max),
-        "timestep": DEFAULT_TIMESTEP,
-    }
+    diameter, length, n_max = _checked_size(entry, where)
+    values = _material_values(material, diameter, float(entry["density"]), n_max)
     for k in CUSTOM_OPTIONAL:
         if k in entry:
             values[k] = entry[k]
@@ -190,6 +152,64 @@ def _custom_rope(entry: Mapping[str, Any], where: str, paper: Mapping[str, int])
     if p.cd is not None:
         as_float["cd"] = float(p.cd)
     return replace(p, **as_float)
+
+
+def _checked_name(name: Any, where: str, paper: Mapping[str, int]) -> str:
+    """A custom rope's name: a non-empty string, not a number, not a paper rope's name."""
+    if not isinstance(name, str) or not name.strip():
+        raise ConfigError(f"{where}.name", f"must be a non-empty string, got {name!r}")
+    if name.strip().isdigit():
+        raise ConfigError(
+            f"{where}.name", f"must not be a number (1..7 are the paper's rope ids), got {name!r}"
+        )
+    if name in paper:
+        raise ConfigError(
+            f"{where}.name",
+            f"{name!r} is the paper's rope {paper[name]}; give your rope another name",
+        )
+    return name
+
+
+def _checked_size(entry: Mapping[str, Any], where: str) -> tuple[float, float, int]:
+    """Diameter and length [m], checked (positive; the length past the markers' span, the
+    diameter under half the length), and the most segments the rope can have."""
+    for k in ("diameter", "density", "length"):
+        check_positive(f"{where}.{k}", entry[k])
+    check_nonnegative(f"{where}.end_weight", entry["end_weight"])
+    diameter, length = float(entry["diameter"]), float(entry["length"])
+    span = MARKER_SPACING * (N_MARKERS - 1)
+    if length <= span:
+        raise ConfigError(
+            f"{where}.length",
+            f"must exceed {span:g} m (the {N_MARKERS} markers sit every {MARKER_SPACING:g} m "
+            f"from the held end, the last one at the free end), got {entry['length']!r}",
+        )
+    n_max = _max_segments(length, diameter)
+    if n_max < 2:
+        raise ConfigError(
+            f"{where}.diameter",
+            f"must be less than half the length ({length / 2:g} m), got {entry['diameter']!r}",
+        )
+    return diameter, length, n_max
+
+
+def _material_values(material: str, diameter: float, density: float, n_max: int) -> dict:
+    """The material's defaults for a rope of this size: moduli scaled by
+    :func:`_stiffness_scale`, the default segments (at most ``n_max``) and step."""
+    mat = _material_defaults()[material]
+    scale = _stiffness_scale(material, diameter, density)
+    return {
+        "bend_modulus": mat["bend_modulus"] * scale,
+        "shear_modulus": mat["shear_modulus"] * scale,
+        "damping": mat["damping"],
+        "friction": mat["friction"],
+        "cd": None,
+        "condim": 3,
+        "torsional_friction": None,
+        "bend_hysteresis": mat.get("bend_hysteresis", 0.0),
+        "segments": min(DEFAULT_SEGMENTS, n_max),
+        "timestep": DEFAULT_TIMESTEP,
+    }
 
 
 def parse_custom_ropes(doc: Mapping[str, Any]) -> dict[str, RopeParams]:
