@@ -73,6 +73,66 @@ def _body_omega(R: ca.SX, q: ca.SX) -> ca.SX:
     return ca.horzcat(*cols)
 
 
+def _chain_functions(
+    chain: dict, n: int, flags: tuple[bool, bool, bool]
+) -> tuple[dict[str, ca.Function], dict[str, ca.Function]]:
+    """The chain's CasADi functions: the public ones by :class:`RobotModel`'s field names
+    (``fk``, ``d_tip``, ``p_dot``, ``tip_jac``, ``inverse_dynamics``, ``torque_jac``) and
+    the flat ones its batches map (``tip``, ``tip_jac``, ``tau``, ``tau_jac``, ``tau_jvp``,
+    ``tip_omega``; matrices flattened row-major, so numpy reshapes need no transpose)."""
+    q = ca.SX.sym("q", n)
+    qd = ca.SX.sym("qd", n)
+    qdd = ca.SX.sym("qdd", n)
+    p_tip, R_tip, tau = _build_symbolic(chain, q, qd, qdd, flags)
+    d = R_tip[:, 2]
+    Jp = ca.jacobian(p_tip, q)
+    v = Jp @ qd
+    Jd = ca.jacobian(d, q)
+    Jv = ca.jacobian(v, q)
+    vq, vqd, vqdd = (ca.SX.sym(name, n) for name in ("vq", "vqd", "vqdd"))
+    Jt_q = ca.jacobian(tau, q)
+    Jt_qd = ca.jacobian(tau, qd)
+    Jt_qdd = ca.jacobian(tau, qdd)
+    fk = ca.Function("fk", [q], [p_tip, R_tip], ["q"], ["p_tip", "R_tip"])
+    funs = {
+        "fk": fk,
+        "d_tip": ca.Function("d_tip", [q], [d], ["q"], ["d_tip"]),
+        "p_dot": ca.Function("p_dot", [q, qd], [v], ["q", "qd"], ["v_tip"]),
+        "tip_jac": ca.Function(
+            "tip_jac", [q, qd], [Jp, Jd, Jv, Jp], ["q", "qd"], ["dp_dq", "dd_dq", "dv_dq", "dv_dqd"]
+        ),
+        "inverse_dynamics": ca.Function(
+            "inverse_dynamics", [q, qd, qdd], [tau], ["q", "qd", "qdd"], ["tau"]
+        ),
+        "torque_jac": ca.Function(
+            "torque_jac",
+            [q, qd, qdd],
+            [Jt_q, Jt_qd, Jt_qdd],
+            ["q", "qd", "qdd"],
+            ["dtau_dq", "dtau_dqd", "dtau_dqdd"],
+        ),
+    }
+
+    def rows(x: ca.SX) -> ca.SX:  # row-major flattening
+        return ca.reshape(x.T, x.numel(), 1)
+
+    flat = {
+        "tip": ca.Function("tip_flat", [q, qd], [p_tip, rows(R_tip), v]),
+        "tip_jac": ca.Function("tip_jac_flat", [q, qd], [rows(Jp), rows(Jd), rows(Jv)]),
+        "tau": ca.Function("tau_flat", [q, qd, qdd], [tau]),
+        "tau_jac": ca.Function(
+            "tau_jac_flat", [q, qd, qdd], [rows(Jt_q), rows(Jt_qd), rows(Jt_qdd)]
+        ),
+        "tau_jvp": ca.Function(
+            "tau_jvp_flat",
+            [q, qd, qdd, vq, vqd, vqdd],
+            [ca.jtimes(tau, ca.vertcat(q, qd, qdd), ca.vertcat(vq, vqd, vqdd))],
+        ),
+        "tip_omega": ca.Function("tip_omega_flat", [q], [rows(_body_omega(fk(q)[1], q))]),
+    }
+    return funs, flat
+
+
 def _build_symbolic(chain: dict, q: ca.SX, qd: ca.SX, qdd: ca.SX, flags: tuple[bool, ...]):
     """Forward kinematics and recursive Newton-Euler in the base frame.
 
@@ -281,51 +341,7 @@ class RobotModel:
         chain = read_chain(model, joint_names, site, base_body)
         flags = (include_armature, include_damping, include_stiffness)
         n = len(joint_names)
-        q = ca.SX.sym("q", n)
-        qd = ca.SX.sym("qd", n)
-        qdd = ca.SX.sym("qdd", n)
-        p_tip, R_tip, tau = _build_symbolic(chain, q, qd, qdd, flags)
-        d = R_tip[:, 2]
-        Jp = ca.jacobian(p_tip, q)
-        v = Jp @ qd
-        Jd = ca.jacobian(d, q)
-        Jv = ca.jacobian(v, q)
-        vq, vqd, vqdd = (ca.SX.sym(name, n) for name in ("vq", "vqd", "vqdd"))
-        Jt_q = ca.jacobian(tau, q)
-        Jt_qd = ca.jacobian(tau, qd)
-        Jt_qdd = ca.jacobian(tau, qdd)
-        fk = ca.Function("fk", [q], [p_tip, R_tip], ["q"], ["p_tip", "R_tip"])
-        d_fun = ca.Function("d_tip", [q], [d], ["q"], ["d_tip"])
-        p_dot = ca.Function("p_dot", [q, qd], [v], ["q", "qd"], ["v_tip"])
-        tip_jac = ca.Function(
-            "tip_jac", [q, qd], [Jp, Jd, Jv, Jp], ["q", "qd"], ["dp_dq", "dd_dq", "dv_dq", "dv_dqd"]
-        )
-        inv = ca.Function("inverse_dynamics", [q, qd, qdd], [tau], ["q", "qd", "qdd"], ["tau"])
-        tjac = ca.Function(
-            "torque_jac",
-            [q, qd, qdd],
-            [Jt_q, Jt_qd, Jt_qdd],
-            ["q", "qd", "qdd"],
-            ["dtau_dq", "dtau_dqd", "dtau_dqdd"],
-        )
-
-        def rows(x: ca.SX) -> ca.SX:  # row-major flattening, so numpy reshapes need no transpose
-            return ca.reshape(x.T, x.numel(), 1)
-
-        flat = {
-            "tip": ca.Function("tip_flat", [q, qd], [p_tip, rows(R_tip), v]),
-            "tip_jac": ca.Function("tip_jac_flat", [q, qd], [rows(Jp), rows(Jd), rows(Jv)]),
-            "tau": ca.Function("tau_flat", [q, qd, qdd], [tau]),
-            "tau_jac": ca.Function(
-                "tau_jac_flat", [q, qd, qdd], [rows(Jt_q), rows(Jt_qd), rows(Jt_qdd)]
-            ),
-            "tau_jvp": ca.Function(
-                "tau_jvp_flat",
-                [q, qd, qdd, vq, vqd, vqdd],
-                [ca.jtimes(tau, ca.vertcat(q, qd, qdd), ca.vertcat(vq, vqd, vqdd))],
-            ),
-            "tip_omega": ca.Function("tip_omega_flat", [q], [rows(_body_omega(fk(q)[1], q))]),
-        }
+        funs, flat = _chain_functions(chain, n, flags)
         zeros = np.zeros(n)
 
         def ro(x: np.ndarray) -> np.ndarray:
@@ -342,12 +358,7 @@ class RobotModel:
             damping=ro(chain["damping"] if include_damping else zeros),
             stiffness=ro(chain["stiffness"] if include_stiffness else zeros),
             q_range=ro(chain["q_range"]),
-            fk=fk,
-            d_tip=d_fun,
-            p_dot=p_dot,
-            tip_jac=tip_jac,
-            inverse_dynamics=inv,
-            torque_jac=tjac,
+            **funs,
             native=native,
             _flat=flat,
             _native=_NATIVE.setdefault(
