@@ -426,17 +426,7 @@ class TrialSession:
         # and contact times on the motion-capture clock (0 at the nominal start). The two
         # differ by the unknown start delay, as unsynchronised lab clocks do.
         t_joint = np.arange(n_ticks) * self.dt
-        markers_true = bound.markers_from_vertices(vert_hist)
-        mp = params.mocap
-        t_mocap = mocap.sample_times(t_hist[-1], mp.rate_hz)
-        true = mocap.resample_markers(t_hist, markers_true, t_mocap)
-        # What mocap.emulate does, with the frames' noise drawn in frame order as observed.
-        noisy = (
-            true + self._noise_rows(len(t_mocap), true.shape[1:])
-            if mp.noise_std > 0
-            else true.copy()
-        )
-        markers = mocap.apply_tracking_loss(t_mocap, noisy, self.first_contact, mp, self.rng)
+        t_mocap, markers = self._captured(t_hist, vert_hist)
         verdict = None
         settle_meta = None
         if fault is None:
@@ -450,8 +440,6 @@ class TrialSession:
             sim_dt,
             t_full=monitor.t_end + rule.min_s,
         )
-        n_cmd = self.plan.n if self.plan is not None else self.n_sent
-        duration = self.plan.duration if self.plan is not None else (n_cmd - 1) * self.dt
         return TrialRecord(
             t_joint=t_joint,
             q_cmd=q_sent,
@@ -466,25 +454,48 @@ class TrialSession:
             first_contact_time=self.first_contact,
             knot=None if verdict is None else verdict.knot,
             verdict=verdict,
-            metadata={
-                "cell": "sim",
-                **rope_record(p.rope_params, params.ropes),
-                "seed": params.seed,
-                "trial_index": self.trial_index,
-                "start_delay_s": self.delay,
-                "command_duration_s": duration,
-                "sim_duration_s": float(t_hist[-1]),
-                "sim_timestep_s": sim_dt,
-                "settle": settle_meta,
-                "aero": params.aero.enabled,
-                "versions": {
-                    "flyknot": __version__,
-                    "mujoco": mujoco.__version__,
-                    "python": platform.python_version(),
-                },
-            },
+            metadata=self._metadata(float(t_hist[-1]), settle_meta),
             truth=truth,
         )
+
+    def _captured(self, t_hist: np.ndarray, vert_hist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The motion capture of the whole trial: its frame times (k,) [s] and markers
+        (k, 11, 3) [m] from the rope's vertices at every step, as :func:`mocap.emulate`
+        makes them, with the frames' noise drawn in frame order as observed."""
+        mp = self.params.mocap
+        markers_true = self.plant.rope.markers_from_vertices(vert_hist)
+        t_mocap = mocap.sample_times(t_hist[-1], mp.rate_hz)
+        true = mocap.resample_markers(t_hist, markers_true, t_mocap)
+        noisy = (
+            true + self._noise_rows(len(t_mocap), true.shape[1:])
+            if mp.noise_std > 0
+            else true.copy()
+        )
+        return t_mocap, mocap.apply_tracking_loss(t_mocap, noisy, self.first_contact, mp, self.rng)
+
+    def _metadata(self, sim_duration: float, settle_meta: dict | None) -> dict:
+        """The record's metadata: the cell, the rope, the trial's seed and index, its start
+        delay, durations and step, the settle's outcome, the drag and the versions."""
+        params = self.params
+        n_cmd = self.plan.n if self.plan is not None else self.n_sent
+        duration = self.plan.duration if self.plan is not None else (n_cmd - 1) * self.dt
+        return {
+            "cell": "sim",
+            **rope_record(self.plant.rope_params, params.ropes),
+            "seed": params.seed,
+            "trial_index": self.trial_index,
+            "start_delay_s": self.delay,
+            "command_duration_s": duration,
+            "sim_duration_s": sim_duration,
+            "sim_timestep_s": self.sim_dt,
+            "settle": settle_meta,
+            "aero": params.aero.enabled,
+            "versions": {
+                "flyknot": __version__,
+                "mujoco": mujoco.__version__,
+                "python": platform.python_version(),
+            },
+        }
 
 
 # Truth frames after this long past the command's end are kept at this interval only (the
