@@ -312,8 +312,6 @@ def search(
     Returns:
         The result; ``best`` is None if nothing tied.
     """
-    import cma
-
     v = get_variant(variant) if isinstance(variant, str) else variant
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ConfigError("seed", f"must be an integer >= 0, got {seed!r}")
@@ -322,87 +320,130 @@ def search(
     lo, hi = param_bounds(v)
     x_start = np.clip((v.seed_motion() if start is None else start).x, lo, hi)
     confirm_set = variations(lab, (seed, stream, 1), config.confirm_trials, nominal_first=True)
-    state = {"trials": 0, "ties": 0, "first_tie": None, "evals": 0}
-    history: list[tuple[int, float, int]] = []
-    candidates: list[Candidate] = []
-    best: Candidate | None = None
+    run = _Search(lab, v, config, weights, confirm_set, bar)
     stopped = "budget"
-
-    def spend(n: int) -> None:
-        state["trials"] += n
-        if bar is not None:
-            bar.update(n)
-
-    def make_es(center: np.ndarray, sigma: float, what: int) -> tuple[Any, np.ndarray]:
-        zlo = (lo - center) / PARAM_SCALE
-        zhi = (hi - center) / PARAM_SCALE
-        opts = {
-            "bounds": [zlo.tolist(), zhi.tolist()],
-            "seed": _stream_seed(seed, stream, what),
-            "verbose": -9,
-        }
-        if config.popsize:
-            opts["popsize"] = config.popsize
-        return cma.CMAEvolutionStrategy(np.zeros(N_PARAMS), sigma, opts), center
-
-    es, center = make_es(x_start, config.sigma0, 3)
+    es, center = _strategy(x_start, config.sigma0, (lo, hi), (seed, stream, 3), config.popsize)
     repeats, generation, refined = 1, 0, False
-    while state["trials"] < config.budget and stopped == "budget":
-        if not refined and best is not None and state["trials"] >= config.refine_after:
-            es, center = make_es(best.motion.x, config.refine_sigma, 4)
+    while run.trials < config.budget and stopped == "budget":
+        if not refined and run.best is not None and run.trials >= config.refine_after:
+            es, center = _strategy(
+                run.best.motion.x, config.refine_sigma, (lo, hi), (seed, stream, 4), config.popsize
+            )
             repeats, refined = config.refine_repeats, True
         zs = es.ask()
         gen_vars = variations(lab, (seed, stream, 2, generation), repeats, nominal_first=False)
         generation += 1
-        fitness = []
-        for z in zs:
-            motion = KnotMotion(np.clip(center + PARAM_SCALE * np.asarray(z), lo, hi))
-            ev = evaluate(lab, motion, v, gen_vars, weights)
-            state["evals"] += 1
-            spend(sum(sm.simulated for sm in ev.summaries))
-            fitness.append(-ev.mean_score)
-            history.append((state["trials"], ev.mean_score, ev.ties))
-            if ev.ties:
-                state["ties"] += ev.ties
-                if state["first_tie"] is None:
-                    state["first_tie"] = state["trials"]
-                conf = evaluate(
-                    lab, motion, v, confirm_set, weights, max_failures=config.confirm_failures
-                )
-                spend(len(conf.summaries))
-                cand = Candidate(
-                    motion=motion,
-                    trial=state["trials"],
-                    rate=conf.ties / config.confirm_trials,
-                    nominal_tied=conf.summaries[0].tied,
-                    mean_score=conf.mean_score,
-                )
-                candidates.append(cand)
-                if best is None or cand.key() > best.key():
-                    best = cand
-                if cand.nominal_tied and cand.rate >= config.target_rate:
-                    stopped = "target"
-                    break
-            if bar is not None:
-                bar.set_postfix(
-                    stage=v.name.split("/")[-1],
-                    ties=state["ties"],
-                    best="-" if best is None else f"{best.rate:.1f}",
-                )
-            if state["trials"] >= config.budget:
-                break
+        motions = [KnotMotion(np.clip(center + PARAM_SCALE * np.asarray(z), lo, hi)) for z in zs]
+        fitness, stopped = run.generation(motions, gen_vars)
         if stopped == "budget" and len(fitness) == len(zs):
             es.tell(zs, fitness)
     return SearchResult(
         variant=v.name,
         seed=seed,
-        best=best,
-        trials=state["trials"],
-        evaluations=state["evals"],
-        first_tie=state["first_tie"],
-        ties=state["ties"],
-        candidates=tuple(candidates),
-        history=np.array(history, dtype=float).reshape(-1, 3),
+        best=run.best,
+        trials=run.trials,
+        evaluations=run.evals,
+        first_tie=run.first_tie,
+        ties=run.ties,
+        candidates=tuple(run.candidates),
+        history=np.array(run.history, dtype=float).reshape(-1, 3),
         wall_s=time.perf_counter() - tic,
         stopped=stopped,
     )
+
+
+def _strategy(
+    center: np.ndarray,
+    sigma: float,
+    box: tuple[np.ndarray, np.ndarray],
+    stream: tuple[int, int, int],
+    popsize: int | None,
+) -> tuple[Any, np.ndarray]:
+    """A CMA-ES in z = (x - center) / scale with step ``sigma``, bounded by the box, seeded
+    from the (seed, stream, stage) ``stream``; and its center."""
+    import cma
+
+    lo, hi = box
+    opts = {
+        "bounds": [((lo - center) / PARAM_SCALE).tolist(), ((hi - center) / PARAM_SCALE).tolist()],
+        "seed": _stream_seed(*stream),
+        "verbose": -9,
+    }
+    if popsize:
+        opts["popsize"] = popsize
+    return cma.CMAEvolutionStrategy(np.zeros(N_PARAMS), sigma, opts), center
+
+
+@dataclass
+class _Search:
+    """A search's bookkeeping: trials spent, ties, candidates and the best of them."""
+
+    lab: HandLab
+    variant: Variant
+    config: SearchConfig
+    weights: ScoreWeights
+    confirm_set: Sequence[Mapping[str, Any]]
+    bar: Any
+    trials: int = 0
+    ties: int = 0
+    first_tie: int | None = None
+    evals: int = 0
+    history: list[tuple[int, float, int]] = field(default_factory=list)
+    candidates: list[Candidate] = field(default_factory=list)
+    best: Candidate | None = None
+
+    def spend(self, n: int) -> None:
+        """Count ``n`` simulated trials."""
+        self.trials += n
+        if self.bar is not None:
+            self.bar.update(n)
+
+    def generation(
+        self, motions: Sequence[KnotMotion], gen_vars: Sequence[Mapping[str, Any]]
+    ) -> tuple[list[float], str]:
+        """Score a generation's motions on its variations (a motion that ties confirmed);
+        the fitness of each motion scored (CMA-ES minimises: minus the mean score) and
+        ``"target"`` when a candidate reached the target (the generation stops there), else
+        ``"budget"`` (also when the budget ran out mid-generation)."""
+        fitness = []
+        for motion in motions:
+            ev = evaluate(self.lab, motion, self.variant, gen_vars, self.weights)
+            self.evals += 1
+            self.spend(sum(sm.simulated for sm in ev.summaries))
+            fitness.append(-ev.mean_score)
+            self.history.append((self.trials, ev.mean_score, ev.ties))
+            if ev.ties and self._confirmed(motion, ev.ties):
+                return fitness, "target"
+            if self.bar is not None:
+                self.bar.set_postfix(
+                    stage=self.variant.name.split("/")[-1],
+                    ties=self.ties,
+                    best="-" if self.best is None else f"{self.best.rate:.1f}",
+                )
+            if self.trials >= self.config.budget:
+                break
+        return fitness, "budget"
+
+    def _confirmed(self, motion: KnotMotion, ties: int) -> bool:
+        """Confirm a motion that tied on the confirmation set and keep it as a candidate;
+        whether its nominal trial ties at the target rate."""
+        self.ties += ties
+        if self.first_tie is None:
+            self.first_tie = self.trials
+        cfg = self.config
+        conf = evaluate(
+            self.lab, motion, self.variant, self.confirm_set, self.weights,
+            max_failures=cfg.confirm_failures,
+        )  # fmt: skip
+        self.spend(len(conf.summaries))
+        cand = Candidate(
+            motion=motion,
+            trial=self.trials,
+            rate=conf.ties / cfg.confirm_trials,
+            nominal_tied=conf.summaries[0].tied,
+            mean_score=conf.mean_score,
+        )
+        self.candidates.append(cand)
+        if self.best is None or cand.key() > self.best.key():
+            self.best = cand
+        return cand.nominal_tied and cand.rate >= cfg.target_rate
