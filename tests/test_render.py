@@ -141,9 +141,11 @@ def test_the_skipped_shadow_and_reflection_passes_would_draw_nothing(record, clo
 
     params = dataclasses.replace(SMALL, width=320, height=240, close_up=close_up)
     t = trial_end(record)
+    passes = (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION)
     with TrialRenderer(record, params) as r:
+        assert not any(r.scene.flags[flag] for flag in passes)  # skipped: they cost, not show
         plain = r.render(t)
-        for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION):
+        for flag in passes:
             r.scene.flags[flag] = True
         np.testing.assert_array_equal(r.render(t), plain)
 
