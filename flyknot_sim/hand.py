@@ -399,7 +399,8 @@ class HandLab:
         return rope.self_contact_span(self.model, d), d.qpos[rope.vert_qpos] + rope.body_pos0
 
     def _sample(self, out: _Played, k: int) -> None:
-        """Store the state after the last step as sample ``k`` (MuJoCo's positions of it)."""
+        """Store sample ``k``: the positions MuJoCo computed last (a step computes them
+        before it integrates, so after k steps they are the state at t_k)."""
         d, s = self.data, self.scene
         out.vertices[k] = d.flexvert_xpos[s.rope.vert_adr : s.rope.vert_adr + s.rope.n_vert]
         out.q[k] = d.qpos[s.qpos]
