@@ -279,49 +279,8 @@ def load_demo_csv(
     if not path.is_file():
         raise RecordError(f"demonstration file {str(path)!r} does not exist")
     lines = path.read_text().splitlines()
-    header: dict[str, str] = {}
-    n = 0
-    while n < len(lines) and (lines[n].startswith("#") or not lines[n].strip()):
-        key, sep, value = lines[n][1:].partition(":")
-        if sep:
-            header[key.strip().lower()] = value.strip()
-        n += 1
-    if n == len(lines):
-        raise RecordError(f"{str(path)!r} has no header line")
-    version = header.get("flyknot-demo-csv", str(CSV_FORMAT_VERSION))
-    if version != str(CSV_FORMAT_VERSION):
-        raise RecordError(
-            f"{str(path)!r}: flyknot-demo-csv version {version!r} is not supported "
-            f"(valid choices: {CSV_FORMAT_VERSION})"
-        )
-    rows = list(csv.reader(lines[n:]))
-    names = [h.strip() for h in rows[0]]
-    missing = [c for c in CSV_COLUMNS if c not in names]
-    if missing:
-        raise RecordError(f"{str(path)!r} lacks columns: {', '.join(missing)}")
-    dup = sorted({c for c in CSV_COLUMNS if names.count(c) > 1})
-    if dup:
-        raise RecordError(f"{str(path)!r} repeats columns: {', '.join(dup)}")
-    col = [names.index(c) for c in CSV_COLUMNS]
-    body = [(n + 2 + i, r) for i, r in enumerate(rows[1:]) if any(x.strip() for x in r)]
-    data = np.empty((len(body), len(CSV_COLUMNS)))
-    for i, (line_no, r) in enumerate(body):
-        if len(r) != len(names):
-            raise RecordError(
-                f"{str(path)!r} line {line_no}: expected {len(names)} values, got {len(r)}"
-            )
-        for j, c in enumerate(col):
-            data[i, j] = _parse_cell(r[c], f"{str(path)!r} line {line_no}, column {names[c]}")
-    if len(body) < 2:
-        raise RecordError(f"{str(path)!r} needs at least 2 samples, got {len(body)}")
-    head = data[:, : 1 + len(HAND_COLUMNS)]
-    bad = ~np.isfinite(head)
-    if bad.any():
-        i, j = np.argwhere(bad)[0]
-        raise RecordError(
-            f"{str(path)!r} line {body[i][0]}: column {CSV_COLUMNS[j]} must hold a number "
-            f"({int(bad.any(axis=1).sum())} row(s) lack time or hand values)"
-        )
+    header, n = _csv_header(lines, path)
+    data, line_nos = _csv_table(lines[n:], n, path)
     if t_c is None:
         if "t_c" not in header:
             raise RecordError(
@@ -341,7 +300,7 @@ def load_demo_csv(
     norm = np.linalg.norm(quat, axis=1)
     if np.any(norm < 1e-9):
         i = int(np.argmax(norm < 1e-9))
-        raise RecordError(f"{str(path)!r} line {body[i][0]}: hand quaternion is zero")
+        raise RecordError(f"{str(path)!r} line {line_nos[i]}: hand quaternion is zero")
     return Demonstration(
         t=data[:, 0],
         hand_pos=data[:, 1:4],
@@ -351,6 +310,61 @@ def load_demo_csv(
         rope=rope,
         metadata=meta,
     )
+
+
+def _csv_header(lines: list[str], path: Path) -> tuple[dict[str, str], int]:
+    """The ``# key: value`` lines before the column names (keys lower-cased) and the index
+    of the column names' line; the format version checked."""
+    header: dict[str, str] = {}
+    n = 0
+    while n < len(lines) and (lines[n].startswith("#") or not lines[n].strip()):
+        key, sep, value = lines[n][1:].partition(":")
+        if sep:
+            header[key.strip().lower()] = value.strip()
+        n += 1
+    if n == len(lines):
+        raise RecordError(f"{str(path)!r} has no header line")
+    version = header.get("flyknot-demo-csv", str(CSV_FORMAT_VERSION))
+    if version != str(CSV_FORMAT_VERSION):
+        raise RecordError(
+            f"{str(path)!r}: flyknot-demo-csv version {version!r} is not supported "
+            f"(valid choices: {CSV_FORMAT_VERSION})"
+        )
+    return header, n
+
+
+def _csv_table(lines: list[str], n: int, path: Path) -> tuple[np.ndarray, list[int]]:
+    """The table from its column names' line on (file line ``n + 1``): the values of
+    :data:`CSV_COLUMNS` per non-blank row, (k, 41), k >= 2, time and hand values finite; and
+    each row's file line number."""
+    rows = list(csv.reader(lines))
+    names = [h.strip() for h in rows[0]]
+    missing = [c for c in CSV_COLUMNS if c not in names]
+    if missing:
+        raise RecordError(f"{str(path)!r} lacks columns: {', '.join(missing)}")
+    dup = sorted({c for c in CSV_COLUMNS if names.count(c) > 1})
+    if dup:
+        raise RecordError(f"{str(path)!r} repeats columns: {', '.join(dup)}")
+    col = [names.index(c) for c in CSV_COLUMNS]
+    body = [(n + 2 + i, r) for i, r in enumerate(rows[1:]) if any(x.strip() for x in r)]
+    data = np.empty((len(body), len(CSV_COLUMNS)))
+    for i, (line_no, r) in enumerate(body):
+        if len(r) != len(names):
+            raise RecordError(
+                f"{str(path)!r} line {line_no}: expected {len(names)} values, got {len(r)}"
+            )
+        for j, c in enumerate(col):
+            data[i, j] = _parse_cell(r[c], f"{str(path)!r} line {line_no}, column {names[c]}")
+    if len(body) < 2:
+        raise RecordError(f"{str(path)!r} needs at least 2 samples, got {len(body)}")
+    bad = ~np.isfinite(data[:, : 1 + len(HAND_COLUMNS)])
+    if bad.any():
+        i, j = np.argwhere(bad)[0]
+        raise RecordError(
+            f"{str(path)!r} line {body[i][0]}: column {CSV_COLUMNS[j]} must hold a number "
+            f"({int(bad.any(axis=1).sum())} row(s) lack time or hand values)"
+        )
+    return data, [line_no for line_no, _ in body]
 
 
 # --- C3D ----------------------------------------------------------------------------------
