@@ -433,38 +433,9 @@ def load_demo_c3d(
     except (RuntimeError, OSError, ValueError) as e:  # what ezc3d raises on bad files
         raise RecordError(f"{str(path)!r} is not a readable C3D file: {e}") from e
 
-    labels = [_strip_subject(s) for s in (_param(c3d, "POINT", "LABELS") or [])]
     want = [*rope_labels, *hand_labels]
-    missing = [s for s in want if s not in labels]
-    if missing:
-        raise RecordError(
-            f"{str(path)!r} lacks marker labels: {', '.join(missing)} "
-            f"(found: {', '.join(labels) if labels else 'none'})"
-        )
-    dup = [s for s in want if labels.count(s) > 1]
-    if dup:
-        raise RecordError(f"{str(path)!r} repeats marker labels: {', '.join(sorted(set(dup)))}")
-
-    units = (_param(c3d, "POINT", "UNITS") or ["mm"])[0].strip().lower() or "mm"
-    if units not in C3D_UNITS:
-        raise RecordError(
-            f"{str(path)!r}: POINT:UNITS {units!r} is not supported "
-            f"(valid choices: {', '.join(C3D_UNITS)})"
-        )
-    rate = float(np.ravel(_param(c3d, "POINT", "RATE"))[0])
-    if not rate > 0:
-        raise RecordError(f"{str(path)!r}: POINT:RATE must be > 0, got {rate}")
-
-    pts = np.asarray(c3d["data"]["points"], dtype=float)  # (4, n_labels, k)
-    xyz = pts[:3].transpose(2, 1, 0) * C3D_UNITS[units]  # (k, n_labels, 3) [m]
-    residuals = c3d["data"]["meta_points"]["residuals"]  # (1, n_labels, k)
-    invalid = np.asarray(residuals)[0].T < 0
-    xyz[invalid] = np.nan
-    k = xyz.shape[0]
-    first = int(c3d["header"]["points"]["first_frame"])  # 0-based in ezc3d
-    t = (first + np.arange(k)) / rate
-
-    idx = [labels.index(s) for s in want]
+    idx = _c3d_label_index(c3d, want, path)
+    t, xyz = _c3d_points(c3d, path)
     markers = xyz[:, idx[:N_MARKERS]]
     hand_pos, hand_quat = hand_pose_from_markers(
         t, xyz[:, idx[N_MARKERS:]], hand_cluster, max_fit_rms
@@ -495,6 +466,42 @@ def load_demo_c3d(
         rope=rope,
         metadata=meta,
     )
+
+
+def _c3d_label_index(c3d: Any, want: list[str], path: Path) -> list[int]:
+    """The POINT columns of the ``want`` labels (subject prefixes stripped), each present
+    once."""
+    labels = [_strip_subject(s) for s in (_param(c3d, "POINT", "LABELS") or [])]
+    missing = [s for s in want if s not in labels]
+    if missing:
+        raise RecordError(
+            f"{str(path)!r} lacks marker labels: {', '.join(missing)} "
+            f"(found: {', '.join(labels) if labels else 'none'})"
+        )
+    dup = [s for s in want if labels.count(s) > 1]
+    if dup:
+        raise RecordError(f"{str(path)!r} repeats marker labels: {', '.join(sorted(set(dup)))}")
+    return [labels.index(s) for s in want]
+
+
+def _c3d_points(c3d: Any, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The frames' times (k,) [s] and every label's point (k, n_labels, 3) [m], NaN where
+    the file marks it invalid (a negative residual)."""
+    units = (_param(c3d, "POINT", "UNITS") or ["mm"])[0].strip().lower() or "mm"
+    if units not in C3D_UNITS:
+        raise RecordError(
+            f"{str(path)!r}: POINT:UNITS {units!r} is not supported "
+            f"(valid choices: {', '.join(C3D_UNITS)})"
+        )
+    rate = float(np.ravel(_param(c3d, "POINT", "RATE"))[0])
+    if not rate > 0:
+        raise RecordError(f"{str(path)!r}: POINT:RATE must be > 0, got {rate}")
+    pts = np.asarray(c3d["data"]["points"], dtype=float)  # (4, n_labels, k)
+    xyz = pts[:3].transpose(2, 1, 0) * C3D_UNITS[units]  # (k, n_labels, 3) [m]
+    residuals = c3d["data"]["meta_points"]["residuals"]  # (1, n_labels, k)
+    xyz[np.asarray(residuals)[0].T < 0] = np.nan
+    first = int(c3d["header"]["points"]["first_frame"])  # 0-based in ezc3d
+    return (first + np.arange(xyz.shape[0])) / rate, xyz
 
 
 def _contact_event(c3d: Any, path: Path) -> float:
