@@ -26,6 +26,7 @@ from typing import Any
 
 from flyknot.errors import ConfigError, check_nonnegative
 from flyknot.record import Cell
+from learner.jacobians import JacobianProvider
 
 
 @dataclass(frozen=True)
@@ -63,16 +64,27 @@ class SimCellSpec:
                 raise ConfigError(f"cell.{name}", f"must be true or false, got {value!r}")
 
 
-def _open_sim(spec: SimCellSpec) -> Cell:
+def sim_lab_params(spec: SimCellSpec):
+    """The :class:`flyknot_sim.lab.LabParams` of a simulated cell."""
     from flyknot.rest import EARLY_ENDS, SettleParams
-    from flyknot_sim.lab import LabParams, SimLab
+    from flyknot_sim.lab import LabParams
 
     settle = SettleParams().without(*(end for end in EARLY_ENDS if not getattr(spec, end)))
-    return SimLab(
-        LabParams(
-            rope=spec.rope, seed=spec.seed, settle=settle, settle_s=spec.settle_s, ropes=spec.ropes
-        )
+    return LabParams(
+        rope=spec.rope, seed=spec.seed, settle=settle, settle_s=spec.settle_s, ropes=spec.ropes
     )
+
+
+def _open_sim(spec: SimCellSpec) -> Cell:
+    from flyknot_sim.lab import SimLab
+
+    return SimLab(sim_lab_params(spec))
+
+
+def _sim_oracle(spec: SimCellSpec, t_c: float) -> JacobianProvider:
+    from flyknot_app.oracle import LabJacobian
+
+    return LabJacobian(sim_lab_params(spec), t_c)
 
 
 @dataclass(frozen=True)
@@ -129,6 +141,8 @@ class CellKind:
     spec: type
     open: Callable[[Any], Cell]
     description: str
+    oracle: Callable[[Any, float], JacobianProvider] | None = None
+    """Measures the cell's own M(t_c) (``jacobian = "oracle"``), or None: it cannot."""
 
     @property
     def fields(self) -> tuple[str, ...]:
@@ -137,7 +151,7 @@ class CellKind:
 
 
 CELLS: dict[str, CellKind] = {
-    "sim": CellKind("sim", SimCellSpec, _open_sim, "the simulated lab (MuJoCo)"),
+    "sim": CellKind("sim", SimCellSpec, _open_sim, "the simulated lab (MuJoCo)", _sim_oracle),
     "xarm": CellKind("xarm", XArmCellSpec, _open_xarm, "a real xArm 7 with motion capture"),
 }
 """Every kind of cell, by the name a scenario's ``[cell] kind`` gives."""
@@ -165,3 +179,25 @@ def open_cell(kind: str, spec: Any) -> Cell:
     if not isinstance(spec, k.spec):
         raise ConfigError("cell", f"a {kind!r} cell needs a {k.spec.__name__}, got {spec!r}")
     return k.open(spec)
+
+
+def check_oracle(kind: str, *, dry_run: bool = False) -> None:
+    """Refuse the oracle Jacobian on a cell that cannot measure it (before anything runs).
+
+    Raises:
+        ConfigError: ``jacobian = "oracle"`` on such a cell, naming the kinds that can.
+    """
+    able = sorted(name for name, k in CELLS.items() if k.oracle is not None)
+    if cell_kind(kind).oracle is None or dry_run:
+        raise ConfigError(
+            "jacobian",
+            f"'oracle' replays commands without variation, which only a simulated lab can; "
+            f"this run's cell is {kind!r}{' (dry run)' if dry_run else ''}",
+            able,
+        )
+
+
+def oracle_provider(kind: str, spec: Any, t_c: float) -> JacobianProvider:
+    """The oracle Jacobian of the cell ``spec`` of ``kind`` at the critical time ``t_c`` [s]."""
+    check_oracle(kind, dry_run=bool(getattr(spec, "dry_run", False)))
+    return cell_kind(kind).oracle(spec, t_c)

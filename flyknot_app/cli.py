@@ -309,6 +309,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_calibrate_parser(sub)
     _add_compare_parser(sub)
     _add_bench_parser(sub)
+    from flyknot_app.diagnose_cli import add_diagnose_parser
+
+    add_diagnose_parser(sub)
     return p
 
 

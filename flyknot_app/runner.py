@@ -37,7 +37,7 @@ from flyknot.limits import JointLimits
 from flyknot.progress import bar_disable
 from flyknot.record import TrialRecord, atomic_save_npy, atomic_write_text
 from flyknot.verdict import JUDGE_NAME
-from flyknot_app.cells import open_cell
+from flyknot_app.cells import check_oracle, open_cell, oracle_provider
 from flyknot_app.guess_cache import cached_guess, guess_cache_name, guess_key, store_guess
 from flyknot_app.run_summary import RunSummary, ScenarioSummary
 from flyknot_app.scenario import RunSpec, Scenario, find_named_file
@@ -304,9 +304,29 @@ def _learn(lab, spec: RunSpec, target, knots0, robot, run_dir: Path, judge, *, r
             resume=resume,
             on_trial=on_trial,
             judge=judge,
+            jacobian=_measured_jacobian(spec, target.t_c),
         )
     finally:
         bar.close()
+
+
+def _measured_jacobian(spec: RunSpec, t_c: float):
+    """The run's measured M(t_c) provider when its ``jacobian`` source needs one (the
+    oracle: :mod:`flyknot_app.oracle`), else None."""
+    from learner.jacobians import jacobian_kind
+
+    if not jacobian_kind(spec.learner.update.jacobian).needs_provider:
+        return None
+    return oracle_provider(spec.cell, spec.cell_spec(), t_c)
+
+
+def check_jacobians(scen: Scenario) -> None:
+    """Refuse, before anything is written, a run whose Jacobian source its cell cannot give."""
+    from learner.jacobians import jacobian_kind
+
+    for spec in scen.runs:
+        if jacobian_kind(spec.learner.update.jacobian).needs_provider:
+            check_oracle(spec.cell, dry_run=bool(getattr(spec.cell_spec(), "dry_run", False)))
 
 
 def _play_repeats(
@@ -523,6 +543,7 @@ def prepare_scenario(
     if not resume and (out_dir / "manifest.json").is_file():
         raise ConfigError("--out", f"{str(out_dir)!r} already holds a run; use --resume")
     scen.order()  # runs that wait on each other in a cycle fail here, before any work
+    check_jacobians(scen)
     out_dir.mkdir(parents=True, exist_ok=True)
     manifest = {
         "scenario": scen.name,

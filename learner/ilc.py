@@ -48,6 +48,7 @@ from learner.ilc_step import (
     critical_cost,
     decide,
 )
+from learner.jacobians import JacobianProvider
 from learner.kinematics import RobotModel
 from learner.run_directory import RunDirectory, TrialSummary, written_record
 from learner.target import DemoTarget
@@ -101,6 +102,7 @@ def learn(
     limits: JointLimits = JointLimits(),  # noqa: B008 - frozen value
     on_trial: Callable[[TrialSummary], None] | None = None,
     judge: KnotJudge = CellVerdict(),  # noqa: B008 - frozen value
+    jacobian: JacobianProvider | None = None,
 ) -> LearnResult:
     """Run Task-Level ILC from ``knots0`` on ``cell`` until a knot or ``max_trials``.
 
@@ -116,6 +118,8 @@ def learn(
         on_trial: Called after every attempt (progress display).
         judge: Who says whether a trial tied the knot (:mod:`flyknot.judge`); the stop rule
             asks it, never the cell's internals. Default: the verdict the cell recorded.
+        jacobian: The measured M(t_c) for a run whose ``jacobian`` option names a source
+            that needs one (:mod:`learner.jacobians`); None otherwise.
 
     Returns:
         Per-attempt summaries, the first successful trial (0-based) or None, the last
@@ -125,7 +129,7 @@ def learn(
     state = LoopState.initial(knots0, params)
     if rd is not None:
         state = _open_run(rd, state, cell, params, resume)
-    ctx = Context(target, robot, params, limits, judge)
+    ctx = Context(target, robot, params, limits, judge, jacobian)
     while state.stop is None and state.k < params.trials:
         command = BezierCommand(state.knots, target.T)  # kappa_k
         joint_cmd = command.joint_command()

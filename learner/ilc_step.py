@@ -21,6 +21,7 @@ from flyknot.record import TrialRecord
 from learner.bezier import BezierCommand
 from learner.ilc_params import ILCParams
 from learner.inverse_qp import InverseModelWeights
+from learner.jacobians import JacobianProvider, provided_jacobian
 from learner.kinematics import RobotModel
 from learner.limit_rows import sampled_violation
 from learner.run_directory import TrialSummary
@@ -169,13 +170,15 @@ class Step:
 
 @dataclass(frozen=True)
 class Context:
-    """What every step is decided against: the target, the learner's models and settings."""
+    """What every step is decided against: the target, the learner's models and settings,
+    and a measured Jacobian's provider when the run's ``jacobian`` source needs one."""
 
     target: DemoTarget
     robot: RobotModel
     params: ILCParams
     limits: JointLimits
     judge: KnotJudge
+    jacobian: JacobianProvider | None = None
 
 
 def decide(
@@ -331,6 +334,9 @@ def assess(
             params.rope_model,
             params.update_settings(limits),
             extra_records=extra_records,
+            jacobian=provided_jacobian(
+                params.update.jacobian, ctx.jacobian, command.knots, command.T
+            ),
         )
     except RecordError as e:
         return TrialSummary(

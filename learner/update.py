@@ -62,6 +62,7 @@ from learner.inverse_qp import (
     build_inverse_qp,
     solve_qp,
 )
+from learner.jacobians import jacobian_kind
 from learner.kinematics import RobotModel
 from learner.limit_rows import (
     GeneratedSolve,
@@ -112,6 +113,8 @@ class UpdateSettings:
             early), the critical point falls back to the latest model step within
             ``fallback_s`` before t_c at which both the record and the demonstration give a
             marker state (``UpdateResult.t_eff``); 0 disables the fallback.
+        jacobian: Where M(t_c) comes from (:data:`learner.jacobians.JACOBIANS`):
+            ``"model"`` (the paper's) or ``"oracle"`` (the simulated lab's own, measured).
 
     Raises:
         ConfigError: on an unknown choice or a value out of range.
@@ -130,9 +133,12 @@ class UpdateSettings:
     interpolation: str = "cubic"
     fit: MarkerFitParams = field(default_factory=MarkerFitParams)
     fallback_s: float = 10.0
+    jacobian: str = "model"
 
     def __post_init__(self) -> None:
         check_choice("objective", self.objective, OBJECTIVES)
+        if jacobian_kind(self.jacobian).needs_provider and self.objective != "critical":
+            raise ConfigError("jacobian", f"{self.jacobian!r} is for the critical objective only")
         check_choice("backend", self.backend, BACKENDS)
         check_choice("base_update", self.base_update, BASE_UPDATES)
         check_choice("interpolation", self.interpolation, INTERPOLATIONS)
@@ -273,6 +279,20 @@ def _check_inputs(
             "rope_params.dt",
             f"must equal the target's model step {target.dt:g} s, got {rope_params.dt:g} s",
         )
+
+
+def _given_jacobian(jacobian: object, objective: str) -> np.ndarray:
+    """A Jacobian handed to :func:`ilc_update`, checked: (66, 80), finite, critical objective."""
+    if objective != "critical":
+        raise ConfigError("jacobian", f"is for the critical objective only, not {objective!r}")
+    M = np.asarray(jacobian, dtype=float)
+    if M.shape != (STATE_DIM, N_ROWS * N_KNOTS):
+        raise ConfigError(
+            "jacobian", f"must have shape ({STATE_DIM}, {N_ROWS * N_KNOTS}), got {M.shape}"
+        )
+    if not np.all(np.isfinite(M)):
+        raise ConfigError("jacobian", "must be finite")
+    return M
 
 
 def _fallback_critical_point(
@@ -440,6 +460,7 @@ def ilc_update(
     settings: UpdateSettings | None = None,
     *,
     extra_records: Sequence[TrialRecord] = (),
+    jacobian: np.ndarray | None = None,
 ) -> UpdateResult:
     """One ILC update: measured error -> linearised model -> inverse-model QP -> new knots.
 
@@ -463,6 +484,9 @@ def ilc_update(
         extra_records: Earlier plays of the same command: the critical-point error is the
             mean over ``record`` and those of them that kept tracking to t_c (the
             follow-through term uses ``record`` alone).
+        jacobian: M(t_c) = dx(t_c)/dkappa (66, 80) [m/unit, m/s/unit] to use in place of the
+            rope model's linearisation (:mod:`learner.jacobians`: a corrected model's, or an
+            oracle's taken in a simulated lab); critical objective only. None: the model's.
 
     Returns:
         The :class:`UpdateResult`.
@@ -486,22 +510,26 @@ def ilc_update(
         k_c = critical_step(t_c, demo_target.dt, T)
         err, k_c, t_eff, samples = _errors(record, extra_records, base, demo_target, k_c, s)
 
-    # 2-3. linearisation point and M
+    # 2-3. linearisation point and M (or the given Jacobian)
     steps = sorted({k_c, *(k for k, _ in samples)})
-    with _timed(timings, "rollout"):
-        ro = rollout_from_joints(
-            record.t_joint,
-            record.q_meas,
-            base,
-            robot,
-            rope_params,
-            T,
-            interpolation=s.interpolation,
-            n_steps=max(1, steps[-1]),
-        )
-    with _timed(timings, "linearise"):
-        dX = linearise(ro, T, steps)
-    M_c = dX[steps.index(k_c)]
+    if jacobian is not None:
+        M_c = _given_jacobian(jacobian, s.objective)
+        dX = [M_c]
+    else:
+        with _timed(timings, "rollout"):
+            ro = rollout_from_joints(
+                record.t_joint,
+                record.q_meas,
+                base,
+                robot,
+                rope_params,
+                T,
+                interpolation=s.interpolation,
+                n_steps=max(1, steps[-1]),
+            )
+        with _timed(timings, "linearise"):
+            dX = linearise(ro, T, steps)
+        M_c = dX[steps.index(k_c)]
 
     # 4. follow-through
     follow = None

@@ -1,0 +1,170 @@
+"""``flyknot diagnose``: the learner's measuring sticks, for a run or a demonstration.
+
+    flyknot diagnose floor RUN_DIR [--budget N] [--repeats K]     # a run of `flyknot run`
+    flyknot diagnose floor --demo fast --rope 1 [--budget N]      # a demonstration alone
+
+``floor``: the reachable floor (:mod:`flyknot_app.floor`) from the run's initial command (or
+the demonstration's initial guess), for the run's rope, lab and demonstration window; written
+to ``RUN_DIR/floor.json`` (or ``--out``). ``--repeats K`` plays the floor's command K times
+with the lab's trial-to-trial variation and counts its knots. Only a simulated cell can be
+diagnosed this way; a run on a real cell is refused in one line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from flyknot.constants import FOLLOW_THROUGH_S, PATH_FRAC
+from flyknot.errors import ConfigError
+from flyknot.progress import bar_disable
+from flyknot_app.floor import FloorParams
+from flyknot_app.scenario import parse_rope_arg
+
+
+def _run_inputs(run_dir: Path) -> dict[str, Any]:
+    """A run directory's demonstration, window, cell and initial command."""
+    result = run_dir / "result.json"
+    knots0 = run_dir / "learning" / "knots_0000.npy"
+    if not result.is_file() or not knots0.is_file():
+        raise ConfigError(
+            "RUN_DIR",
+            f"{str(run_dir)!r} is not a finished run of `flyknot run` (needs result.json and "
+            "learning/knots_0000.npy; give OUT/runs/NAME)",
+        )
+    opts = json.loads(result.read_text())
+    return {
+        "demo": opts["demo"],
+        "window": (float(opts["follow_through_s"]), float(opts["path_frac"])),
+        "cell": opts.get("cell", "sim"),
+        "cell_values": {
+            "rope": opts["rope"],
+            "seed": opts["seed"],
+            "settle_s": opts.get("settle_s"),
+            "ropes": opts.get("ropes"),
+            **opts.get("cell_options", {}),
+        },
+        "knots0": np.load(knots0),
+        "out": run_dir / "floor.json",
+    }
+
+
+def _demo_inputs(args: argparse.Namespace) -> dict[str, Any]:
+    """A demonstration's inputs: the simulated lab with ``--rope``, the initial guess."""
+    if args.out is None:
+        raise ConfigError("--out", "give the result's file when diagnosing a demonstration")
+    return {
+        "demo": args.demo,
+        "window": (args.follow_through, args.path_frac),
+        "cell": "sim",
+        "cell_values": {"rope": args.rope, "seed": args.seed},
+        "knots0": None,
+        "out": Path(args.out),
+    }
+
+
+def _cmd_floor(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from flyknot_app.cells import cell_spec, check_oracle, sim_lab_params
+    from flyknot_app.floor import reachable_floor
+    from flyknot_app.runner import initial_knots, prepare_target
+    from flyknot_sim.scene import robot_base_pose
+    from learner.kinematics import RobotModel
+    from learner.rope_model import RopeModelParams
+
+    if (args.run is None) == (args.demo is None):
+        raise ConfigError("RUN_DIR", "give a run directory or --demo, not both or neither")
+    inputs = _run_inputs(Path(args.run)) if args.run else _demo_inputs(args)
+    spec = cell_spec(inputs["cell"], inputs["cell_values"])
+    check_oracle(inputs["cell"], dry_run=bool(getattr(spec, "dry_run", False)))
+    params = FloorParams(budget=args.budget)  # validated before any work
+    lab_params = sim_lab_params(spec)
+    robot, dt = RobotModel.from_mjcf(), RopeModelParams().dt
+    _, target = prepare_target(inputs["demo"], dt, inputs["window"])
+    knots0 = inputs["knots0"]
+    if knots0 is None:  # the demonstration's initial guess, for the lab's base height
+        base_height = float(robot_base_pose(lab_params.scene)[2])
+        out_dir = inputs["out"].parent
+        knots0, _ = initial_knots(inputs["demo"], out_dir, robot, dt, base_height, inputs["window"])
+    bar = tqdm(total=params.budget, desc="floor", unit="play", disable=bar_disable(not args.json))
+
+    def on_iteration(plays: int, cost: float) -> None:
+        bar.n = plays
+        bar.set_postfix_str(f"cost {cost:.3g}")
+        bar.refresh()
+
+    try:
+        res = reachable_floor(
+            lab_params, target, knots0, robot, RopeModelParams(), params, on_iteration=on_iteration
+        )
+    finally:
+        bar.close()
+    out = res.to_json() | {"demo": inputs["demo"], "rope": spec.rope, "t_c": target.t_c}
+    if args.repeats:
+        out["repeats"] = _repeat_classes(lab_params, res.knots, target.T, args.repeats)
+    inputs["out"].parent.mkdir(parents=True, exist_ok=True)
+    inputs["out"].write_text(json.dumps(out, indent=2))
+    print(json.dumps(out) if args.json else format_floor(out, inputs["out"]))
+    return 0
+
+
+def _repeat_classes(lab_params, knots: np.ndarray, T: float, n: int) -> list[str]:
+    """The verdict class of each of ``n`` varied plays of ``knots`` (trials 0..n-1)."""
+    from flyknot_sim.lab import SimLab
+    from learner.bezier import BezierCommand
+
+    lab = SimLab(lab_params)
+    command = BezierCommand(knots, T).joint_command()
+    classes = []
+    for _ in range(n):
+        record = lab.run(command)
+        classes.append("fault" if record.fault else record.verdict.klass)
+    return classes
+
+
+def format_floor(out: dict, path: Path) -> str:
+    """The floor's result as a few lines of text."""
+    lines = [
+        f"demo {out['demo']}, rope {out['rope']}: floor {out['cost']:.3f} after {out['plays']} "
+        f"plays ({out['stopped_because']}); position part {out['position_part']:.3f}, "
+        f"velocity part {out['velocity_part']:.3f}",
+        "cost per Jacobian: " + ", ".join(f"{c:.3g}" for c in out["costs"]),
+        "marker position error [cm]: "
+        + " ".join(f"{100 * e:.1f}" for e in out["marker_position_error"]),
+        "marker velocity error [m/s]: "
+        + " ".join(f"{e:.1f}" for e in out["marker_velocity_error"]),
+        "demo marker speed [m/s]:     " + " ".join(f"{e:.1f}" for e in out["demo_marker_speed"]),
+    ]
+    if "repeats" in out:
+        knots = sum(c == "knot" for c in out["repeats"])
+        lines.append(f"the floor's command tied {knots} of {len(out['repeats'])} varied plays")
+    lines.append(f"written to {path}")
+    return "\n".join(lines)
+
+
+def add_diagnose_parser(sub: argparse._SubParsersAction) -> None:
+    """``flyknot diagnose floor``."""
+    d = sub.add_parser("diagnose", help="the learner's measuring sticks (simulated lab)")
+    dsub = d.add_subparsers(dest="action", required=True, metavar="ACTION")
+    f = dsub.add_parser(
+        "floor",
+        help="the lowest critical cost a command within the limits reaches (lab's Jacobian)",
+    )
+    f.add_argument("run", nargs="?", metavar="RUN_DIR", help="a run directory (OUT/runs/NAME)")
+    f.add_argument("--demo", help="a demonstration (name or file) instead of a run")
+    f.add_argument(
+        "--rope", type=parse_rope_arg, default=1, help="rope id 1..7 or a rope's name (--demo)"
+    )
+    f.add_argument("--seed", type=int, default=0, help="the lab's seed, with --demo")
+    f.add_argument("--follow-through", type=float, default=FOLLOW_THROUGH_S)
+    f.add_argument("--path-frac", type=float, default=PATH_FRAC)
+    f.add_argument("--budget", type=int, default=FloorParams().budget, help="plays at most")
+    f.add_argument("--repeats", type=int, default=0, help="varied plays of the floor's command")
+    f.add_argument("--out", help="the result's JSON file (default RUN_DIR/floor.json)")
+    f.add_argument("--json", action="store_true", help="print JSON, no progress")
+    f.set_defaults(func=_cmd_floor)

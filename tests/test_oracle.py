@@ -1,0 +1,178 @@
+"""The learner's measuring sticks: the oracle Jacobian and the reachable floor."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from flyknot.errors import ConfigError
+from flyknot_app.cells import check_oracle, oracle_provider
+from flyknot_app.floor import FloorParams, cost_parts
+from flyknot_app.oracle import LabJacobian, central_difference, knot_groups
+from learner.inverse_qp import InverseModelWeights, base_equality_rows, rest_equality_rows
+from learner.jacobians import JACOBIANS, jacobian_kind, provided_jacobian
+from learner.update import UpdateSettings
+
+
+def feasible_update(rng: np.random.Generator) -> np.ndarray:
+    """A random knot update (10, 8) that the QP's equality rows allow (rest, constant base)."""
+    dk = rng.normal(size=(10, 8))
+    dk[:7, 1] = dk[:7, 0]
+    dk[:7, 6] = dk[:7, 7]
+    dk[7:] = dk[7:, :1]
+    return dk
+
+
+def test_knot_groups_are_the_qp_s_free_directions():
+    groups = knot_groups()
+    assert len(groups) == 7 * 6 + 3
+    E = np.vstack([base_equality_rows("constant"), rest_equality_rows()])
+    for row, knots in groups:
+        d = np.zeros((10, 8))
+        d[row, list(knots)] = 1.0
+        assert np.allclose(E @ d.ravel(), 0.0), (row, knots)
+    # together with the equality rows' null space they span it: 80 - 24 free dimensions
+    null = 80 - np.linalg.matrix_rank(E)
+    assert null == len(groups)
+
+
+def test_central_difference_sides():
+    x0, xp, xm = np.zeros(3), np.array([2.0, 0, 0]), np.array([-1.0, 0, 0])
+    assert np.allclose(central_difference(x0, xp, xm, 0.5), [3.0, 0, 0])
+    assert np.allclose(central_difference(x0, xp, None, 0.5), [4.0, 0, 0])
+    assert np.allclose(central_difference(x0, None, xm, 0.5), [2.0, 0, 0])
+    assert np.allclose(central_difference(x0, None, None, 0.5), 0.0)
+
+
+def test_oracle_of_a_linear_lab_is_exact_on_every_feasible_update(monkeypatch):
+    """With x(kappa) = A vec(kappa), M dkappa = A dkappa for every update the QP allows."""
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(66, 80))
+    oracle = LabJacobian.__new__(LabJacobian)
+    oracle.params = FloorParams().oracle
+    oracle.plays = 0
+    monkeypatch.setattr(oracle, "state", lambda knots, T: A @ knots.ravel(), raising=False)
+    M = LabJacobian.__call__(oracle, rng.normal(size=(10, 8)), 1.0)
+    for _ in range(5):
+        dk = feasible_update(rng)
+        assert np.allclose(M @ dk.ravel(), A @ dk.ravel())
+    # the columns of tied knots carry nothing of their own
+    assert np.all(M[:, 1] == 0.0) and np.all(M[:, 7 * 8 + 1 : 7 * 8 + 8] == 0.0)
+
+
+def test_jacobian_registry_and_settings():
+    assert set(JACOBIANS) == {"model", "oracle"}
+    assert not jacobian_kind("model").needs_provider
+    assert jacobian_kind("oracle").needs_provider
+    with pytest.raises(ConfigError) as e:
+        UpdateSettings(jacobian="broyden")
+    assert (
+        str(e.value) == "jacobian: unknown Jacobian source 'broyden' (valid choices: model, oracle)"
+    )
+    with pytest.raises(ConfigError) as e:
+        UpdateSettings(jacobian="oracle", objective="equal")
+    assert str(e.value) == "jacobian: 'oracle' is for the critical objective only"
+    assert provided_jacobian("model", None, np.zeros((10, 8)), 1.0) is None
+    with pytest.raises(ConfigError, match="needs a cell that can measure it"):
+        provided_jacobian("oracle", None, np.zeros((10, 8)), 1.0)
+    got = provided_jacobian("oracle", lambda k, T: np.full((66, 80), T), np.zeros((10, 8)), 2.0)
+    assert got.shape == (66, 80) and np.all(got == 2.0)
+
+
+def test_oracle_refused_on_a_real_cell():
+    with pytest.raises(ConfigError) as e:
+        check_oracle("xarm")
+    assert str(e.value) == (
+        "jacobian: 'oracle' replays commands without variation, which only a simulated lab "
+        "can; this run's cell is 'xarm' (valid choices: sim)"
+    )
+    with pytest.raises(ConfigError, match=r"cell is 'xarm' \(dry run\)"):
+        check_oracle("xarm", dry_run=True)
+    check_oracle("sim")
+
+
+def test_oracle_run_on_the_real_lab_is_one_line_and_writes_nothing(tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.run(
+        [sys.executable, "-m", "flyknot_app", "run", "quick", "--cell", "assets/lab_example.toml",
+         "--set", "jacobian=oracle", "--out", str(out)],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "'oracle' replays commands without variation" in lines[0]
+    assert not out.exists()
+
+
+def test_floor_params_and_cost_parts():
+    with pytest.raises(ConfigError) as e:
+        FloorParams(budget=0)
+    assert str(e.value) == "budget: must be an integer >= 1, got 0"
+    with pytest.raises(ConfigError) as e:
+        FloorParams(grow=1.0)
+    assert str(e.value) == "grow: must be > 1, got 1.0"
+    err = np.concatenate([np.full(33, 0.1), np.full(33, 2.0)])
+    pos, vel = cost_parts(err, 25.0, 0.00375)
+    assert pos == pytest.approx(25.0 * 33 * 0.01)
+    assert vel == pytest.approx(0.00375 * 33 * 4.0)
+
+
+@pytest.mark.slow
+def test_oracle_predicts_the_lab_s_own_response():
+    """Finite-difference check of the oracle: M d against the lab's central difference along
+    a random feasible direction d (rope 1, the robot demonstration's initial command)."""
+    from flyknot_app.cells import SimCellSpec
+    from flyknot_app.runner import prepare_target
+    from learner.rope_model import RopeModelParams
+
+    _, target = prepare_target("robot", RopeModelParams().dt, (0.25, 0.0))
+    knots = np.load("assets/demos/seeds/robot_command.npz")["knots"]
+    oracle = oracle_provider("sim", SimCellSpec(rope=1), target.t_c)
+    M = oracle(knots, target.T)
+    assert oracle.plays == 1 + 2 * len(knot_groups())
+    d = 0.004 * feasible_update(np.random.default_rng(0))
+    xp, xm = oracle.state(knots + d, target.T), oracle.state(knots - d, target.T)
+    measured = (xp - xm) / 2
+    predicted = M @ d.ravel()
+    rel = np.linalg.norm(predicted[:33] - measured[:33]) / np.linalg.norm(measured[:33])
+    assert rel < 0.15, rel
+
+
+@pytest.mark.slow
+def test_an_oracle_run_updates_with_the_lab_s_jacobian(tmp_path):
+    """`flyknot run quick --set jacobian=oracle`: the first update is the QP solved with the
+    oracle's Jacobian about the initial command, bit for bit (the oracle plays without
+    variation, so measuring it again gives the same matrix)."""
+    from flyknot.record import TrialRecord
+    from flyknot_app.cells import SimCellSpec
+    from flyknot_app.runner import prepare_target
+    from learner.bezier import BezierCommand
+    from learner.kinematics import RobotModel
+    from learner.rope_model import RopeModelParams
+    from learner.update import ilc_update
+
+    out = tmp_path / "run"
+    proc = subprocess.run(
+        [sys.executable, "-m", "flyknot_app", "run", "quick", "--set", "jacobian=oracle",
+         "--set", "max_trials=1", "--out", str(out)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    learning = out / "runs" / "rope1" / "learning"
+    knots0, knots1 = np.load(learning / "knots_0000.npy"), np.load(learning / "knots_0001.npy")
+    record = TrialRecord.load(learning / "trial_0000_a0")
+    rope_model = RopeModelParams(stiffness=2.0, damping=0.0)
+    _, target = prepare_target("robot", rope_model.dt, (0.25, 0.0))
+    M = oracle_provider("sim", SimCellSpec(rope=1, settle_s=0.5), target.t_c)(knots0, target.T)
+    settings = UpdateSettings(
+        weights=InverseModelWeights(w_control=5.0),
+        jacobian="oracle",
+    )
+    res = ilc_update(
+        record, BezierCommand(knots0, target.T), target, RobotModel.from_mjcf(), rope_model,
+        settings, jacobian=M,
+    )  # fmt: skip
+    assert np.array_equal(knots1, knots0 - 0.5 * np.asarray(res.dkappa))
