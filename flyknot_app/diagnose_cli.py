@@ -2,12 +2,16 @@
 
     flyknot diagnose floor RUN_DIR [--budget N] [--repeats K]     # a run of `flyknot run`
     flyknot diagnose floor --demo fast --rope 1 [--budget N]      # a demonstration alone
+    flyknot diagnose decided DIR ... [--truth]                    # trials' records
 
 ``floor``: the reachable floor (:mod:`flyknot_app.floor`) from the run's initial command (or
 the demonstration's initial guess), for the run's rope, lab and demonstration window; written
 to ``RUN_DIR/floor.json`` (or ``--out``). ``--repeats K`` plays the floor's command K times
 with the lab's trial-to-trial variation and counts its knots. Only a simulated cell can be
 diagnosed this way; a run on a real cell is refused in one line.
+
+``decided``: when the rope states of the trials that tied and of those that did not part
+(:mod:`flyknot_app.decided`), from any records: a real lab's too (markers only).
 """
 
 from __future__ import annotations
@@ -147,8 +151,48 @@ def format_floor(out: dict, path: Path) -> str:
     return "\n".join(lines)
 
 
+def _cmd_decided(args: argparse.Namespace) -> int:
+    from flyknot_app.decided import record_stems, separation, trial_states
+
+    if args.step <= 0 or args.end <= 0:
+        raise ConfigError("--step", "--step and --end must be > 0 [s]")
+    stems = record_stems(args.dirs)
+    t = np.arange(0.0, args.end + 1e-9, args.step)
+    states, tied = trial_states(stems, t, truth=args.truth)
+    if tied.sum() < 2 or (~tied).sum() < 2:
+        raise ConfigError(
+            "DIR", f"needs at least two trials that tied and two that did not, got "
+            f"{int(tied.sum())} and {int((~tied).sum())}"
+        )  # fmt: skip
+    sep = separation(t, states, tied, args.threshold)
+    out = sep.to_json() | {"source": "truth" if args.truth else "markers"}
+    if args.out:
+        Path(args.out).write_text(json.dumps(out, indent=2))
+    print(json.dumps(out) if args.json else format_decided(sep, out["source"]))
+    return 0
+
+
+def format_decided(sep, source: str) -> str:
+    """The separation's result as a few lines of text."""
+    finite = np.isfinite(sep.ratio)
+    peak = int(np.nanargmax(sep.ratio)) if finite.any() else None
+    lines = [
+        f"{sep.n_knot} trials tied, {sep.n_other} did not ({source})",
+        "decided at "
+        + (f"{sep.t_decided:.3f} s" if sep.t_decided is not None else "no time in the range")
+        + f" (separation >= {sep.threshold:g} from then on)",
+    ]
+    if peak is not None:
+        lines.append(
+            f"largest separation {sep.ratio[peak]:.2f} at {sep.t[peak]:.3f} s "
+            f"(class distance {100 * sep.distance[peak]:.1f} cm, spread "
+            f"{100 * sep.spread[peak]:.1f} cm)"
+        )
+    return "\n".join(lines)
+
+
 def add_diagnose_parser(sub: argparse._SubParsersAction) -> None:
-    """``flyknot diagnose floor``."""
+    """``flyknot diagnose floor`` and ``flyknot diagnose decided``."""
     d = sub.add_parser("diagnose", help="the learner's measuring sticks (simulated lab)")
     dsub = d.add_subparsers(dest="action", required=True, metavar="ACTION")
     f = dsub.add_parser(
@@ -168,3 +212,14 @@ def add_diagnose_parser(sub: argparse._SubParsersAction) -> None:
     f.add_argument("--out", help="the result's JSON file (default RUN_DIR/floor.json)")
     f.add_argument("--json", action="store_true", help="print JSON, no progress")
     f.set_defaults(func=_cmd_floor)
+    k = dsub.add_parser(
+        "decided", help="when the rope states of tying and untying trials part (records)"
+    )
+    k.add_argument("dirs", nargs="+", metavar="DIR", help="directories of trial records")
+    k.add_argument("--truth", action="store_true", help="the simulator's ground truth")
+    k.add_argument("--step", type=float, default=0.01, help="time step [s] (default 0.01)")
+    k.add_argument("--end", type=float, default=2.0, help="last time [s] (default 2)")
+    k.add_argument("--threshold", type=float, default=1.0, help="separation that decides")
+    k.add_argument("--out", help="write the result as JSON")
+    k.add_argument("--json", action="store_true", help="print JSON")
+    k.set_defaults(func=_cmd_decided)
