@@ -10,6 +10,8 @@ Recorded lab data in C3D or CSV is read by :mod:`flyknot.demo_formats`.
 from __future__ import annotations
 
 import json
+import zipfile
+import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -98,33 +100,62 @@ class Demonstration:
 
     @classmethod
     def load(cls, path: str | Path) -> Demonstration:
-        """Read a file written by :meth:`save`."""
+        """Read a file written by :meth:`save`.
+
+        Raises:
+            RecordError: The file is missing, is no demonstration or is damaged (the message
+                names the file).
+        """
         path = Path(path)
         if not path.is_file():
             raise RecordError(f"demonstration file {str(path)!r} does not exist")
+        arrays, meta = _read_demo_npz(path)
         try:
-            z = np.load(path, allow_pickle=False)
-        except (ValueError, OSError) as e:
-            raise RecordError(f"{str(path)!r} is not a demonstration file (.npz)") from e
-        if not isinstance(z, np.lib.npyio.NpzFile):
-            raise RecordError(f"{str(path)!r} is not a demonstration file (.npz): a single array")
-        with z:
-            need = ("t", "hand_pos", "hand_quat", "markers", "meta")
-            missing = [k for k in need if k not in z.files]
-            if missing:
-                raise RecordError(f"{str(path)!r} lacks arrays: {', '.join(missing)}")
+            return cls(**arrays, t_c=meta["t_c"], rope=meta["rope"], metadata=meta["metadata"])
+        except RecordError as e:
+            raise RecordError(f"{str(path)!r}: {e}") from None
+
+
+_ARRAYS = ("t", "hand_pos", "hand_quat", "markers")
+_META_TYPES = {"t_c": (int, float), "rope": (int,), "metadata": (dict,)}
+_READ_ERRORS = (ValueError, TypeError, OSError, EOFError, zipfile.BadZipFile, zlib.error)
+"""What NumPy and zipfile raise for a damaged archive member or an array of Python objects."""
+
+
+def _read_demo_npz(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """The float arrays and the checked ``meta`` of a demonstration file."""
+    try:
+        z = np.load(path, allow_pickle=False)
+    except _READ_ERRORS as e:
+        raise RecordError(f"{str(path)!r} is not a demonstration file (.npz)") from e
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise RecordError(f"{str(path)!r} is not a demonstration file (.npz): a single array")
+    with z:
+        missing = [k for k in (*_ARRAYS, "meta") if k not in z.files]
+        if missing:
+            raise RecordError(f"{str(path)!r} lacks arrays: {', '.join(missing)}")
+        try:
+            arrays = {k: np.asarray(z[k], dtype=float) for k in _ARRAYS}
             meta = json.loads(str(z["meta"]))
-            if meta.get("format_version") != DEMO_FORMAT_VERSION:
-                raise RecordError(
-                    f"{str(path)!r}: format_version {meta.get('format_version')!r} is not "
-                    f"supported (valid choices: {DEMO_FORMAT_VERSION})"
-                )
-            return cls(
-                t=z["t"],
-                hand_pos=z["hand_pos"],
-                hand_quat=z["hand_quat"],
-                markers=z["markers"],
-                t_c=meta["t_c"],
-                rope=meta["rope"],
-                metadata=meta["metadata"],
-            )
+        except _READ_ERRORS as e:
+            raise RecordError(
+                f"{str(path)!r} is not a readable demonstration file (.npz): {e}"
+            ) from e
+    return arrays, _check_meta(meta, path)
+
+
+def _check_meta(meta: Any, path: Path) -> dict[str, Any]:
+    """``meta`` of a demonstration file, its version and fields checked."""
+    if not isinstance(meta, dict):
+        raise RecordError(f"{str(path)!r}: meta must be a JSON object, got {meta!r}")
+    if meta.get("format_version") != DEMO_FORMAT_VERSION:
+        raise RecordError(
+            f"{str(path)!r}: format_version {meta.get('format_version')!r} is not "
+            f"supported (valid choices: {DEMO_FORMAT_VERSION})"
+        )
+    for key, types in _META_TYPES.items():
+        value = meta.get(key)
+        if isinstance(value, bool) or not isinstance(value, types):
+            kind = " or ".join(t.__name__ for t in types)
+            raise RecordError(f"{str(path)!r}: meta {key} must be {kind}, got {value!r}")
+    return meta

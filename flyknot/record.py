@@ -112,7 +112,12 @@ class JointCommand:
                 f"command file {str(path)!r}: unknown extension {path.suffix!r} "
                 "(valid choices: .csv, .npy)"
             )
-        text = path.read_text().strip().splitlines()
+        try:
+            text = path.read_text().strip().splitlines()
+        except UnicodeDecodeError as e:
+            raise CommandError(
+                f"command file {str(path)!r} is not a text file (byte {e.start}: {e.reason})"
+            ) from None
         if not text:
             raise CommandError(f"command file {str(path)!r} is empty")
         header = [h.strip() for h in text[0].split(",")]

@@ -7,8 +7,6 @@ import json
 from collections.abc import Sequence
 from pathlib import Path
 
-import numpy as np
-
 from flyknot.errors import ConfigError
 from flyknot_app.bench import BENCHMARKS
 from flyknot_app.dispatch import dispatch
@@ -231,16 +229,9 @@ def _parse_model(text: str) -> tuple[float, float]:
 
 
 def _cmd_model_check(args: argparse.Namespace) -> int:
-    from flyknot_app.model_check import check_models, format_table, grid_models
+    from flyknot_app.model_check import check_models, format_table, grid_models, load_knots
 
-    knots = None
-    if args.knots is not None:
-        path = Path(args.knots)
-        if not path.is_file():
-            raise ConfigError("--knots", f"no file {str(path)!r}")
-        knots = np.load(path)
-        if hasattr(knots, "files"):
-            knots = knots["knots"]
+    knots = None if args.knots is None else load_knots(args.knots)
     if args.grid and args.model:
         raise ConfigError("--grid", "give either --grid or --model, not both")
     models = (

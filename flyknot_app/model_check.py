@@ -39,6 +39,7 @@ __all__ = [
     "check_models",
     "evaluation_time",
     "grid_models",
+    "load_knots",
     "random_directions",
 ]
 
@@ -178,6 +179,7 @@ def check_models(
     from tqdm import tqdm
 
     from flyknot_app.runner import initial_knots, prepare_target
+    from flyknot_app.scenario import check_demo
     from flyknot_sim.lab import LabParams, SimLab, VariationParams
     from learner.bezier import BezierCommand
     from learner.critical_state import critical_state_from_record
@@ -187,6 +189,7 @@ def check_models(
 
     if not models:
         raise ConfigError("models", "give at least one (stiffness, damping) pair")
+    check_demo(demo)
     rope_models = [RopeModelParams(stiffness=float(k), damping=float(c)) for k, c in models]
     dt = rope_models[0].dt
     _, target = prepare_target(demo, dt, window)
@@ -250,6 +253,34 @@ GRID_STIFFNESS = (1.0, 2.0, 3.0, 5.0, 10.0, 30.0, 100.0, 1e3, 1e4, 1e5)
 from the paper's 1e5 down to a rope that droops under its own weight."""
 GRID_DAMPING = (0.0, 0.01, 0.05, 0.5, 5.0, 50.0)
 """Bending dampings [N m s / rad] of the identification grid, up to the paper's 50."""
+
+
+KNOTS_SUFFIXES = (".npy", ".npz")
+"""Files ``--knots`` reads: knots (10, 8) alone (a run's ``final_knots.npy``) or an ``.npz``
+with an array ``knots`` (``assets/demos/seeds/robot_command.npz``)."""
+
+
+def load_knots(path: str | Path) -> np.ndarray:
+    """The command knots (10, 8) of ``flyknot model-check --knots`` (:data:`KNOTS_SUFFIXES`).
+
+    Raises:
+        ConfigError: A missing file, another extension, or content that is no finite (10, 8)
+            array of numbers; the message names the file.
+    """
+    from flyknot.errors import CommandError
+    from flyknot_app.trial_cli import read_npy, read_npz
+    from learner.bezier import check_knots
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError("--knots", f"no file {str(path)!r}")
+    if path.suffix not in KNOTS_SUFFIXES:
+        raise ConfigError("--knots", f"{str(path)!r}: unknown extension", KNOTS_SUFFIXES)
+    try:
+        knots = read_npy(path) if path.suffix == ".npy" else read_npz(path, ("knots",))["knots"]
+        return check_knots(knots, field=f"{str(path)!r} knots")
+    except (CommandError, ConfigError) as e:
+        raise ConfigError("--knots", str(e)) from None
 
 
 def grid_models() -> list[tuple[float, float]]:

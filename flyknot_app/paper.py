@@ -56,11 +56,11 @@ def run_paper(
     for name in scenarios:
         if name not in PAPER_SCENARIOS:
             raise ConfigError("--scenarios", f"unknown paper scenario {name!r}", PAPER_SCENARIOS)
-    guesses = out / "initial_guess"
+    scens = [expand_seeds(load_scenario(n, dict(overrides or {})), list(seeds)) for n in scenarios]
+    guesses = out / "initial_guess"  # made once every scenario and its demonstrations are read
     guesses.mkdir(parents=True, exist_ok=True)
     items, again = [], []
-    for name in scenarios:
-        scen = expand_seeds(load_scenario(name, dict(overrides or {})), list(seeds))
+    for name, scen in zip(scenarios, scens, strict=True):
         where = out / name
         again.append(resume and (where / "manifest.json").is_file())
         where.mkdir(parents=True, exist_ok=True)

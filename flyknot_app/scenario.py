@@ -39,8 +39,9 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from flyknot.constants import FOLLOW_THROUGH_S, PATH_FRAC, SCENARIOS_DIR
-from flyknot.errors import ConfigError, check_choice, check_nonnegative
+from flyknot.constants import DEMOS_DIR, FOLLOW_THROUGH_S, PATH_FRAC, SCENARIOS_DIR
+from flyknot.demo import Demonstration
+from flyknot.errors import ConfigError, RecordError, check_choice, check_nonnegative
 from flyknot.options import (
     INLINE,
     NOT_AN_OPTION,
@@ -444,12 +445,54 @@ def load_scenario(
     ropes: str | Path | None = None,
     cell: Mapping[str, Any] | None = None,
 ) -> Scenario:
-    """Read and validate a scenario file (``ropes``, ``cell``: see :func:`parse_scenario`)."""
+    """Read and validate a scenario file (``ropes``, ``cell``: see :func:`parse_scenario`),
+    and read every demonstration its runs name (:func:`check_demos`)."""
     path = find_scenario(name_or_path)
     try:
         doc = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(str(path), f"not valid TOML: {e}") from None
-    return parse_scenario(
+    scen = parse_scenario(
         doc, name=path.stem, overrides=overrides, source=str(path), ropes=ropes, cell=cell
     )
+    check_demos(scen)
+    return scen
+
+
+def demo_names() -> list[str]:
+    """The demonstrations under ``assets/demos``, by the names a run's ``demo`` may give."""
+    return sorted(p.stem for p in DEMOS_DIR.glob("*.npz"))
+
+
+RECORDING_SUFFIXES = (".csv", ".c3d")
+"""Recorded lab data that :mod:`flyknot.demo_formats` reads; a run needs it saved as .npz."""
+
+
+def check_demo(demo: str) -> Path:
+    """The file of a run's ``demo`` (a name under ``assets/demos`` or a path), read whole.
+
+    Raises:
+        ConfigError: No such demonstration, or a file that is no readable ``.npz``
+            demonstration; the message names the problem and lists :func:`demo_names`.
+    """
+    if not isinstance(demo, str) or not demo:
+        raise ConfigError("demo", f"must be a name or a file path, got {demo!r}", demo_names())
+    path = find_named_file("demo", demo, DEMOS_DIR, ".npz")
+    try:
+        Demonstration.load(path)
+    except RecordError as e:
+        problem = str(e)
+        if path.suffix.lower() in RECORDING_SUFFIXES:
+            problem += (
+                "; a .csv or .c3d recording is read by flyknot.demo_formats and must be saved "
+                "as .npz (Demonstration.save) first"
+            )
+        raise ConfigError("demo", problem, demo_names()) from None
+    return path
+
+
+def check_demos(scen: Scenario) -> None:
+    """Read every demonstration the scenario's runs name (:func:`check_demo`): a missing or
+    unreadable one stops the scenario before anything is written."""
+    for demo in sorted({r.demo for r in scen.runs}, key=str):
+        check_demo(demo)

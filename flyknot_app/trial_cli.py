@@ -8,11 +8,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
 
-from flyknot.errors import ConfigError
+from flyknot.errors import CommandError, ConfigError
+from flyknot.record import JointCommand
 from flyknot_app.scenario import parse_rope_arg
 
 
@@ -25,37 +28,143 @@ def _cmd_knot(args: argparse.Namespace) -> int:
     return 0
 
 
-def load_command(path: str | Path):
+COMMAND_FORMATS = (
+    "accepted formats: .csv t,q1..q7 joint targets; .npy (n, 7) float radians; "
+    ".npz Bezier knots and T"
+)
+"""The command files :func:`load_command` reads, as its error messages list them."""
+
+_READ_ERRORS = (ValueError, TypeError, OSError, EOFError, zipfile.BadZipFile, zlib.error)
+"""What NumPy and zipfile raise for a damaged file or an array of Python objects."""
+
+
+def load_command(path: str | Path) -> JointCommand:
     """A command file (README, "Command files"): ``.csv``/``.npy`` joint targets
     (:meth:`JointCommand.load`); ``.npz`` Bezier knots (``knots`` (10, 8) and ``T`` [s], as
     the robot demonstration's seed ``assets/demos/seeds/robot_command.npz`` holds); or a run's
     ``final_knots.npy`` (10, 8), whose duration ``T`` is read from ``result.json`` beside it.
-    """
-    from flyknot.errors import CommandError
-    from flyknot.record import JointCommand
-    from learner.bezier import BezierCommand
 
+    Raises:
+        CommandError: A missing file, or one whose content is no command: one line naming
+            the file, what is wrong and :data:`COMMAND_FORMATS`.
+    """
     path = Path(path)
     if not path.is_file():
         raise CommandError(f"command file {str(path)!r} does not exist")
-    if path.suffix == ".npy" and np.load(path, mmap_mode="r").shape == (10, 8):
-        result = path.with_name("result.json")
-        if not result.is_file():
-            raise CommandError(
-                f"command file {str(path)!r} holds Bezier knots (10, 8): their duration T is "
-                "read from result.json beside it, which is missing (or give an .npz with "
-                "knots and T)"
-            )
-        T = float(json.loads(result.read_text())["T"])
-        return BezierCommand(np.load(path), T).joint_command()
-    if path.suffix != ".npz":
-        return JointCommand.load(path)
+    reader = {".csv": JointCommand.load, ".npy": _npy_command, ".npz": _npz_command}.get(
+        path.suffix, _unknown_suffix
+    )
     try:
-        with np.load(path, allow_pickle=False) as z:
-            knots, T = np.asarray(z["knots"], dtype=float), float(z["T"])
-    except Exception as e:  # not a zip, or no knots/T
-        raise CommandError(f"command file {str(path)!r}: needs arrays knots and T ({e})") from e
-    return BezierCommand(knots, T).joint_command()
+        return reader(path)
+    except CommandError as e:
+        raise CommandError(f"{e} ({COMMAND_FORMATS})") from None
+
+
+def _unknown_suffix(path: Path) -> JointCommand:
+    raise CommandError(f"command file {str(path)!r}: unknown extension {path.suffix!r}")
+
+
+def _npy_command(path: Path) -> JointCommand:
+    """Joint targets (n, 7), or a run's knots (10, 8) with T from ``result.json`` beside."""
+    q = read_npy(path)
+    if q.shape == (10, 8):
+        return _bezier_command(path, q, _duration_beside(path))
+    try:
+        return JointCommand(q)
+    except CommandError as e:
+        raise CommandError(f"command file {str(path)!r}: {e}") from None
+
+
+def _npz_command(path: Path) -> JointCommand:
+    """Bezier knots and their duration T from an ``.npz`` file."""
+    arrays = read_npz(path, ("knots", "T"))
+    if arrays["T"].shape != ():
+        raise CommandError(
+            f"command file {str(path)!r}: T must be one number [s], got shape {arrays['T'].shape}"
+        )
+    return _bezier_command(path, arrays["knots"], float(arrays["T"]))
+
+
+def _bezier_command(path: Path, knots: np.ndarray, T: float) -> JointCommand:
+    from learner.bezier import BezierCommand
+
+    try:
+        return BezierCommand(knots, T).joint_command()
+    except (ConfigError, CommandError) as e:
+        raise CommandError(f"command file {str(path)!r}: {e}") from None
+
+
+def _duration_beside(path: Path) -> float:
+    """T [s] from the ``result.json`` beside a run's ``final_knots.npy``."""
+    result = path.with_name("result.json")
+    if not result.is_file():
+        raise CommandError(
+            f"command file {str(path)!r} holds Bezier knots (10, 8): their duration T is "
+            "read from result.json beside it, which is missing (or give an .npz with "
+            "knots and T)"
+        )
+    try:
+        return float(json.loads(result.read_text())["T"])
+    except (ValueError, KeyError, TypeError) as e:
+        raise CommandError(
+            f"command file {str(path)!r} holds Bezier knots (10, 8), but {str(result)!r} "
+            f"beside it holds no duration T ({type(e).__name__}: {e})"
+        ) from None
+
+
+def read_npy(path: Path) -> np.ndarray:
+    """The array of a ``.npy`` file of numbers, read without unpickling anything.
+
+    Raises:
+        CommandError: No NumPy header, Python objects (a pickled array) or other values than
+            numbers, or data cut short.
+    """
+    dtype = _npy_dtype(path)
+    if dtype.hasobject:
+        raise CommandError(
+            f"command file {str(path)!r} holds Python objects (a pickled array), not numbers"
+        )
+    if dtype.kind not in "iuf":
+        raise CommandError(f"command file {str(path)!r} holds {dtype} values, not numbers")
+    try:
+        return np.load(path, allow_pickle=False)
+    except _READ_ERRORS as e:
+        raise CommandError(f"command file {str(path)!r} is damaged: {e}") from None
+
+
+def _npy_dtype(path: Path) -> np.dtype:
+    """The dtype a ``.npy`` file's header declares (nothing after the header is read)."""
+    fmt = np.lib.format
+    try:
+        with path.open("rb") as f:
+            major, _ = fmt.read_magic(f)
+            read_header = fmt.read_array_header_1_0 if major == 1 else fmt.read_array_header_2_0
+            return read_header(f)[2]
+    except ValueError:
+        raise CommandError(f"command file {str(path)!r} is not a NumPy .npy file") from None
+
+
+def read_npz(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """Arrays ``names`` of an ``.npz`` file as floats, read without unpickling anything.
+
+    Raises:
+        CommandError: Not an ``.npz`` archive, an array missing, or one that is damaged or
+            holds other values than numbers.
+    """
+    try:
+        z = np.load(path, allow_pickle=False)
+    except _READ_ERRORS:
+        raise CommandError(f"command file {str(path)!r} is not a NumPy .npz archive") from None
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise CommandError(f"command file {str(path)!r} holds one array, not an .npz archive")
+    with z:
+        missing = [n for n in names if n not in z.files]
+        if missing:
+            raise CommandError(f"command file {str(path)!r} lacks arrays: {', '.join(missing)}")
+        try:
+            return {n: np.asarray(z[n], dtype=float) for n in names}
+        except _READ_ERRORS as e:
+            raise CommandError(f"command file {str(path)!r}: unreadable arrays ({e})") from None
 
 
 def _cmd_trial(args: argparse.Namespace) -> int:
