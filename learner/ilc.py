@@ -136,7 +136,8 @@ def learn(
         for attempt in state.attempts(params):
             t0 = time.perf_counter()
             record = _play(cell, joint_cmd, rd, state.k, attempt, resume)  # the trial
-            summary, update = assess(record, command, ctx, state.k, attempt)  # err_k, QP
+            w_control = state.w_control(params)  # the damped step's lambda, or None
+            summary, update = assess(record, command, ctx, state.k, attempt, w_control=w_control)
             summary = replace(summary, wall_s=time.perf_counter() - t0)
             step = decide(state, summary, update, record, command, ctx)  # kappa_{k+1}
             _commit(rd, state, step, on_trial)
@@ -181,6 +182,10 @@ def _restore(rd: RunDirectory, state: LoopState, params: ILCParams) -> LoopState
             saved = rd.load_update(s.trial)
             dkappa = None if saved is None else np.asarray(saved["dkappa"])
             state.guard.observe(s, dkappa, rd.load_knots(s.trial))
+        measured = s.fault is None and not s.tracking_lost and s.update_solved
+        if params.step == "damped" and measured and state.damping.observe(s.cost, s.trial):
+            stem = rd.record_stem(s.trial, s.attempt)
+            state.best = (rd.load_knots(s.trial), TrialRecord.load(stem))
         if state.conf.outcome != "confirmed":
             state.conf.reset_if_failed()
     if not done:

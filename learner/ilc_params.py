@@ -8,6 +8,7 @@ from flyknot.errors import ConfigError
 from flyknot.limits import JointLimits
 from flyknot.options import INLINE
 from learner.rope_model import RopeModelParams
+from learner.steps import DampingParams, step_kind
 from learner.update import UpdateSettings
 
 
@@ -62,6 +63,10 @@ class ILCParams:
             own update, shrunk by 1/2 per consecutive rejection (the paper has none).
         average: Plays of each command before an update (>= 1; the paper: 1); the update
             uses the mean critical-point error of the plays (each play is a trial).
+        step: How far each update moves the command (:data:`learner.steps.STEPS`):
+            ``"gain"`` (the paper's fixed gain) or ``"damped"`` (Levenberg-Marquardt on the
+            measured cost, back to the best command when the cost rose).
+        damping: The damped step's settings (``step = "damped"``).
         step_halvings: Halvings of an update's step at most while its command breaks a
             joint limit on its samples (the QP holds torque limits to first order only); the
             last is taken anyway and the cell's controller decides (>= 0).
@@ -78,6 +83,8 @@ class ILCParams:
     confirm: tuple[int, int] | None = None
     safeguard: bool = False
     average: int = 1
+    step: str = "gain"
+    damping: DampingParams = field(default_factory=DampingParams)
     step_halvings: int = 4
     update: UpdateSettings = field(default_factory=UpdateSettings, metadata=INLINE)
 
@@ -98,7 +105,17 @@ class ILCParams:
             raise ConfigError(
                 "stop_at_success", f"must be true or false, got {self.stop_at_success!r}"
             )
-        for name, cls in (("rope_model", RopeModelParams), ("update", UpdateSettings)):
+        step_kind(self.step)
+        if self.step == "damped" and (self.safeguard or self.average > 1 or self.confirm):
+            raise ConfigError(
+                "step", "'damped' returns to the best command itself: it takes no safeguard, "
+                "average > 1 or confirm"
+            )  # fmt: skip
+        for name, cls in (
+            ("rope_model", RopeModelParams),
+            ("update", UpdateSettings),
+            ("damping", DampingParams),
+        ):
             if not isinstance(getattr(self, name), cls):
                 raise ConfigError(name, f"must be a {cls.__name__}, got {getattr(self, name)!r}")
         object.__setattr__(self, "confirm", parse_confirm(self.confirm, self.stop_at_success))

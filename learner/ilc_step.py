@@ -25,6 +25,7 @@ from learner.jacobians import JacobianProvider, provided_jacobian
 from learner.kinematics import RobotModel
 from learner.limit_rows import sampled_violation
 from learner.run_directory import TrialSummary
+from learner.steps import Damping
 from learner.target import DemoTarget
 from learner.update import UpdateResult, ilc_update
 
@@ -116,7 +117,9 @@ class LoopState:
         trials: Every attempt's ledger line so far.
         conf: The confirmed-success rule's memory.
         guard: The safeguard's memory.
+        damping: The damped step's memory (``step = "damped"``).
         group: Earlier plays of the current command (averaging).
+        best: The damped step's best trial: (its knots, its record), or None.
         stop: Why the loop stops, once it does.
     """
 
@@ -126,14 +129,29 @@ class LoopState:
     trials: list[TrialSummary]
     conf: Confirmation
     guard: Safeguard
+    damping: Damping
     group: list[TrialRecord] = field(default_factory=list)
+    best: tuple[np.ndarray, TrialRecord] | None = None
     stop: str | None = None
 
     @classmethod
     def initial(cls, knots0: np.ndarray, params: ILCParams) -> LoopState:
         """Before the first trial: kappa_0 and empty memories."""
         knots = np.asarray(knots0, dtype=float)
-        return cls(0, knots, None, [], Confirmation(params.confirm), Safeguard(params.safeguard))
+        return cls(
+            0,
+            knots,
+            None,
+            [],
+            Confirmation(params.confirm),
+            Safeguard(params.safeguard),
+            Damping(params.damping),
+        )
+
+    def w_control(self, params: ILCParams) -> float | None:
+        """The QP's control weight of the next update: the damped step's lambda, or None
+        (the run's own weights)."""
+        return self.damping.lam if params.step == "damped" else None
 
     def attempts(self, params: ILCParams) -> list[int]:
         """The attempts of trial k still to play (a resumed run skips the ledger's)."""
@@ -240,8 +258,37 @@ def decide(
             action=f"update on the mean error of {n_plays} plays",
         )
     group.clear()
+    if params.step == "damped" and measured and summary.update_solved:
+        return _damped(state, summary, update, record, ctx)
     new, stop = next_knots(summary, update, knots, state.prev_knots, ctx)
     return Step(summary, update, new, stop, True)
+
+
+def _damped(
+    state: LoopState, summary: TrialSummary, update: UpdateResult, record: TrialRecord, ctx
+) -> Step:
+    """The damped step (:mod:`learner.steps`): the full step from a new best trial, else a
+    more damped one from the best trial's command and record."""
+    params, lam_used = ctx.params, state.damping.lam
+    if state.damping.observe(summary.cost, state.k):
+        state.best = (np.array(state.knots), record)
+        base, step, action = state.knots, update, f"update (damped, lambda {lam_used:.3g})"
+    else:
+        base, best_record = state.best
+        best_trial = state.damping.best[1]
+        command = BezierCommand(base, ctx.target.T)
+        _, step = assess(
+            best_record, command, ctx, best_trial, 0, w_control=state.damping.lam, judged=False
+        )
+        action = (
+            f"cost rose: from the best command (trial {best_trial + 1}), lambda "
+            f"{state.damping.lam:.3g}"
+        )
+    if step is None or not step.solved:
+        return Step(replace(summary, action=action + ": QP failed"), update, base, None, True)
+    dk = params.gain * np.asarray(step.dkappa)
+    new = safe_step(base, dk, ctx.target.T, ctx.robot, ctx.limits, params.step_halvings)
+    return Step(replace(summary, action=action), update, new, None, True)
 
 
 def next_knots(
@@ -301,12 +348,20 @@ def assess(
     k: int,
     attempt: int,
     extra_records: tuple[TrialRecord, ...] = (),
+    *,
+    w_control: float | None = None,
+    judged: bool = True,
 ) -> tuple[TrialSummary, UpdateResult | None]:
     """Trial ``k``'s ledger line and update: the judge's verdict, then (no fault) the
     critical-point error and the inverse-model QP (on the mean error with ``extra_records``,
-    earlier plays of the same command); lost tracking gives no update."""
+    earlier plays of the same command); lost tracking gives no update. ``w_control``: the
+    QP's control weight instead of the run's (the damped step's lambda); ``judged=False``
+    skips the judge (a trial already judged, stepped from again)."""
     target, robot, params, limits = ctx.target, ctx.robot, ctx.params, ctx.limits
-    verdict = ctx.judge(record)
+    verdict = ctx.judge(record) if judged else None
+    settings = params.update_settings(limits)
+    if w_control is not None:
+        settings = replace(settings, weights=replace(settings.weights, w_control=w_control))
     base = dict(
         trial=k,
         attempt=attempt,
@@ -332,7 +387,7 @@ def assess(
             target,
             robot,
             params.rope_model,
-            params.update_settings(limits),
+            settings,
             extra_records=extra_records,
             jacobian=provided_jacobian(
                 params.update.jacobian, ctx.jacobian, command.knots, command.T

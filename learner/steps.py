@@ -1,0 +1,108 @@
+"""How far an update moves the command: the step rules, a registry.
+
+The paper moves the command by the whole update, kappa_{k+1} = kappa_k - alpha dkappa_k with a
+fixed gain alpha (``step = "gain"``). ``step = "damped"`` is Levenberg-Marquardt on the
+measured critical cost c_k = ||x_k(t_c) - x_demo(t_c)||_Q^2, with the QP's control weight as
+the damping lambda (:class:`learner.inverse_qp.InverseModelWeights` ``w_control``):
+
+    if c_k < c_best:  best <- k,  lambda <- max(lambda / shrink, smallest)
+                      kappa_{k+1} = kappa_k - dkappa(kappa_k; lambda_k)          (full step)
+    else:             lambda <- lambda * grow
+                      kappa_{k+1} = kappa_best - dkappa(kappa_best; lambda)       (from the best)
+
+where dkappa(kappa; lambda) is the inverse-model QP's solution about trial kappa's record with
+w_control = lambda. A step that raised the measured cost is thus taken back, and the next one
+from the best command is shorter; steps that lower it grow. The rule sees only the measured
+costs (as a real lab's would), never the simulator.
+
+:class:`Damping` is the rule's memory; the loop and a resumed run feed it the same ledger
+lines, so both reach the same state.
+
+Adding a rule is one :class:`StepKind` and one line in :data:`STEPS`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from flyknot.errors import ConfigError, check_positive
+
+
+@dataclass(frozen=True)
+class StepKind:
+    """One step rule: its option value and a line for reports."""
+
+    name: str
+    description: str
+
+
+STEPS: dict[str, StepKind] = {
+    k.name: k
+    for k in (
+        StepKind("gain", "kappa - gain dkappa, a fixed gain (the paper's)"),
+        StepKind(
+            "damped", "Levenberg-Marquardt on the measured cost: back to the best when it rose"
+        ),
+    )
+}
+"""Every step rule, by the name the ``step`` option gives."""
+
+
+def step_kind(name: object) -> StepKind:
+    """The registered rule ``name``; the error lists the valid ones."""
+    if not isinstance(name, str) or name not in STEPS:
+        raise ConfigError("step", f"unknown step rule {name!r}", sorted(STEPS))
+    return STEPS[name]
+
+
+@dataclass(frozen=True)
+class DampingParams:
+    """The damped step's settings (``step = "damped"``).
+
+    Attributes:
+        start: lambda of the first update (the QP's w_control) [1/rad^2].
+        shrink: lambda's divisor after a trial that lowered the best cost (> 1).
+        grow: lambda's factor after one that did not (> 1).
+        smallest: lambda's lower bound [1/rad^2].
+    """
+
+    start: float = 1.0
+    shrink: float = 2.0
+    grow: float = 4.0
+    smallest: float = 1e-3
+
+    def __post_init__(self) -> None:
+        for name in ("start", "smallest"):
+            check_positive(f"damping.{name}", getattr(self, name))
+        for name in ("shrink", "grow"):
+            value = getattr(self, name)
+            check_positive(f"damping.{name}", value)
+            if value <= 1:
+                raise ConfigError(f"damping.{name}", f"must be > 1, got {value!r}")
+
+
+class Damping:
+    """The damped step's memory: lambda and the best measured trial (module docstring)."""
+
+    def __init__(self, params: DampingParams):
+        self.params = params
+        self.lam = params.start
+        self.best: tuple[float, int] | None = None
+        """(cost, trial) of the lowest measured cost so far."""
+
+    def observe(self, cost: float | None, trial: int) -> bool | None:
+        """Take trial ``trial``'s measured cost; return True when it is the new best (take the
+        full step from it), False when it is not (step again from the best, more damped),
+        None when it measured nothing (lambda unchanged)."""
+        if cost is None:
+            return None
+        p = self.params
+        if self.best is None or cost < self.best[0]:
+            self.best = (float(cost), int(trial))
+            self.lam = max(self.lam / p.shrink, p.smallest)
+            return True
+        self.lam *= p.grow
+        return False
+
+
+__all__ = ["STEPS", "Damping", "DampingParams", "StepKind", "step_kind"]

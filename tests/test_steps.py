@@ -1,0 +1,101 @@
+"""The step rules of the ILC loop: the paper's fixed gain and the damped (Levenberg-Marquardt)
+step on the measured cost."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from flyknot.errors import ConfigError
+from flyknot.record import TrialRecord
+from learner.bezier import BezierCommand
+from learner.ilc import ILCParams, learn
+from learner.inverse_qp import InverseModelWeights
+from learner.kinematics import RobotModel
+from learner.run_directory import RunDirectory
+from learner.steps import STEPS, Damping, DampingParams
+from learner.system_model import model_demonstration
+from learner.target import DemoTarget
+from learner.update import UpdateSettings, ilc_update
+from tests.test_confirm import DisturbedCell, _spy
+from tests.test_ilc import ROPE, T_C, T, _knots
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return RobotModel.from_mjcf()
+
+
+@pytest.fixture(scope="module")
+def setup(arm):
+    """The learner's own model as the lab (no mismatch), a start 0.1 rad off the target."""
+    target_knots = _knots(np.array([0.3, 0.25, -0.2, 0.3, 0.2, -0.3, 0.2]))
+    demo = model_demonstration(BezierCommand(target_knots, T), T_C, arm, ROPE)
+    target = DemoTarget.from_demonstration(demo, dt=ROPE.dt)
+    start = _knots(np.array([0.22, 0.3, -0.12, 0.22, 0.26, -0.22, 0.25]))
+    return target, start
+
+
+def test_damping_memory():
+    d = Damping(DampingParams(start=1.0, shrink=2.0, grow=4.0, smallest=0.3))
+    assert d.observe(5.0, 0) is True and d.lam == 0.5 and d.best == (5.0, 0)
+    assert d.observe(6.0, 1) is False and d.lam == 2.0 and d.best == (5.0, 0)
+    assert d.observe(None, 2) is None and d.lam == 2.0
+    assert d.observe(1.0, 3) is True and d.lam == 1.0 and d.best == (1.0, 3)
+    assert d.observe(0.5, 4) is True and d.lam == 0.5
+    assert d.observe(0.4, 5) is True and d.lam == 0.3  # not below the smallest
+
+
+def test_step_options_are_checked():
+    assert set(STEPS) == {"gain", "damped"}
+    with pytest.raises(ConfigError) as e:
+        ILCParams(step="newton")
+    assert str(e.value) == "step: unknown step rule 'newton' (valid choices: damped, gain)"
+    with pytest.raises(ConfigError) as e:
+        ILCParams(step="damped", safeguard=True)
+    assert str(e.value) == (
+        "step: 'damped' returns to the best command itself: it takes no safeguard, "
+        "average > 1 or confirm"
+    )
+    with pytest.raises(ConfigError) as e:
+        DampingParams(grow=0.5)
+    assert str(e.value) == "damping.grow: must be > 1, got 0.5"
+
+
+def _damped_run(arm, target, start, monkeypatch, run_dir, trials, resume=False, cell=None):
+    cell = cell or DisturbedCell(arm, target, bad=2)
+    _spy(cell, monkeypatch)
+    params = ILCParams(max_trials=trials, rope_model=ROPE, step="damped", gain=1.0)
+    res = learn(cell, target, start, arm, params, run_dir=run_dir, resume=resume)
+    return cell, res
+
+
+def test_damped_step_goes_back_to_the_best_with_more_damping(arm, setup, monkeypatch, tmp_path):
+    target, start = setup
+    cell, res = _damped_run(arm, target, start, monkeypatch, tmp_path / "run", 4)
+    costs = res.costs
+    assert costs[1] < costs[0] and costs[2] > costs[1]  # trial 2 measured worse (disturbed)
+    actions = [s.action for s in res.trials]
+    assert actions[:2] == ["update (damped, lambda 1)", "update (damped, lambda 0.5)"]
+    assert actions[2] == "cost rose: from the best command (trial 2), lambda 1"
+    # trial 3 = the best command (trial 1) less the update about its record at lambda 1
+    rd = RunDirectory(tmp_path / "run")
+    best = TrialRecord.load(rd.record_stem(1, 0))
+    settings = UpdateSettings(weights=InverseModelWeights(w_control=1.0))
+    expect = ilc_update(best, BezierCommand(cell.played[1], target.T), target, arm, ROPE, settings)
+    np.testing.assert_allclose(cell.played[3], expect.new_knots, atol=1e-12)
+
+
+def test_damped_run_resumed_is_the_uninterrupted_run(arm, setup, monkeypatch, tmp_path):
+    target, start = setup
+    whole, res = _damped_run(arm, target, start, monkeypatch, tmp_path / "whole", 5)
+    part, _ = _damped_run(arm, target, start, monkeypatch, tmp_path / "part", 3)
+    part, again = _damped_run(
+        arm, target, start, monkeypatch, tmp_path / "part", 5, resume=True, cell=part
+    )
+    assert [s.action for s in again.trials] == [s.action for s in res.trials]
+    for a, b in zip(part.played, whole.played, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert dataclasses.asdict(ILCParams(step="damped"))["step"] == "damped"
