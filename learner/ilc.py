@@ -130,6 +130,8 @@ def learn(
     if rd is not None:
         state = _open_run(rd, state, cell, params, resume)
     ctx = Context(target, robot, params, limits, judge, jacobian)
+    if resume and rd is not None and state.secant is not None:
+        _relearn_secant(rd, state, ctx)
     while state.stop is None and state.k < params.trials:
         command = BezierCommand(state.knots, target.T)  # kappa_k
         joint_cmd = command.joint_command()
@@ -137,7 +139,10 @@ def learn(
             t0 = time.perf_counter()
             record = _play(cell, joint_cmd, rd, state.k, attempt, resume)  # the trial
             w_control = state.w_control(params)  # the damped step's lambda, or None
-            summary, update = assess(record, command, ctx, state.k, attempt, w_control=w_control)
+            correct = state.correct(state.knots)  # the secant Jacobian's, or None
+            summary, update = assess(
+                record, command, ctx, state.k, attempt, w_control=w_control, correct=correct
+            )
             summary = replace(summary, wall_s=time.perf_counter() - t0)
             step = decide(state, summary, update, record, command, ctx)  # kappa_{k+1}
             _commit(rd, state, step, on_trial)
@@ -204,6 +209,18 @@ def _restore(rd: RunDirectory, state: LoopState, params: ILCParams) -> LoopState
         raise ConfigError("run_dir", f"{str(rd.path)!r}: the knots of trial {state.k} are missing")
     state.knots, state.prev_knots = rd.load_knots(state.k), rd.load_knots(state.k - 1)
     return state
+
+
+def _relearn_secant(rd: RunDirectory, state: LoopState, ctx: Context) -> None:
+    """The secant Jacobian's memory as the loop left it: every ledger line whose update
+    linearised the model (no fault, tracking kept) learned from again, in order."""
+    for s in state.trials:
+        if s.update_solved is None:
+            continue
+        knots = rd.load_knots(s.trial)
+        record = TrialRecord.load(rd.record_stem(s.trial, s.attempt))
+        command = BezierCommand(knots, ctx.target.T)
+        assess(record, command, ctx, s.trial, s.attempt, judged=False, correct=state.correct(knots))
 
 
 def _play(cell: Cell, joint_cmd, rd: RunDirectory | None, k: int, attempt: int, resume: bool):

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field, replace
 from flyknot.errors import ConfigError
 from flyknot.limits import JointLimits
 from flyknot.options import INLINE
+from learner.jacobians import jacobian_kind
 from learner.rope_model import RopeModelParams
 from learner.steps import DampingParams, step_kind
 from learner.update import UpdateSettings
@@ -118,6 +119,11 @@ class ILCParams:
         ):
             if not isinstance(getattr(self, name), cls):
                 raise ConfigError(name, f"must be a {cls.__name__}, got {getattr(self, name)!r}")
+        if jacobian_kind(self.update.jacobian).learns and self.average > 1:
+            raise ConfigError(
+                "jacobian",
+                f"{self.update.jacobian!r} learns from every play: it takes no average > 1",
+            )
         object.__setattr__(self, "confirm", parse_confirm(self.confirm, self.stop_at_success))
 
     @property

@@ -11,6 +11,7 @@ ledger through the same rules (:mod:`learner.ilc`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 
@@ -21,7 +22,12 @@ from flyknot.record import TrialRecord
 from learner.bezier import BezierCommand
 from learner.ilc_params import ILCParams
 from learner.inverse_qp import InverseModelWeights
-from learner.jacobians import JacobianProvider, provided_jacobian
+from learner.jacobians import (
+    JacobianProvider,
+    SecantCorrection,
+    jacobian_kind,
+    provided_jacobian,
+)
 from learner.kinematics import RobotModel
 from learner.limit_rows import sampled_violation
 from learner.run_directory import TrialSummary
@@ -120,6 +126,7 @@ class LoopState:
         damping: The damped step's memory (``step = "damped"``).
         group: Earlier plays of the current command (averaging).
         best: The damped step's best trial: (its knots, its record), or None.
+        secant: The secant Jacobian's memory (``jacobian = "secant"``), or None.
         stop: Why the loop stops, once it does.
     """
 
@@ -132,12 +139,14 @@ class LoopState:
     damping: Damping
     group: list[TrialRecord] = field(default_factory=list)
     best: tuple[np.ndarray, TrialRecord] | None = None
+    secant: SecantCorrection | None = None
     stop: str | None = None
 
     @classmethod
     def initial(cls, knots0: np.ndarray, params: ILCParams) -> LoopState:
         """Before the first trial: kappa_0 and empty memories."""
         knots = np.asarray(knots0, dtype=float)
+        learns = jacobian_kind(params.update.jacobian).learns
         return cls(
             0,
             knots,
@@ -146,7 +155,15 @@ class LoopState:
             Confirmation(params.confirm),
             Safeguard(params.safeguard),
             Damping(params.damping),
+            secant=SecantCorrection() if learns else None,
         )
+
+    def correct(self, knots: np.ndarray, *, learn: bool = True):
+        """The model-Jacobian correction of an update about ``knots`` (the secant source's,
+        learning from this trial when ``learn``), or None."""
+        if self.secant is None:
+            return None
+        return partial(self.secant.corrected, knots, learn=learn)
 
     def w_control(self, params: ILCParams) -> float | None:
         """The QP's control weight of the next update: the damped step's lambda, or None
@@ -278,7 +295,14 @@ def _damped(
         best_trial = state.damping.best[1]
         command = BezierCommand(base, ctx.target.T)
         _, step = assess(
-            best_record, command, ctx, best_trial, 0, w_control=state.damping.lam, judged=False
+            best_record,
+            command,
+            ctx,
+            best_trial,
+            0,
+            w_control=state.damping.lam,
+            judged=False,
+            correct=state.correct(base, learn=False),
         )
         action = (
             f"cost rose: from the best command (trial {best_trial + 1}), lambda "
@@ -351,12 +375,14 @@ def assess(
     *,
     w_control: float | None = None,
     judged: bool = True,
+    correct=None,
 ) -> tuple[TrialSummary, UpdateResult | None]:
     """Trial ``k``'s ledger line and update: the judge's verdict, then (no fault) the
     critical-point error and the inverse-model QP (on the mean error with ``extra_records``,
     earlier plays of the same command); lost tracking gives no update. ``w_control``: the
     QP's control weight instead of the run's (the damped step's lambda); ``judged=False``
-    skips the judge (a trial already judged, stepped from again)."""
+    skips the judge (a trial already judged, stepped from again); ``correct``: the model
+    Jacobian's correction (:meth:`LoopState.correct`)."""
     target, robot, params, limits = ctx.target, ctx.robot, ctx.params, ctx.limits
     verdict = ctx.judge(record) if judged else None
     settings = params.update_settings(limits)
@@ -392,6 +418,7 @@ def assess(
             jacobian=provided_jacobian(
                 params.update.jacobian, ctx.jacobian, command.knots, command.T
             ),
+            correct=correct,
         )
     except RecordError as e:
         return TrialSummary(

@@ -6,6 +6,9 @@ comes from; a run names one with the update option ``jacobian``:
 
 * ``"model"`` (the paper's): the learner's rope model linearised about the measured joints
   (:func:`learner.system_model.linearise`), computed inside :func:`learner.update.ilc_update`.
+* ``"secant"``: the model's, corrected from the measured trials by Broyden's rank-one update
+  (:class:`SecantCorrection`): M_k = M_model(kappa_k) + C_k, with C learned from how the
+  measured critical state moved between consecutive trials.
 * ``"oracle"``: the cell's own Jacobian, measured by finite differences of the rope state at
   t_c over the knots, played without trial-to-trial variation. It bounds what any
   model-based ILC can do with this objective and QP. Only a simulated lab can replay a
@@ -43,12 +46,20 @@ class JacobianKind:
     name: str
     description: str
     needs_provider: bool
+    learns: bool = False
+    """The source corrects the model from the measured trials (it has a memory)."""
 
 
 JACOBIANS: dict[str, JacobianKind] = {
     k.name: k
     for k in (
         JacobianKind("model", "the learner's rope model, linearised (the paper's)", False),
+        JacobianKind(
+            "secant",
+            "the rope model's, corrected by Broyden updates from the measured trials",
+            False,
+            learns=True,
+        ),
         JacobianKind(
             "oracle",
             "the simulated lab's own, by finite differences without variation (a measuring "
@@ -86,4 +97,46 @@ def provided_jacobian(
     return np.asarray(provider(np.asarray(knots, dtype=float), float(T)), dtype=float)
 
 
-__all__ = ["JACOBIANS", "JacobianKind", "JacobianProvider", "jacobian_kind", "provided_jacobian"]
+class SecantCorrection:
+    """The secant source's memory: C of M_k = M_model(kappa_k) + C_k (Broyden, 1965).
+
+    After trial k+1 is measured, with dkappa = kappa_{k+1} - kappa_k (80,) and
+    de = e_{k+1} - e_k (66,) the change of the measured critical error:
+
+        C_{k+1} = C_k + (de - M_k dkappa) dkappa^T / (dkappa^T dkappa)          (66, 80)
+
+    so that the corrected M_{k+1} maps the last measured step exactly onto the measured
+    change (the secant condition), changing nothing along directions orthogonal to it.
+    """
+
+    def __init__(self) -> None:
+        self.C = np.zeros((66, 80))
+        self.last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        """(kappa_k (80,), e_k (66,), M_k (66, 80)) of the last trial it learned from."""
+
+    def corrected(
+        self, knots: np.ndarray, M_model: np.ndarray, err: np.ndarray, *, learn: bool = True
+    ) -> np.ndarray:
+        """M_model + C for the trial of ``knots`` (10, 8) whose measured error is ``err``;
+        with ``learn``, C first takes the secant step from the last trial to this one."""
+        kappa, err = np.asarray(knots, dtype=float).ravel(), np.asarray(err, dtype=float)
+        if learn and self.last is not None:
+            k0, e0, M0 = self.last
+            dk = kappa - k0
+            norm2 = float(dk @ dk)
+            if norm2 > 0.0:
+                self.C = self.C + np.outer((err - e0) - M0 @ dk, dk) / norm2
+        M = np.asarray(M_model, dtype=float) + self.C
+        if learn:
+            self.last = (kappa, err.copy(), M)
+        return M
+
+
+__all__ = [
+    "JACOBIANS",
+    "JacobianKind",
+    "JacobianProvider",
+    "SecantCorrection",
+    "jacobian_kind",
+    "provided_jacobian",
+]

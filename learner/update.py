@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import numbers
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -114,7 +114,8 @@ class UpdateSettings:
             ``fallback_s`` before t_c at which both the record and the demonstration give a
             marker state (``UpdateResult.t_eff``); 0 disables the fallback.
         jacobian: Where M(t_c) comes from (:data:`learner.jacobians.JACOBIANS`):
-            ``"model"`` (the paper's) or ``"oracle"`` (the simulated lab's own, measured).
+            ``"model"`` (the paper's), ``"secant"`` (the model's, corrected from the measured
+            trials) or ``"oracle"`` (the simulated lab's own, measured).
 
     Raises:
         ConfigError: on an unknown choice or a value out of range.
@@ -137,7 +138,8 @@ class UpdateSettings:
 
     def __post_init__(self) -> None:
         check_choice("objective", self.objective, OBJECTIVES)
-        if jacobian_kind(self.jacobian).needs_provider and self.objective != "critical":
+        kind = jacobian_kind(self.jacobian)
+        if (kind.needs_provider or kind.learns) and self.objective != "critical":
             raise ConfigError("jacobian", f"{self.jacobian!r} is for the critical objective only")
         check_choice("backend", self.backend, BACKENDS)
         check_choice("base_update", self.base_update, BASE_UPDATES)
@@ -461,6 +463,7 @@ def ilc_update(
     *,
     extra_records: Sequence[TrialRecord] = (),
     jacobian: np.ndarray | None = None,
+    correct: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> UpdateResult:
     """One ILC update: measured error -> linearised model -> inverse-model QP -> new knots.
 
@@ -487,6 +490,8 @@ def ilc_update(
         jacobian: M(t_c) = dx(t_c)/dkappa (66, 80) [m/unit, m/s/unit] to use in place of the
             rope model's linearisation (:mod:`learner.jacobians`: a corrected model's, or an
             oracle's taken in a simulated lab); critical objective only. None: the model's.
+        correct: ``correct(M_model (66, 80), err (66,)) -> M``, the model's M(t_c) corrected
+            (:class:`learner.jacobians.SecantCorrection`); critical objective only.
 
     Returns:
         The :class:`UpdateResult`.
@@ -530,6 +535,8 @@ def ilc_update(
         with _timed(timings, "linearise"):
             dX = linearise(ro, T, steps)
         M_c = dX[steps.index(k_c)]
+        if correct is not None:
+            M_c = _given_jacobian(correct(M_c, err), s.objective)
 
     # 4. follow-through
     follow = None

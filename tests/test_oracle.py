@@ -64,13 +64,14 @@ def test_oracle_of_a_linear_lab_is_exact_on_every_feasible_update(monkeypatch):
 
 
 def test_jacobian_registry_and_settings():
-    assert set(JACOBIANS) == {"model", "oracle"}
+    assert set(JACOBIANS) == {"model", "oracle", "secant"}
     assert not jacobian_kind("model").needs_provider
     assert jacobian_kind("oracle").needs_provider
     with pytest.raises(ConfigError) as e:
         UpdateSettings(jacobian="broyden")
     assert (
-        str(e.value) == "jacobian: unknown Jacobian source 'broyden' (valid choices: model, oracle)"
+        str(e.value)
+        == "jacobian: unknown Jacobian source 'broyden' (valid choices: model, oracle, secant)"
     )
     with pytest.raises(ConfigError) as e:
         UpdateSettings(jacobian="oracle", objective="equal")
@@ -142,7 +143,7 @@ def test_oracle_predicts_the_lab_s_own_response():
 
 
 @pytest.mark.slow
-def test_an_oracle_run_updates_with_the_lab_s_jacobian(tmp_path):
+def test_an_oracle_run_updates_with_the_lab_s_jacobian(egl, tmp_path):
     """`flyknot run quick --set jacobian=oracle`: the first update is the QP solved with the
     oracle's Jacobian about the initial command, bit for bit (the oracle plays without
     variation, so measuring it again gives the same matrix)."""
