@@ -231,6 +231,9 @@ def _coerce_override(value: str) -> Any:
 
 PAPER_SETTINGS = (
     "gain=1",
+    "step=gain",
+    "jacobian=model",
+    "follow_through=true",
     "weights.w_control=0.5",
     "rope_model.stiffness=1e5",
     "rope_model.damping=50",
@@ -238,7 +241,8 @@ PAPER_SETTINGS = (
     "follow_through_s=0.035",
 )
 """The paper's learner settings as ``--set`` overrides (``flyknot run --paper-settings``):
-ILC gain 1, control weight 0.5, rope model bending stiffness 1e5 and damping 50, the
+ILC gain 1 with the fixed-gain step, the rope model's own Jacobian, the follow-through term,
+control weight 0.5, rope model bending stiffness 1e5 and damping 50, the
 demonstration window from 5 % of the hand path to t_c + 35 ms (Suresh & Atkeson; the
 scenario files' own values and why they differ: README "Learner settings")."""
 

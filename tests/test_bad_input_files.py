@@ -21,7 +21,7 @@ FORMATS = (
     "(accepted formats: .csv t,q1..q7 joint targets; .npy (n, 7) float radians; "
     ".npz Bezier knots and T)"
 )
-DEMOS = "(valid choices: fast, inverse, robot, slow, swipe)"
+DEMOS = "(valid choices: fast, fast-paced, inverse, robot, slow, swipe)"
 RECORDING = (
     "; a .csv or .c3d recording is read by flyknot.demo_formats and must be saved as .npz "
     "(Demonstration.save) first"
@@ -169,6 +169,7 @@ def test_every_damaged_demonstration_is_a_record_error_naming_the_file(damage, t
         check_demo(str(path))
     assert e.value.field == "demo" and e.value.choices == [
         "fast",
+        "fast-paced",
         "inverse",
         "robot",
         "slow",
@@ -177,7 +178,7 @@ def test_every_damaged_demonstration_is_a_record_error_naming_the_file(damage, t
 
 
 def test_shipped_demonstrations_pass_the_check():
-    for name in ("fast", "inverse", "robot", "slow", "swipe"):
+    for name in ("fast", "fast-paced", "inverse", "robot", "slow", "swipe"):
         assert check_demo(name) == DEMOS_DIR / f"{name}.npz"
 
 

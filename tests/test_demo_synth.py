@@ -753,3 +753,23 @@ def test_cli_envelope_start_and_budgets_reach_the_search(tmp_path, capsys, monke
     assert capsys.readouterr().err == (
         "flyknot-tools: error: --target-rate: must lie in (0, 1], got 1.5\n"
     )
+
+
+def test_the_person_paced_fast_is_described_and_within_its_pace():
+    """`fast-paced`: the Fast search under a pace cap, its peaks within the caps it records,
+    tying in its varied check, its command in the demonstrations' README."""
+    from scipy.spatial.transform import Rotation
+
+    demo = Demonstration.load(DEMOS_DIR / "fast-paced.npz")
+    m = demo.metadata
+    assert m["variant"] == "fast" and m["settle_outcome"] == "trefoil"
+    assert m["pace"] == {"speed_limit": 5.5, "axis_rate_limit": 15.0}
+    assert m["check"]["knots"] >= 16 and m["check"]["repeats"] == 20
+    assert m["rope"] == rope_metadata(1)["rope"], "rope 1 changed: regenerate assets/demos"
+    dt = np.diff(demo.t)
+    speed = np.linalg.norm(np.diff(demo.hand_pos, axis=0), axis=1) / dt
+    z = Rotation.from_quat(demo.hand_quat, scalar_first=True).as_matrix()[:, :, 2]
+    rate = np.arccos(np.clip(np.sum(z[1:] * z[:-1], axis=1), -1.0, 1.0)) / dt
+    assert speed.max() <= 5.5 and rate.max() <= 15.0
+    readme = (DEMOS_DIR / "README.md").read_text()
+    assert "--variant fast --seed 0 --max-axis-rate 15 --max-speed 5.5" in readme

@@ -288,7 +288,7 @@ def test_wilson_interval_known_values():
 
 
 def test_confirm_field_from_toml_and_command_line():
-    scen = load_scenario("learn-rope1", parse_overrides(["confirm=19/20"]))
+    scen = load_scenario("learn-rope1", parse_overrides(["confirm=19/20", "step=gain"]))
     assert scen.runs[0].learner.confirm == (19, 20)
     from flyknot.options import from_mapping
     from flyknot_app.scenario import RunSpec
@@ -313,6 +313,8 @@ def test_paper_settings_set_the_papers_learner(tmp_path, monkeypatch):
     run = scen.runs[0]
     assert (run.learner.gain, run.path_frac, run.follow_through_s) == (1.0, 0.05, 0.035)
     assert run.learner.update.weights.w_control == 0.5
+    assert (run.learner.step, run.learner.update.jacobian) == ("gain", "model")
+    assert run.learner.update.follow_through is True
     assert (run.learner.rope_model.stiffness, run.learner.rope_model.damping) == (1e5, 50.0)
     seen = {}
 
