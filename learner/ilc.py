@@ -41,6 +41,7 @@ from flyknot.record import Cell, TrialRecord
 from learner.bezier import BezierCommand
 from learner.ilc_params import ILCParams, parse_confirm
 from learner.ilc_step import (
+    UPDATE_FAILED,
     Context,
     LoopState,
     Step,
@@ -215,7 +216,7 @@ def _relearn_secant(rd: RunDirectory, state: LoopState, ctx: Context) -> None:
     """The secant Jacobian's memory as the loop left it: every ledger line whose update
     linearised the model (no fault, tracking kept) learned from again, in order."""
     for s in state.trials:
-        if s.update_solved is None:
+        if s.update_solved is None or (s.update_status or "").startswith(UPDATE_FAILED):
             continue
         knots = rd.load_knots(s.trial)
         record = TrialRecord.load(rd.record_stem(s.trial, s.attempt))

@@ -15,7 +15,7 @@ from functools import partial
 
 import numpy as np
 
-from flyknot.errors import RecordError
+from flyknot.errors import RecordError, SolverError
 from flyknot.judge import KnotJudge
 from flyknot.limits import JointLimits
 from flyknot.record import TrialRecord
@@ -34,6 +34,10 @@ from learner.run_directory import TrialSummary
 from learner.steps import Damping
 from learner.target import DemoTarget
 from learner.update import UpdateResult, ilc_update
+
+UPDATE_FAILED = "update failed"
+"""The start of a ledger line's ``update_status`` when the update raised (the learner's model
+failed on the trial's measured motion): the trial counts, its command is played again."""
 
 
 def critical_cost(err: np.ndarray, weights: InverseModelWeights) -> float:
@@ -420,6 +424,16 @@ def assess(
             ),
             correct=correct,
         )
+    except SolverError as e:  # the model failed on the measured motion: no update
+        return TrialSummary(
+            **base,
+            tracking_lost=False,
+            cost=None,
+            update_solved=False,
+            update_status=f"{UPDATE_FAILED}: {e}",
+            predicted_cost_after=None,
+            action="update failed: command unchanged",
+        ), None
     except RecordError as e:
         return TrialSummary(
             **base,
