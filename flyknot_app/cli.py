@@ -151,20 +151,23 @@ def _cmd_baseline(args: argparse.Namespace) -> int:
         run_baseline,
         write_results,
     )
+    from flyknot_app.scenario import check_demo
 
     params = BaselineParams(
         budget=args.budget, sigma=args.sigma, scale=args.scale, repeats=args.repeats
     )
     seeds = parse_seeds(args.seeds)
-    settings = None
+    check_demo(args.demo)  # before the initial guess is computed
+    settings = {"demo": args.demo}
     if args.name == "ppo":
         from dataclasses import asdict
 
         from flyknot_app.gym_tick_env import FlyknotTickEnv
 
         require_rl()  # before the initial guess is computed
-        env = FlyknotTickEnv(rope=args.rope, settle_s=args.settle)
+        env = FlyknotTickEnv(rope=args.rope, demo=args.demo, settle_s=args.settle)
         settings = {
+            **settings,
             "env": "flyknot/FlyingKnotTick-v0",
             "action_scale": env.action_scale,
             "smoothing_s": env.smoothing_s,
@@ -173,9 +176,8 @@ def _cmd_baseline(args: argparse.Namespace) -> int:
     else:
         from flyknot_app.gym_env import FlyknotEnv
 
-        env = FlyknotEnv(
-            rope=args.rope, max_trials=params.budget + params.repeats + 1, settle_s=args.settle
-        )
+        n = params.budget + params.repeats + 1
+        env = FlyknotEnv(rope=args.rope, demo=args.demo, max_trials=n, settle_s=args.settle)
     results = []
     for seed in tqdm(seeds, desc=args.name, unit="seed", disable=bar_disable(not args.quiet)):
         results.append(run_baseline(args.name, env, params, seed))
@@ -489,6 +491,7 @@ def _add_baseline_parser(sub: argparse._SubParsersAction) -> None:
         "--rope", type=parse_rope_arg, default=1, help="rope id 1..7 or a rope's name (default 1)"
     )
     bl.add_argument("--budget", type=int, default=30, help="trials per seed (default 30)")
+    bl.add_argument("--demo", default="fast-paced", help="the demonstration ILC starts from")
     bl.add_argument("--seeds", default="0", help="lab seeds: A-B or A,B,... (default 0)")
     bl.add_argument(
         "--repeats", type=int, default=0, help="plays of the best command after (success rate)"

@@ -148,8 +148,23 @@ def test_the_command_runs_a_tiny_search_on_the_lab(tmp_path, capsys):
     from flyknot_app import cli
 
     args = ["baseline", "random", "--budget", "2", "--seeds", "0-1", "--settle", "0.2"]
-    assert cli.main([*args, "--out", str(tmp_path), "--quiet"]) == 0
+    assert cli.main([*args, "--demo", "robot", "--out", str(tmp_path), "--quiet"]) == 0
     doc = json.loads((tmp_path / "baseline.json").read_text())
+    assert doc["settings"]["demo"] == "robot"
     assert [r["seed"] for r in doc["runs"]] == [0, 1]
     assert all(1 <= len(r["knots"]) <= 2 for r in doc["runs"])
     assert "| random | 1 |" in capsys.readouterr().out
+
+
+def test_a_baseline_starts_from_the_main_job_s_demonstration_and_checks_it(tmp_path, capsys):
+    from flyknot_app import cli
+
+    parser = cli.build_parser()
+    assert parser.parse_args(["baseline", "cma"]).demo == "fast-paced"
+    out = tmp_path / "b"
+    assert cli.main(["baseline", "cma", "--demo", "nosuch", "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(
+        "flyknot: error: demo: no demo file or name 'nosuch'"
+    )
+    assert not out.exists()
