@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 import platform
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -47,10 +47,8 @@ from flyknot.verdict import judge_centreline, tube_axis_of, tube_knot
 from flyknot_sim import faults as faults_mod
 from flyknot_sim import mocap
 from flyknot_sim.aero import DRAG_HOLD_S
+from flyknot_sim.lab_params import LabParams
 from flyknot_sim.rope_custom import rope_record
-
-if TYPE_CHECKING:
-    from flyknot_sim.lab import LabParams
 
 _BAR = "{desc}: {percentage:3.0f}%|{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}]"
 

@@ -52,7 +52,6 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields
 from types import MappingProxyType
-from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
@@ -72,10 +71,8 @@ from flyknot.errors import (
     check_positive,
 )
 from flyknot.geometry import readonly
+from learner.limit_set import LimitRows
 from learner.qp_kernel import weighted_gram, weighted_rhs
-
-if TYPE_CHECKING:
-    from learner.limit_rows import LimitRows
 
 FT_DIM = 9  # follow-through error: position (3), rotation log (3), velocity (3)
 BACKENDS = ("osqp", "clarabel")

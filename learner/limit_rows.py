@@ -18,7 +18,7 @@ own limits on its samples, without linearisation.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from types import MappingProxyType
 from typing import TYPE_CHECKING
 
@@ -29,6 +29,7 @@ from flyknot.errors import ConfigError, check_choice
 from flyknot.geometry import readonly
 from flyknot.limits import JointLimits
 from learner.bezier import check_knots, controller_basis, controller_jacobian
+from learner.limit_set import LimitRows
 
 if TYPE_CHECKING:
     from learner.inverse_qp import QPResult
@@ -41,54 +42,6 @@ LIMIT_TOL = 1e-6  # a limit row counts as violated beyond this fraction of its h
 # --------------------------------------------------------------------------------------------
 # the rows
 # --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class LimitRows:
-    """Linearised limits ``lo <= b - J dkappa <= hi`` on the updated command.
-
-    Attributes:
-        J: Knot Jacobians of the limited quantities (r, 80).
-        b: Their values at the current knots (r,).
-        lo: Lower bounds (r,) (may be -inf).
-        hi: Upper bounds (r,) (may be +inf).
-        blocks: Named row ranges ``name -> (start, stop)``.
-    """
-
-    J: np.ndarray
-    b: np.ndarray
-    lo: np.ndarray
-    hi: np.ndarray
-    blocks: Mapping[str, tuple[int, int]] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        J = np.asarray(self.J, dtype=float)
-        if J.ndim != 2 or J.shape[1] != N_VARS:
-            raise ConfigError("J", f"must have shape (r, {N_VARS}), got {J.shape}")
-        r = J.shape[0]
-        for name in ("b", "lo", "hi"):
-            a = np.asarray(getattr(self, name), dtype=float)
-            if a.shape != (r,):
-                raise ConfigError(name, f"must have shape ({r},), got {a.shape}")
-            if np.any(np.isnan(a)):
-                raise ConfigError(name, "must not contain NaN")
-            object.__setattr__(self, name, readonly(a))
-        for name, a in (("J", J), ("b", self.b)):
-            if not np.all(np.isfinite(a)):
-                raise ConfigError(name, "must be finite")
-        if np.any(self.lo > self.hi):
-            raise ConfigError("lo", "must be <= hi in every row")
-        blocks = dict(self.blocks) if self.blocks else {"limits": (0, r)}
-        for name, (a, z) in blocks.items():
-            if not 0 <= a <= z <= r:
-                raise ConfigError("blocks", f"range {name!r} = ({a}, {z}) outside 0..{r}")
-        object.__setattr__(self, "J", readonly(J))
-        object.__setattr__(self, "blocks", MappingProxyType(blocks))
-
-    @property
-    def n_rows(self) -> int:
-        """Number of limit rows."""
-        return int(self.J.shape[0])
 
 
 @dataclass(frozen=True)
