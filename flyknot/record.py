@@ -357,7 +357,7 @@ def _read_meta(json_path: Path) -> dict:
 
 def atomic_write_text(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` through a temporary file renamed into place (flushed and
-    synced first), so ``path`` is either absent, the old file, or complete."""
+    synced first), so ``path`` is either absent, the previous file, or complete."""
     tmp = path.with_name(f".{path.name}.tmp")
     with open(tmp, "w") as f:
         f.write(text)

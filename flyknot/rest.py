@@ -106,7 +106,7 @@ class SettleParams:
 
     Attributes:
         rest: The rest criterion.
-        min_s: Shortest wait [s] (the old fixed settling time).
+        min_s: Shortest wait [s].
         max_s: Longest wait [s] (cap).
         verdict_interval_s: Interval of the knot verdicts of the history [s].
         contact_free_unknot: Judge a rope early that has been unknotted and free of

@@ -194,7 +194,7 @@ def check_models(
     dt = rope_models[0].dt
     _, target = prepare_target(demo, dt, window)
     robot = RobotModel.from_mjcf()
-    # Only markers up to t_f are compared and no knot is judged: the old fixed 1.5 s wait.
+    # Only markers up to t_f are compared and no knot is judged: a fixed 1.5 s wait.
     lab = SimLab(LabParams(rope=rope, variation=VariationParams.none(), settle_s=1.5))
     if knots is None:
         with TemporaryDirectory() as tmp:

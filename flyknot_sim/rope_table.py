@@ -156,8 +156,8 @@ class RopeParams:
         return isinstance(self.id, str)
 
     def to_dict(self) -> dict[str, Any]:
-        """The parameters as plain data (``cd`` only when set, so that the paper's ropes read
-        as before it existed)."""
+        """The parameters as plain data (``cd`` only when set, so that a paper rope without its
+        own drag coefficient reads without the key)."""
         d = {f.name: getattr(self, f.name) for f in fields(self)}
         for k, default in (
             ("cd", None),

@@ -56,7 +56,7 @@ class Rerecorded:
     Attributes:
         demo: The new demonstration.
         kind: ``hand`` or ``robot``.
-        t_c_before: The old recording's t_c [s].
+        t_c_before: The stored recording's t_c [s].
         knots: Knots in the varied check.
         repeats: Trials of the varied check.
     """

@@ -26,7 +26,7 @@ what stays fixed over a run (objective, weights, limits, solver):
    for torque.
 6. Solve with Clarabel or OSQP (:func:`learner.inverse_qp.build_inverse_qp`, then
    :func:`learner.inverse_qp.solve_qp`). A QP that does not solve returns ``solved=False``,
-   the old knots as ``new_knots``, NaN in ``dkappa`` and the solver's status: it is never
+   the current knots as ``new_knots``, NaN in ``dkappa`` and the solver's status: it is never
    applied.
 
 The base rows of the update are projected onto the equality constraint after the solve (their
@@ -176,7 +176,7 @@ class UpdateResult:
 
     Attributes:
         dkappa: Knot update (10, 8), subtracted from the knots; NaN when not solved.
-        new_knots: kappa_k - dkappa (10, 8); the old knots when not solved.
+        new_knots: kappa_k - dkappa (10, 8); the current knots when not solved.
         qp_status: The solver's status text of the last solve.
         solved: True when the QP solved and the update may be applied.
         cost_before: Critical-point cost ||err||_Q^2 at the current knots.

@@ -442,7 +442,7 @@ def _shipped(name: str) -> Demonstration:
 def test_shipped_demo_is_current_and_described(name):
     demo = _shipped(name)
     m = demo.metadata
-    # the shipped demos were made before the search moved to flyknot_tools (the old name)
+    # the shipped demos name the search's module as it was named when they were made
     assert m["generator"] in (GENERATOR, *LEGACY_GENERATORS)
     assert m["generator_version"] == GENERATOR_VERSION
     assert m["variant"] == name and demo.rope == 1
