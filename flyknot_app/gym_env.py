@@ -49,8 +49,10 @@ POS_BOUND = 5.0
 """Bound of the marker position errors in the observation [m]."""
 VEL_BOUND = 100.0
 """Bound of the marker velocity errors in the observation [m/s]."""
-BASE_BOUND = 1.0
-"""Bound of the base-offset knots [m]."""
+BASE_BOUND = 2.0
+"""Bound of the base-offset knots [m]: the robot base's position in the demonstration frame,
+whose hand starts 1.5 m above the floor (the hand lab's), so the base sits up to about 1.3 m
+above the demonstration's origin (`fast-paced`'s initial guess: 1.31 m)."""
 KNOT_MARGIN = 0.5
 """How far the joint rows' knots may lie beyond the paper's joint limits [rad]: a Bezier
 command stays within its knots' range, not the knots within the command's, and the paper's
@@ -247,7 +249,12 @@ class FlyknotEnv(gym.Env):
 
             self._lab.params = replace(self._lab.params, seed=int(seed))
             self._lab.trial_index = 0
-        self.knots = np.clip(self.initial_knots(), self._knot_lo, self._knot_hi)
+        knots0 = self.initial_knots()
+        if np.any(knots0 < self._knot_lo) or np.any(knots0 > self._knot_hi):
+            raise ConfigError(
+                "demo", f"{self._demo!r}: its initial command lies outside the env's knot bounds"
+            )
+        self.knots = knots0
         self.trials = 0
         obs, _, _, info = self._trial()
         return obs, info

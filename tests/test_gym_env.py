@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import flyknot_app.gym_env  # noqa: F401 - registers the environment
+from flyknot_app.gym_env import FlyknotEnv
 
 
 @pytest.fixture(scope="module")
@@ -114,3 +115,13 @@ def test_only_a_knot_in_the_hanging_rope_earns_the_bonus(klass, bonus, monkeypat
     assert terminated is bonus and info["verdict"] == klass
     assert (reward > inner.knot_bonus / 2) is bonus
     e.close()
+
+
+@pytest.mark.slow
+def test_the_env_starts_from_ilc_s_initial_command_as_it_is():
+    """The main job's demonstration puts the base 1.31 m up in its frame: the env's first
+    trial plays ILC's initial command unchanged (a clipped base would move the frame)."""
+    env = FlyknotEnv(rope=1, demo="fast-paced", max_trials=2)
+    env.reset(seed=0)
+    np.testing.assert_array_equal(env.knots, env.initial_knots())
+    assert env.knots[-1, 0] > 1.0
