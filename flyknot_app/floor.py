@@ -48,7 +48,7 @@ class FloorParams:
     damping: float = 0.05
     grow: float = 4.0
     shrink: float = 3.0
-    tries: int = 4
+    tries: int = 8
     oracle: OracleParams = field(default_factory=OracleParams)
 
     def __post_init__(self) -> None:
