@@ -15,7 +15,7 @@ import numpy as np
 from flyknot.demo import Demonstration
 from flyknot.numerics import numerics_class
 
-DEMOS_NUMERICS = "x86_64-avx512"
+DEMOS_NUMERICS = "x86_64-avx512-skylakex"
 """The machine class the shipped demonstrations were recorded on."""
 
 HAND_TOL_M = 1e-5

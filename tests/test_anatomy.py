@@ -535,7 +535,7 @@ def test_cli_explain_errors_are_one_line(tmp_path, capsys):
     )
 
 
-def test_report_has_an_anatomy_section(tmp_path):
+def test_report_has_an_anatomy_section(egl, tmp_path):
     from flyknot_app.report import write_report
     from flyknot_app.run_summary import RunSummary, ScenarioSummary
 

@@ -28,7 +28,8 @@ def test_the_protocol_is_every_paper_scenario_and_quick_is_a_subset_of_it():
     assert labels == ["01-tracking", "04-success-rate-rope4", "04-success-rate-rope5"]
 
 
-def test_quick_times_the_same_trials_four_ways(capsys, tmp_path):
+@pytest.mark.slow
+def test_quick_times_the_same_trials_four_ways(egl, capsys, tmp_path):
     res = bench_protocol(workers=1, quick=True, progress=False, cases=TINY, keep=tmp_path / "b")
     labs = ("now", "no_knot_set", "no_unknot_held", "by_scenario")
     for lab in labs:  # kept: the run directories of every lab

@@ -84,7 +84,7 @@ def test_dry_run_without_a_lab_file_is_refused(capsys):
     )
 
 
-def test_run_with_cell_dry_run_plays_the_scenario_through_the_preflight(tmp_path, capsys):
+def test_run_with_cell_dry_run_plays_the_scenario_through_the_preflight(egl, tmp_path, capsys):
     args = ["run", "quick", "--cell", str(LAB), "--dry-run", "--set", "max_trials=0"]
     # The example lab keeps the controller's servo-mode TCP speed limit (C60, 1.2 m/s): the
     # learned throw is refused before anything moves.
@@ -104,7 +104,10 @@ def test_run_with_cell_dry_run_plays_the_scenario_through_the_preflight(tmp_path
     assert 1.2 < rec["metadata"]["preflight"]["tip_speed_peak_m_s"] < 4.0 * 0.95
 
 
-def test_a_velocity_stream_dry_run_passes_and_view_opens_its_run(tmp_path, capsys, monkeypatch):
+@pytest.mark.slow
+def test_a_velocity_stream_dry_run_passes_and_view_opens_its_run(
+    egl, tmp_path, capsys, monkeypatch
+):
     import flyknot_app.viewer as viewer
 
     served = []

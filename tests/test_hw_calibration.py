@@ -286,6 +286,7 @@ def _random_pose(rng: np.random.Generator) -> np.ndarray:
     return np.concatenate([rng.uniform(-2, 2, 3), q / np.linalg.norm(q) * np.sign(q[0])])
 
 
+@pytest.mark.slow
 def test_driven_calibration_recovers_the_base_pose(make_fake, tmp_path, capsys, monkeypatch):
     """``flyknot calibrate --cell LAB --out F`` against the fake controller and a live system
     seeing the fingertip in a random frame (0.3 mm noise per frame, 5 % of the frames without

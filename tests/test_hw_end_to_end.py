@@ -121,7 +121,8 @@ def fake_lab(tmp_path, monkeypatch):
     lab.stop()
 
 
-def test_quick_scenario_runs_on_the_fake_lab(fake_lab, tmp_path, monkeypatch):
+@pytest.mark.slow
+def test_quick_scenario_runs_on_the_fake_lab(egl, fake_lab, tmp_path, monkeypatch):
     info = fake_lab.info
     lab_file = tmp_path / "lab.toml"
     lab_file.write_text(LAB_TOML.format(host=info["host"], base_pose=info["base_pose"]))

@@ -483,6 +483,7 @@ def test_start_height_in_the_lab_frame_ignores_the_base_offset():
         InitialGuessParams(base_height=-1.0)
 
 
+@pytest.mark.slow
 def test_iteration_reports_follow_ipopt_and_change_nothing(robot, reachable):
     knots, _ = _knots_true()
     T = 0.6

@@ -73,7 +73,7 @@ def test_old_and_new_verdicts_per_trial_and_the_totals(run_dir, capsys):
     assert not (run_dir / "judge").exists()  # nothing written without --pictures
 
 
-def test_json_and_pictures(run_dir, capsys, tmp_path):
+def test_json_and_pictures(egl, run_dir, capsys, tmp_path):
     assert main(["judge", str(run_dir), "--json", "--pictures", "--out", str(tmp_path / "p")]) == 0
     data = json.loads(capsys.readouterr().out)
     assert data["totals"]["knots_new"] == 1 and data["totals"]["knots_old"] == 2
@@ -153,7 +153,7 @@ def test_the_viewer_shows_the_verdict(run_dir):
     )
 
 
-def test_the_report_shows_every_knot_and_one_trial_per_class(run_dir):
+def test_the_report_shows_every_knot_and_one_trial_per_class(egl, run_dir):
     from flyknot_app.judging import report_section
 
     learning = run_dir / "runs" / "rope1" / "learning"
@@ -202,7 +202,7 @@ def test_pictures_draw_the_rope_at_its_true_size():
     assert rope_radius_of(dataclasses.replace(rec, metadata={})) is None
 
 
-def test_a_record_without_truth_is_judged_and_pictured_from_its_markers(tmp_path, capsys):
+def test_a_record_without_truth_is_judged_and_pictured_from_its_markers(egl, tmp_path, capsys):
     """A real lab's record: no simulator truth, the markers' last fully tracked frame."""
     learning = tmp_path / "run" / "runs" / "rope1" / "learning"
     rec = _record("knot_rope1_repeat", "trefoil")
@@ -234,7 +234,7 @@ def test_kept_verdicts_come_from_the_records_json_and_match_the_full_load(run_di
     assert fast[-1].new == stored.verdict and fast[-2].fault == "joint 4 torque limit"
 
 
-def test_a_runs_worker_draws_its_knots_as_the_report_would_and_the_report_keeps_them(run_dir):
+def test_a_runs_worker_draws_its_knots_as_the_report_would_and_the_report_keeps_them(egl, run_dir):
     from flyknot_app.judging import draw_run_knots, report_section
 
     learning = run_dir / "runs" / "rope1" / "learning"
@@ -259,7 +259,7 @@ def test_a_runs_worker_draws_its_knots_as_the_report_would_and_the_report_keeps_
     assert draw_run_knots(run_dir / "runs" / "rope2", run_dir) == []
 
 
-def test_a_run_ends_with_its_knots_drawn(monkeypatch, tmp_path):
+def test_a_run_ends_with_its_knots_drawn(egl, monkeypatch, tmp_path):
     from flyknot_app import runner
     from flyknot_app.scenario import parse_scenario
 

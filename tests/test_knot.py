@@ -272,6 +272,7 @@ def test_alexander_polynomial_with_aliasing_above_32_crossings():
     assert kd.alexander_polynomial(diagram) == (1, -1, 1)
 
 
+@pytest.mark.slow
 def test_matches_topoly_on_random_closed_polygons():
     """Random closed polygons in a blob (often knotted) against topoly's own Alexander
     polynomial; seeds chosen where topoly gives the same answer for rotated copies."""

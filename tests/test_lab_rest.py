@@ -8,6 +8,7 @@ import pytest
 from flyknot.record import JointCommand
 from flyknot.rest import RestCriterion, SettleParams
 from flyknot_sim.lab import LabParams, SimLab, VariationParams
+from tests.recorded_on import same_class
 
 Q0 = np.array([0.0, -0.3, 0.0, 0.8, 0.0, 1.1, 0.0])
 
@@ -110,12 +111,15 @@ def test_twist_and_torsional_friction_switches():
 
 
 @pytest.mark.parametrize("seed", [10, 26])
+@pytest.mark.slow
 def test_a_set_knot_ends_the_trial_early_with_the_capped_trials_verdict(seed):
     """Lab seeds 10 (a knot) and 26 (wrapped at the grip) of the knot search's command
     (``seeds/robot_knot.npz``, the robot demonstration's start): the knot sets after ~5.0 s
     and ~7.8 s; without the knot-set rule the settle runs on, to the 15 s cap (seed 10) or
     until the rope is at rest (seed 26, 12.1 s). Same verdict, and the early record is the
-    longer one's prefix bit for bit (the physics is the same until the settle ends)."""
+    longer one's prefix bit for bit (the physics is the same until the settle ends). On another
+    machine class (``tests/recorded_on.py``) the seeds are other samples of the lab: the rule
+    still ends the settle early with the same verdict, at other times."""
     from flyknot.constants import DEMOS_DIR
     from learner.bezier import BezierCommand
 
@@ -125,10 +129,11 @@ def test_a_set_knot_ends_the_trial_early_with_the_capped_trials_verdict(seed):
     full = SimLab(LabParams(rope=1, seed=seed, settle=SettleParams(knot_set_s=None))).run(cmd)
     st, st_full = early.metadata["settle"], full.metadata["settle"]
     assert st["knot_set"] is True and st["settled"] is False
-    assert st_full["knot_set"] is False and st_full["settle_s"] > st["settle_s"] + 4.0
-    assert st["settle_s"] < 10.0
+    assert st_full["knot_set"] is False and st_full["settle_s"] > st["settle_s"]
     assert early.verdict.klass == full.verdict.klass
-    assert early.verdict.klass == ("knot" if seed == 10 else "wrapped_at_grip")
+    if same_class():  # the seeds' outcomes and times as picked (another class: other samples)
+        assert st_full["settle_s"] > st["settle_s"] + 4.0 and st["settle_s"] < 10.0
+        assert early.verdict.klass == ("knot" if seed == 10 else "wrapped_at_grip")
     n = len(early.t_joint)
     np.testing.assert_array_equal(early.q_meas, full.q_meas[:n])
     np.testing.assert_array_equal(early.fingertip_pos, full.fingertip_pos[:n])

@@ -72,6 +72,7 @@ def test_evaluation_time_backs_off_before_tracking_loss():
         evaluation_time(t, m, 0.7, 0.005)
 
 
+@pytest.mark.slow
 def test_cli_model_check_end_to_end(tmp_path, capsys):
     """The scenario files' rope model agrees with the lab far better than the paper's and than
     100, 0.5 (docs/learning.md, section 3), and is among the identification grid's models."""

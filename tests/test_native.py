@@ -33,7 +33,7 @@ def _inputs(sizes: tuple[int, ...], m: int, seed: int) -> list[np.ndarray]:
 
 
 @pytest.mark.parametrize("key", ["tip", "tip_jac", "tau", "tau_jac", "tau_jvp", "tip_omega"])
-def test_every_flat_function_equals_the_interpreter_bit_for_bit(xarm, key, tmp_path):
+def test_every_flat_function_equals_the_interpreter_bit_for_bit(c_compiler, xarm, key, tmp_path):
     fun = xarm._flat[key]
     batch = compile_batch(fun, cache=tmp_path)
     x = _inputs(batch.n_in, 23, seed=len(key))
@@ -46,7 +46,7 @@ def test_every_flat_function_equals_the_interpreter_bit_for_bit(xarm, key, tmp_p
 
 
 @pytest.mark.parametrize("path", PATHS)
-def test_the_model_methods_are_the_same_native_or_interpreted(path):
+def test_the_model_methods_are_the_same_native_or_interpreted(c_compiler, path):
     fast = RobotModel.from_mjcf(path)
     slow = RobotModel.from_mjcf(path, native=False)
     rng = np.random.default_rng(3)
@@ -69,7 +69,7 @@ def test_the_model_methods_are_the_same_native_or_interpreted(path):
     assert slow._native == {}
 
 
-def test_a_compiled_library_is_built_once_and_reused(xarm, tmp_path):
+def test_a_compiled_library_is_built_once_and_reused(c_compiler, xarm, tmp_path):
     first = compile_batch(xarm._flat["tau"], cache=tmp_path)
     stamp = first.path.stat().st_mtime_ns
     second = compile_batch(xarm._flat["tau"], cache=tmp_path)
@@ -108,7 +108,7 @@ def test_only_sx_functions_compile(tmp_path):
         compile_batch(ca.Function("f", [x], [2 * x]), cache=tmp_path)
 
 
-def test_a_batch_names_an_input_of_the_wrong_shape(xarm, tmp_path):
+def test_a_batch_names_an_input_of_the_wrong_shape(c_compiler, xarm, tmp_path):
     batch = compile_batch(xarm._flat["tau"], cache=tmp_path)
     with pytest.raises(ConfigError, match=r"^tau_flat input 1: expected \(5, 7\), got \(5, 6\)$"):
         batch(np.zeros((5, 7)), np.zeros((5, 6)), np.zeros((5, 7)))
@@ -135,7 +135,7 @@ def test_a_model_that_has_compiled_its_batches_pickles(xarm):
     np.testing.assert_array_equal(copy.torques(q, q, q), tau)
 
 
-def test_models_of_one_chain_share_their_compiled_batches():
+def test_models_of_one_chain_share_their_compiled_batches(c_compiler):
     a, b = RobotModel.from_mjcf(CHAIN7), RobotModel.from_mjcf(CHAIN7)
     q = np.full((2, 7), 0.1)
     a.torques(q, q, q)

@@ -82,7 +82,8 @@ def test_bad_arguments_are_one_line(tmp_path, capsys, bad):
     assert capsys.readouterr().err.count("\n") == 1
 
 
-def test_one_scenario_over_two_seeds_then_resumed(tmp_path, capsys):
+@pytest.mark.slow
+def test_one_scenario_over_two_seeds_then_resumed(egl, tmp_path, capsys):
     out = tmp_path / "p"
     argv = ["paper", "--seeds", "0-1", "--scenarios", "04-success-rate", "--out", str(out)]
     argv += ["--set", "max_runs=1", "--set", "max_trials=1", "--set", "settle_s=0.2"]

@@ -44,7 +44,7 @@ def _orange(image: np.ndarray) -> int:
     return int(((r > 120) & (g > 0.45 * r) & (g < 0.85 * r) & (b < 0.45 * r)).sum())
 
 
-def test_a_png_of_a_record_shows_the_arm_and_the_rope(stem, tmp_path, capsys):
+def test_a_png_of_a_record_shows_the_arm_and_the_rope(egl, stem, tmp_path, capsys):
     out = tmp_path / "figs" / "trial.png"
     assert main(["render", str(stem), "--out", str(out), "--width", "320", "--height", "240"]) == 0
     assert str(out) in capsys.readouterr().out
@@ -55,7 +55,7 @@ def test_a_png_of_a_record_shows_the_arm_and_the_rope(stem, tmp_path, capsys):
     assert _orange(image) > 50  # the rope's capsules
 
 
-def test_the_arm_is_posed_from_the_measured_joints(record):
+def test_the_arm_is_posed_from_the_measured_joints(egl, record):
     moved = dataclasses.replace(record, q_meas=record.q_meas + np.array([0.6, 0, 0, 0, 0, 0, 0]))
     t = trial_end(record)
     with TrialRenderer(record, SMALL) as a:
@@ -70,7 +70,7 @@ def test_the_arm_is_posed_from_the_measured_joints(record):
     assert not np.all(differ)  # the floor, pedestal and rope did not move
 
 
-def test_without_truth_the_rope_follows_the_markers(record):
+def test_without_truth_the_rope_follows_the_markers(egl, record):
     bare = dataclasses.replace(record, truth={})
     with TrialRenderer(bare, SMALL) as r:
         assert not r.has_truth
@@ -80,7 +80,7 @@ def test_without_truth_the_rope_follows_the_markers(record):
         assert _orange(r.render(0.2)) > 5
 
 
-def test_an_mp4_has_a_frame_per_step_through_the_trial(stem, tmp_path, record):
+def test_an_mp4_has_a_frame_per_step_through_the_trial(egl, stem, tmp_path, record):
     out = render_trial(stem, tmp_path / "trial.mp4", params=SMALL)
     reader = imageio.get_reader(out)
     try:
@@ -115,7 +115,7 @@ def test_bad_requests_name_the_flag(stem, tmp_path, capsys):
     assert "--out" in err and ".png, .mp4" in err
 
 
-def test_a_renderer_bound_again_draws_what_a_new_one_draws(record):
+def test_a_renderer_bound_again_draws_what_a_new_one_draws(egl, record):
     from flyknot_app.render import RendererCache
 
     moved = dataclasses.replace(record, q_meas=record.q_meas + np.array([0.6, 0, 0, 0, 0, 0, 0]))
@@ -136,7 +136,7 @@ def test_a_renderer_bound_again_draws_what_a_new_one_draws(record):
 
 
 @pytest.mark.parametrize("close_up", [False, True])
-def test_the_skipped_shadow_and_reflection_passes_would_draw_nothing(record, close_up):
+def test_the_skipped_shadow_and_reflection_passes_would_draw_nothing(egl, record, close_up):
     import mujoco
 
     params = dataclasses.replace(SMALL, width=320, height=240, close_up=close_up)
@@ -150,7 +150,7 @@ def test_the_skipped_shadow_and_reflection_passes_would_draw_nothing(record, clo
         np.testing.assert_array_equal(r.render(t), plain)
 
 
-def test_a_renderer_names_what_it_cannot_draw(record):
+def test_a_renderer_names_what_it_cannot_draw(egl, record):
     raised = dataclasses.replace(record, base_pose=np.r_[0.0, 0.0, 1.4, 1.0, 0.0, 0.0, 0.0])
     with TrialRenderer(record, SMALL) as r:
         assert not r.fits(raised, SMALL)
@@ -188,7 +188,7 @@ if __name__ == "__main__":
 """
 
 
-def test_a_process_forked_after_a_render_draws(stem, tmp_path):
+def test_a_process_forked_after_a_render_draws(egl, stem, tmp_path):
     # A run pool's worker is forked from a process that may have drawn already (the report of
     # an earlier scenario): with Mesa's rasteriser on threads it would hang in its first
     # render; the renderer's context keeps it on the calling thread unless the user says.

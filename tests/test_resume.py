@@ -80,7 +80,7 @@ def guess(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def whole(tmp_path_factory, guess):
+def whole(egl, tmp_path_factory, guess):
     """The uninterrupted run."""
     out = tmp_path_factory.mktemp("whole") / "run"
     shutil.copytree(guess, out / "initial_guess")
@@ -89,6 +89,7 @@ def whole(tmp_path_factory, guess):
     return out
 
 
+@pytest.mark.slow
 def test_kill_and_resume_equals_the_uninterrupted_run(tmp_path, guess, whole):
     killed = tmp_path / "killed"
     shutil.copytree(guess, killed / "initial_guess")
@@ -107,6 +108,7 @@ def test_kill_and_resume_equals_the_uninterrupted_run(tmp_path, guess, whole):
     _assert_same_run(killed, whole)
 
 
+@pytest.mark.slow
 def test_a_kill_while_a_record_is_written_resumes_to_the_same_run(tmp_path, guess, whole):
     """Killed inside the write of trial 1's truth file: the trial has no JSON, so the resumed
     run plays it again with the same variation and ends as the uninterrupted run."""

@@ -70,6 +70,7 @@ def test_drag_decay_theory():
     assert drag_decay_theory(get_rope(6), 0.2, 4) > drag_decay_theory(p, 0.2, 4)
 
 
+@pytest.mark.slow
 def test_knot_hold_in_the_labs_rope_and_lost_in_the_elastic_rope():
     swing = Swing(0.3, 0.5, seconds=4.0)
     held = knot_hold(_rope(), 0.1, swing, hold_s=1.5)
@@ -80,6 +81,7 @@ def test_knot_hold_in_the_labs_rope_and_lost_in_the_elastic_rope():
 
 
 @pytest.mark.parametrize("rope", [1, 2, 3, 4])
+@pytest.mark.slow
 def test_a_loose_knot_with_a_short_tail_holds_when_swung(rope):
     """0.1 m of tail and the end weight, swung +-0.3 m at 0.5 Hz for 8 s: held at the lab's
     defaults on ropes 1-4. Rope 4's hold is chaotic: 4 of 9 variants around this case hold

@@ -43,7 +43,7 @@ def guess_cache(tmp_path_factory):
 
 
 @pytest.mark.parametrize("path", FILES, ids=lambda p: p.stem)
-def test_scenario_runs_at_tiny_size(path: Path, tmp_path, guess_cache):
+def test_scenario_runs_at_tiny_size(egl, path: Path, tmp_path, guess_cache):
     overrides = parse_overrides(TINY)
     scen = _tiny(path)
     out = tmp_path / scen.name
@@ -70,7 +70,7 @@ def test_scenario_runs_at_tiny_size(path: Path, tmp_path, guess_cache):
         assert (out / "transfer_grid.png").is_file()
 
 
-def test_resume_after_an_interrupted_run_repeats_nothing(tmp_path, guess_cache):
+def test_resume_after_an_interrupted_run_repeats_nothing(egl, tmp_path, guess_cache):
     scen = load_scenario(
         "quick", parse_overrides(["max_trials=2", "settle_s=0.2", "stop_at_success=false"])
     )
@@ -83,7 +83,7 @@ def test_resume_after_an_interrupted_run_repeats_nothing(tmp_path, guess_cache):
     assert again.runs[0].costs == first.runs[0].costs
 
 
-def test_tracking_repeats_play_the_initial_command(tmp_path, guess_cache):
+def test_tracking_repeats_play_the_initial_command(egl, tmp_path, guess_cache):
     scen = load_scenario(
         "01-tracking", parse_overrides(["max_trials=0", "repeats=1", "settle_s=0.2", "max_runs=1"])
     )
@@ -105,7 +105,7 @@ def test_tracking_repeats_play_the_initial_command(tmp_path, guess_cache):
     assert "Tracking alone (no learning)" in (out / "report.md").read_text()
 
 
-def test_two_worker_processes_give_the_runs_of_one(tmp_path, guess_cache):
+def test_two_worker_processes_give_the_runs_of_one(egl, tmp_path, guess_cache):
     """Runs spread over a process pool (their options pickled to the workers, their
     summaries back) give what one process gives."""
     scen = load_scenario("04-success-rate", parse_overrides([*TINY, "repeats=0"]))

@@ -114,7 +114,7 @@ def _untimed(summary: dict) -> dict:
     return {**summary, "runs": runs}
 
 
-def test_two_scenarios_on_one_pool_give_what_each_gives_alone(tmp_path):
+def test_two_scenarios_on_one_pool_give_what_each_gives_alone(egl, tmp_path):
     guesses = tmp_path / "guesses"
     guesses.mkdir()
     x = _tiny("x", [{"name": "a", "seed": 0}, {"name": "b", "start_from": "a", "seed": 1}])

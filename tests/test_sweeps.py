@@ -35,7 +35,8 @@ def test_an_unknown_executor_is_refused_before_anything_is_written(tmp_path):
     assert not (tmp_path / "r").exists()
 
 
-def test_a_tiny_sweep_runs_as_ray_tasks_and_resumes(tmp_path):
+@pytest.mark.slow
+def test_a_tiny_sweep_runs_as_ray_tasks_and_resumes(egl, tmp_path):
     out = tmp_path / "sweep"
     cmd = [sys.executable, "-m", "flyknot_app", "run", "quick", "--set", "max_trials=0"]
     cmd += ["--set", "settle_s=0.2", "--seeds", "0-1", "--executor", "ray", "--workers", "2"]
