@@ -278,7 +278,10 @@ def load_demo_csv(
     path = Path(path)
     if not path.is_file():
         raise RecordError(f"demonstration file {str(path)!r} does not exist")
-    lines = path.read_text().splitlines()
+    try:
+        lines = path.read_text().splitlines()
+    except UnicodeDecodeError:
+        raise RecordError(f"{str(path)!r} is not a text file (a CSV demonstration)") from None
     header, n = _csv_header(lines, path)
     data, line_nos = _csv_table(lines[n:], n, path)
     if t_c is None:
@@ -576,3 +579,24 @@ def save_demo_c3d(
     c3d.add_parameter("FLYKNOT", "METADATA", chunks)
     path.parent.mkdir(parents=True, exist_ok=True)
     c3d.write(str(path))
+
+
+def read_demonstration(path: str | Path) -> Demonstration:
+    """A demonstration from its file, read by its suffix: ``.npz`` (:meth:`Demonstration.load`),
+    ``.csv`` (:func:`load_demo_csv`) or ``.c3d`` (:func:`load_demo_c3d`, the ``c3d`` layout of
+    this module; ``t_c`` from the file's own ``critical`` or ``contact`` event).
+
+    Raises:
+        RecordError: Another suffix, or a file its reader cannot read (naming it).
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".npz":
+        return Demonstration.load(path)
+    if suffix == ".csv":
+        return load_demo_csv(path)
+    if suffix == ".c3d":
+        return load_demo_c3d(path)
+    raise RecordError(
+        f"{str(path)!r}: a demonstration is a .npz, .csv or .c3d file, not {suffix or 'none'!r}"
+    )

@@ -236,13 +236,13 @@ def _demo_t_c(source: str | None, cache: dict[str, float | None]) -> float | Non
     if not source:
         return None
     if source not in cache:
-        from flyknot.demo import Demonstration
+        from flyknot.demo_formats import read_demonstration
 
         cache[source] = None
         for p in (Path(source), REPO_ROOT / source):
             if p.is_file():
                 with contextlib.suppress(FlyknotError):
-                    cache[source] = Demonstration.load(p).t_c
+                    cache[source] = read_demonstration(p).t_c
                 break
     return cache[source]
 

@@ -30,7 +30,7 @@ import numpy as np
 from flyknot import __version__
 from flyknot.cache import cache_root
 from flyknot.constants import DEMOS_DIR, FOLLOW_THROUGH_S, PATH_FRAC
-from flyknot.demo import Demonstration
+from flyknot.demo_formats import read_demonstration
 from flyknot.errors import ConfigError, FlyknotError, RecordError
 from flyknot.judge import CellVerdict
 from flyknot.limits import JointLimits
@@ -58,7 +58,7 @@ def prepare_target(
     from learner.demo_timing import select_demo_window, trim_demonstration
     from learner.target import DemoTarget
 
-    demo = Demonstration.load(demo_path(demo_name))
+    demo = read_demonstration(demo_path(demo_name))
     follow_through, path_frac = window
     window = select_demo_window(
         demo.t, demo.hand_pos, demo.t_c, follow_through=follow_through, path_frac=path_frac

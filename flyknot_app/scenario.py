@@ -40,7 +40,6 @@ from pathlib import Path
 from typing import Any
 
 from flyknot.constants import DEMOS_DIR, FOLLOW_THROUGH_S, PATH_FRAC, SCENARIOS_DIR
-from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, RecordError, check_choice, check_nonnegative
 from flyknot.options import (
     INLINE,
@@ -468,30 +467,24 @@ def demo_names() -> list[str]:
     return sorted(p.stem for p in DEMOS_DIR.glob("*.npz"))
 
 
-RECORDING_SUFFIXES = (".csv", ".c3d")
-"""Recorded lab data that :mod:`flyknot.demo_formats` reads; a run needs it saved as .npz."""
-
-
 def check_demo(demo: str) -> Path:
-    """The file of a run's ``demo`` (a name under ``assets/demos`` or a path), read whole.
+    """The file of a run's ``demo`` (a name under ``assets/demos`` or a path to a ``.npz``,
+    ``.csv`` or ``.c3d`` demonstration: :func:`flyknot.demo_formats.read_demonstration`),
+    read whole.
 
     Raises:
-        ConfigError: No such demonstration, or a file that is no readable ``.npz``
-            demonstration; the message names the problem and lists :func:`demo_names`.
+        ConfigError: No such demonstration, or a file that is no readable demonstration; the
+            message names the problem and lists :func:`demo_names`.
     """
+    from flyknot.demo_formats import read_demonstration
+
     if not isinstance(demo, str) or not demo:
         raise ConfigError("demo", f"must be a name or a file path, got {demo!r}", demo_names())
     path = find_named_file("demo", demo, DEMOS_DIR, ".npz")
     try:
-        Demonstration.load(path)
+        read_demonstration(path)
     except RecordError as e:
-        problem = str(e)
-        if path.suffix.lower() in RECORDING_SUFFIXES:
-            problem += (
-                "; a .csv or .c3d recording is read by flyknot.demo_formats and must be saved "
-                "as .npz (Demonstration.save) first"
-            )
-        raise ConfigError("demo", problem, demo_names()) from None
+        raise ConfigError("demo", str(e), demo_names()) from None
     return path
 
 

@@ -22,10 +22,6 @@ FORMATS = (
     ".npz Bezier knots and T)"
 )
 DEMOS = "(valid choices: fast, fast-paced, inverse, robot, slow, swipe)"
-RECORDING = (
-    "; a .csv or .c3d recording is read by flyknot.demo_formats and must be saved as .npz "
-    "(Demonstration.save) first"
-)
 
 
 def _flyknot(*args: str) -> subprocess.CompletedProcess:
@@ -89,10 +85,12 @@ def test_a_missing_demonstration_file(tmp_path):
 def test_a_corrupt_demonstration_file(suffix, tmp_path):
     demo = _random_bytes(tmp_path / f"demo{suffix}")
     err = _refused(tmp_path / "out", "run", "learn-rope1", "--set", f"demo={demo}")
-    hint = RECORDING if suffix != ".npz" else ""
-    assert err == [
-        f"flyknot: error: demo: {str(demo)!r} is not a demonstration file (.npz){hint} {DEMOS}"
-    ]
+    problem = {
+        ".npz": "is not a demonstration file (.npz)",
+        ".csv": "is not a text file (a CSV demonstration)",
+        ".c3d": "is not a readable C3D file: File must be a valid c3d file: iostream error",
+    }[suffix]
+    assert err == [f"flyknot: error: demo: {str(demo)!r} {problem} {DEMOS}"]
 
 
 def test_a_corrupt_demonstration_to_replay(tmp_path):
