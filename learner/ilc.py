@@ -41,6 +41,7 @@ from flyknot.record import Cell, TrialRecord
 from learner.bezier import BezierCommand
 from learner.ilc_params import ILCParams, parse_confirm
 from learner.ilc_step import (
+    DAMPED_ACTIONS,
     UPDATE_FAILED,
     Context,
     LoopState,
@@ -188,8 +189,8 @@ def _restore(rd: RunDirectory, state: LoopState, params: ILCParams) -> LoopState
             saved = rd.load_update(s.trial)
             dkappa = None if saved is None else np.asarray(saved["dkappa"])
             state.guard.observe(s, dkappa, rd.load_knots(s.trial))
-        measured = s.fault is None and not s.tracking_lost and s.update_solved
-        if params.step == "damped" and measured and state.damping.observe(s.cost, s.trial):
+        damped = params.step == "damped" and s.action.startswith(DAMPED_ACTIONS)
+        if damped and state.damping.observe(s.cost, s.trial):
             stem = rd.record_stem(s.trial, s.attempt)
             state.best = (rd.load_knots(s.trial), TrialRecord.load(stem))
         if state.conf.outcome != "confirmed":

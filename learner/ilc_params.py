@@ -107,10 +107,10 @@ class ILCParams:
                 "stop_at_success", f"must be true or false, got {self.stop_at_success!r}"
             )
         step_kind(self.step)
-        if self.step == "damped" and (self.safeguard or self.average > 1 or self.confirm):
+        if self.step == "damped" and (self.safeguard or self.average > 1):
             raise ConfigError(
-                "step", "'damped' returns to the best command itself: it takes no safeguard, "
-                "average > 1 or confirm"
+                "step", "'damped' returns to the best command itself: it takes no safeguard "
+                "or average > 1"
             )  # fmt: skip
         for name, cls in (
             ("rope_model", RopeModelParams),

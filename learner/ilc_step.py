@@ -35,6 +35,8 @@ from learner.steps import Damping
 from learner.target import DemoTarget
 from learner.update import UpdateResult, ilc_update
 
+DAMPED_ACTIONS = ("update (damped", "cost rose: from the best command")
+"""How a ledger line the damped step took begins (a resumed run feeds the rule those)."""
 UPDATE_FAILED = "update failed"
 """The start of a ledger line's ``update_status`` when the update raised (the learner's model
 failed on the trial's measured motion): the trial counts, its command is played again."""
@@ -293,7 +295,8 @@ def _damped(
     params, lam_used = ctx.params, state.damping.lam
     if state.damping.observe(summary.cost, state.k):
         state.best = (np.array(state.knots), record)
-        base, step, action = state.knots, update, f"update (damped, lambda {lam_used:.3g})"
+        base, step = state.knots, update
+        action = f"{DAMPED_ACTIONS[0]}, lambda {lam_used:.3g})"
     else:
         base, best_record = state.best
         best_trial = state.damping.best[1]
@@ -308,10 +311,7 @@ def _damped(
             judged=False,
             correct=state.correct(base, learn=False),
         )
-        action = (
-            f"cost rose: from the best command (trial {best_trial + 1}), lambda "
-            f"{state.damping.lam:.3g}"
-        )
+        action = f"{DAMPED_ACTIONS[1]} (trial {best_trial + 1}), lambda {state.damping.lam:.3g}"
     if step is None or not step.solved:
         return Step(replace(summary, action=action + ": QP failed"), update, base, None, True)
     dk = params.gain * np.asarray(step.dkappa)

@@ -56,8 +56,7 @@ def test_step_options_are_checked():
     with pytest.raises(ConfigError) as e:
         ILCParams(step="damped", safeguard=True)
     assert str(e.value) == (
-        "step: 'damped' returns to the best command itself: it takes no safeguard, "
-        "average > 1 or confirm"
+        "step: 'damped' returns to the best command itself: it takes no safeguard or average > 1"
     )
     with pytest.raises(ConfigError) as e:
         DampingParams(grow=0.5)
@@ -99,3 +98,31 @@ def test_damped_run_resumed_is_the_uninterrupted_run(arm, setup, monkeypatch, tm
     for a, b in zip(part.played, whole.played, strict=True):
         np.testing.assert_array_equal(a, b)
     assert dataclasses.asdict(ILCParams(step="damped"))["step"] == "damped"
+
+
+def test_damped_with_confirmation_resumed_is_the_uninterrupted_run(
+    arm, setup, monkeypatch, tmp_path
+):
+    """A tie (trial 1) is replayed to confirm it (trial 2 misses): the damped step learns on
+    from there, and a run resumed after the confirmation replays the same rules."""
+    from tests.test_confirm import ScriptedCell
+
+    target, start = setup
+    script = [False, True, False, False, False, False]
+    params = ILCParams(max_trials=5, rope_model=ROPE, step="damped", gain=1.0, confirm=(2, 2))
+
+    def run(out, trials, resume=False, cell=None):
+        cell = cell or ScriptedCell(arm, target, script)
+        _spy(cell, monkeypatch)
+        p = dataclasses.replace(params, max_trials=trials)
+        return cell, learn(cell, target, start, arm, p, run_dir=out, resume=resume)
+
+    whole, res = run(tmp_path / "whole", 5)
+    actions = [s.action for s in res.trials]
+    assert actions[1].startswith("confirm 1/2") and actions[2].startswith("update (damped")
+    np.testing.assert_array_equal(whole.played[2], whole.played[1])  # the tie replayed
+    part, _ = run(tmp_path / "part", 3)
+    part, again = run(tmp_path / "part", 5, resume=True, cell=part)
+    assert [s.action for s in again.trials] == actions
+    for a, b in zip(part.played, whole.played, strict=True):
+        np.testing.assert_array_equal(a, b)
