@@ -582,21 +582,17 @@ def save_demo_c3d(
 
 
 def read_demonstration(path: str | Path) -> Demonstration:
-    """A demonstration from its file, read by its suffix: ``.npz`` (:meth:`Demonstration.load`),
-    ``.csv`` (:func:`load_demo_csv`) or ``.c3d`` (:func:`load_demo_c3d`, the ``c3d`` layout of
-    this module; ``t_c`` from the file's own ``critical`` or ``contact`` event).
+    """A demonstration read by its file's suffix: ``.npz`` (:meth:`Demonstration.load`),
+    ``.csv`` (:func:`load_demo_csv`) or ``.c3d`` (:func:`load_demo_c3d`).
 
     Raises:
         RecordError: Another suffix, or a file its reader cannot read (naming it).
     """
     path = Path(path)
+    readers = {".npz": Demonstration.load, ".csv": load_demo_csv, ".c3d": load_demo_c3d}
     suffix = path.suffix.lower()
-    if suffix == ".npz":
-        return Demonstration.load(path)
-    if suffix == ".csv":
-        return load_demo_csv(path)
-    if suffix == ".c3d":
-        return load_demo_c3d(path)
-    raise RecordError(
-        f"{str(path)!r}: a demonstration is a .npz, .csv or .c3d file, not {suffix or 'none'!r}"
-    )
+    if suffix not in readers:
+        raise RecordError(
+            f"{str(path)!r}: a demonstration is a .npz, .csv or .c3d file, not {suffix or 'none'!r}"
+        )
+    return readers[suffix](path)
