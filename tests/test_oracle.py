@@ -12,7 +12,7 @@ from flyknot.errors import ConfigError
 from flyknot_app.cells import check_oracle, oracle_provider
 from flyknot_app.floor import FloorParams, cost_parts
 from flyknot_app.oracle import LabJacobian, central_difference, knot_groups
-from learner.inverse_qp import InverseModelWeights, base_equality_rows, rest_equality_rows
+from learner.inverse_qp import base_equality_rows, rest_equality_rows
 from learner.jacobians import JACOBIANS, jacobian_kind, provided_jacobian
 from learner.update import UpdateSettings
 
@@ -146,15 +146,8 @@ def test_oracle_predicts_the_lab_s_own_response():
 def test_an_oracle_run_updates_with_the_lab_s_jacobian(egl, tmp_path):
     """`flyknot run quick --set jacobian=oracle`: the first update is the QP solved with the
     oracle's Jacobian about the initial command, bit for bit (the oracle plays without
-    variation, so measuring it again gives the same matrix)."""
-    from flyknot.record import TrialRecord
-    from flyknot_app.cells import SimCellSpec
-    from flyknot_app.runner import prepare_target
-    from learner.bezier import BezierCommand
-    from learner.kinematics import RobotModel
-    from learner.rope_model import RopeModelParams
-    from learner.update import ilc_update
-
+    variation, so measuring it again gives the same matrix). Both sides run in fresh
+    processes, as a run does."""
     out = tmp_path / "run"
     proc = subprocess.run(
         [sys.executable, "-m", "flyknot_app", "run", "quick", "--set", "jacobian=oracle",
@@ -163,17 +156,35 @@ def test_an_oracle_run_updates_with_the_lab_s_jacobian(egl, tmp_path):
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     learning = out / "runs" / "rope1" / "learning"
-    knots0, knots1 = np.load(learning / "knots_0000.npy"), np.load(learning / "knots_0001.npy")
-    record = TrialRecord.load(learning / "trial_0000_a0")
-    rope_model = RopeModelParams(stiffness=2.0, damping=0.0)
-    _, target = prepare_target("robot", rope_model.dt, (0.25, 0.0))
-    M = oracle_provider("sim", SimCellSpec(rope=1, settle_s=0.5), target.t_c)(knots0, target.T)
-    settings = UpdateSettings(
-        weights=InverseModelWeights(w_control=5.0),
-        jacobian="oracle",
-    )
-    res = ilc_update(
-        record, BezierCommand(knots0, target.T), target, RobotModel.from_mjcf(), rope_model,
-        settings, jacobian=M,
+    check = subprocess.run(
+        [sys.executable, "-c", _ORACLE_UPDATE, str(learning)],
+        capture_output=True, text=True, timeout=300,
     )  # fmt: skip
-    assert np.array_equal(knots1, knots0 - 0.5 * np.asarray(res.dkappa))
+    assert check.returncode == 0, check.stderr
+    assert check.stdout.strip().splitlines()[-1] == "0.0"  # |knots1 - (knots0 - 0.5 dk)|
+
+
+_ORACLE_UPDATE = """
+import sys
+from pathlib import Path
+import numpy as np
+from flyknot.record import TrialRecord
+from flyknot_app.cells import SimCellSpec, oracle_provider
+from flyknot_app.runner import prepare_target
+from learner.bezier import BezierCommand
+from learner.inverse_qp import InverseModelWeights
+from learner.kinematics import RobotModel
+from learner.rope_model import RopeModelParams
+from learner.update import UpdateSettings, ilc_update
+
+learning = Path(sys.argv[1])
+knots0, knots1 = np.load(learning / "knots_0000.npy"), np.load(learning / "knots_0001.npy")
+record = TrialRecord.load(learning / "trial_0000_a0")
+rope_model = RopeModelParams(stiffness=2.0, damping=0.0)
+_, target = prepare_target("robot", rope_model.dt, (0.25, 0.0))
+M = oracle_provider("sim", SimCellSpec(rope=1, settle_s=0.5), target.t_c)(knots0, target.T)
+settings = UpdateSettings(weights=InverseModelWeights(w_control=5.0), jacobian="oracle")
+command = BezierCommand(knots0, target.T)
+res = ilc_update(record, command, target, RobotModel.from_mjcf(), rope_model, settings, jacobian=M)
+print(float(np.abs(knots1 - (knots0 - 0.5 * np.asarray(res.dkappa))).max()))
+"""
