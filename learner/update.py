@@ -46,13 +46,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from flyknot.constants import COMMAND_RATE_HZ, N_JOINTS, N_KNOTS, N_ROWS
-from flyknot.errors import ConfigError, RecordError, check_choice, check_nonnegative, check_positive
+from flyknot.errors import ConfigError, check_choice, check_nonnegative, check_positive
 from flyknot.geometry import readonly
 from flyknot.limits import JointLimits
 from flyknot.options import NOT_AN_OPTION, ReadOnlyMap
 from flyknot.record import TrialRecord
 from learner.bezier import BezierCommand
-from learner.critical_state import MarkerFitParams, critical_state_from_record
+from learner.critical_state import MarkerFitParams
 from learner.follow_through import FollowThrough, follow_through_terms
 from learner.inverse_qp import (
     BACKENDS,
@@ -72,6 +72,7 @@ from learner.limit_rows import (
     limit_violation,
     sampled_violation,
 )
+from learner.objectives import OBJECTIVES, objective_kind
 from learner.rope_model import RopeModelParams
 from learner.system_model import (
     INTERPOLATIONS,
@@ -81,7 +82,6 @@ from learner.system_model import (
 )
 from learner.target import STATE_DIM, TIME_TOL, DemoTarget
 
-OBJECTIVES = ("critical", "equal")
 _TIMED = ("error", "rollout", "linearise", "follow_through", "limit_rows", "qp_build", "qp_solve")
 
 
@@ -137,9 +137,9 @@ class UpdateSettings:
     jacobian: str = "model"
 
     def __post_init__(self) -> None:
-        check_choice("objective", self.objective, OBJECTIVES)
+        objective = objective_kind(self.objective)
         kind = jacobian_kind(self.jacobian)
-        if (kind.needs_provider or kind.learns) and self.objective != "critical":
+        if (kind.needs_provider or kind.learns) and not objective.takes_jacobian:
             raise ConfigError("jacobian", f"{self.jacobian!r} is for the critical objective only")
         check_choice("backend", self.backend, BACKENDS)
         check_choice("base_update", self.base_update, BASE_UPDATES)
@@ -284,8 +284,9 @@ def _check_inputs(
 
 
 def _given_jacobian(jacobian: object, objective: str) -> np.ndarray:
-    """A Jacobian handed to :func:`ilc_update`, checked: (66, 80), finite, critical objective."""
-    if objective != "critical":
+    """A Jacobian handed to :func:`ilc_update`, checked: (66, 80), finite, an objective that
+    takes one."""
+    if not objective_kind(objective).takes_jacobian:
         raise ConfigError("jacobian", f"is for the critical objective only, not {objective!r}")
     M = np.asarray(jacobian, dtype=float)
     if M.shape != (STATE_DIM, N_ROWS * N_KNOTS):
@@ -295,93 +296,6 @@ def _given_jacobian(jacobian: object, objective: str) -> np.ndarray:
     if not np.all(np.isfinite(M)):
         raise ConfigError("jacobian", "must be finite")
     return M
-
-
-def _fallback_critical_point(
-    record: TrialRecord,
-    target: DemoTarget,
-    base: np.ndarray,
-    fit: MarkerFitParams,
-    fallback_s: float,
-) -> tuple[int, np.ndarray]:
-    """The latest model step k with t_c - fallback_s <= t_k < t_c (by default any step) where
-    the record's and the demonstration's marker states both exist, and the error there,
-    x_meas(t_k) - x_demo(t_k).
-
-    Raises:
-        RecordError: no such step (tracking lost before t_c - fallback_s).
-    """
-    grid = target.t
-    for k in range(len(target.x_pre) - 1, -1, -1):
-        if grid[k] >= target.t_c - TIME_TOL:
-            continue
-        if grid[k] < target.t_c - fallback_s - TIME_TOL:
-            break
-        if not np.all(np.isfinite(target.x_pre[k])):
-            continue
-        try:
-            x = critical_state_from_record(record, float(grid[k]), base, fit)
-        except RecordError:
-            continue
-        return k, x - target.x_pre[k]
-    raise RecordError(
-        f"tracking lost before t_c = {target.t_c:.3f} s and no state within "
-        f"{fallback_s:.3f} s before it"
-    )
-
-
-def _errors(
-    record: TrialRecord,
-    extra_records: Sequence[TrialRecord],
-    base: np.ndarray,
-    target: DemoTarget,
-    k_c: int,
-    settings: UpdateSettings,
-) -> tuple[np.ndarray, int, float, list[tuple[int, np.ndarray]]]:
-    """Step 1: the critical-point error and, for the equal objective, the pre-collision ones.
-
-    Returns:
-        (err (66,), k_c, t_eff, samples): the critical step and time actually used (the
-        fallback's when the record lost tracking before t_c) and ``[(k, err_k), ...]`` (empty
-        for the critical objective).
-    """
-    fit = settings.fit
-    t_c = target.t_c
-    grid = target.t
-    t_eff = t_c
-    try:
-        err = critical_state_from_record(record, t_c, base, fit) - target.x_c
-        # Averaged over earlier plays of the same command (those that kept tracking to t_c):
-        # err = mean_i (x_i(t_c) - x_demo(t_c)); each play's noise averages out.
-        errs = [err]
-        for other in extra_records:
-            try:
-                errs.append(critical_state_from_record(other, t_c, base, fit) - target.x_c)
-            except RecordError:
-                continue
-        err = np.mean(errs, axis=0)
-    except RecordError:
-        if settings.objective == "critical":
-            k_c, err = _fallback_critical_point(record, target, base, fit, settings.fallback_s)
-            t_eff = float(grid[k_c])
-        else:
-            err = np.full(STATE_DIM, np.nan)
-    samples: list[tuple[int, np.ndarray]] = []
-    if settings.objective == "equal":
-        for k, x_demo in enumerate(target.x_pre):
-            if not np.all(np.isfinite(x_demo)):
-                continue
-            try:
-                x_meas = critical_state_from_record(record, float(grid[k]), base, fit)
-            except RecordError:
-                continue
-            samples.append((k, x_meas - x_demo))
-        if not samples:
-            raise RecordError(
-                "no pre-collision model step has markers in both the record and the "
-                "demonstration (equal objective)"
-            )
-    return err, k_c, t_eff, samples
 
 
 # --------------------------------------------------------------------------------------------
@@ -512,8 +426,11 @@ def ilc_update(
 
     # 1. errors
     with _timed(timings, "error"):
+        objective = objective_kind(s.objective)
         k_c = critical_step(t_c, demo_target.dt, T)
-        err, k_c, t_eff, samples = _errors(record, extra_records, base, demo_target, k_c, s)
+        records = (record, *extra_records)
+        terms = objective.errors(records, base, demo_target, k_c, s.fit, s.fallback_s)
+        err, k_c, t_eff, samples = terms.err, terms.k_c, terms.t_eff, terms.samples
 
     # 2-3. linearisation point and M (or the given Jacobian)
     steps = sorted({k_c, *(k for k, _ in samples)})
@@ -553,10 +470,7 @@ def ilc_update(
             rows = limit_rows(knots, T, t_samples, robot, s.limits)
 
     # 6. solve, with constraint generation
-    if s.objective == "critical":
-        qp_terms = {"M_crit": M_c, "err_crit": err}
-    else:
-        qp_terms = {"equal": [(dX[steps.index(k)], e) for k, e in samples]}
+    qp_terms = objective.qp_terms(terms, lambda k: dX[steps.index(k)], M_c)
     gen = _generated(qp_terms, follow, rows, s, timings)
     res, viol = gen.result, gen.violation
 
@@ -577,7 +491,7 @@ def ilc_update(
         timings=timings,
         objective=s.objective,
         backend=s.backend,
-        n_error_samples=1 if s.objective == "critical" else len(samples),
+        n_error_samples=len(samples) or 1,
         limit_rounds=gen.rounds,
         n_limit_rows=0 if gen.active is None else int(gen.active.size),
         n_limit_rows_total=0 if rows is None else rows.n_rows,

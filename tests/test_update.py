@@ -483,3 +483,33 @@ def test_tracking_lost_before_tc_falls_back_to_the_last_tracked_step(robot, prob
     assert full.t_eff == pytest.approx(T_C)
     with pytest.raises(RecordError, match="tracking lost before t_c"):
         ilc_update(lost, command, target, robot, PARAMS, UpdateSettings(fallback_s=0.03))
+
+
+def test_an_objective_is_one_class_and_one_registry_line(robot, problem, monkeypatch):
+    """A new objective registered beside the two (here: the critical point at the step
+    before t_c) is taken by the update with no other change."""
+    from dataclasses import dataclass
+
+    from learner import objectives
+
+    @dataclass(frozen=True)
+    class StepBefore(objectives.CriticalPoint):
+        name: str = "before"
+
+        def errors(self, records, base, target, k_c, fit, fallback_s):
+            k = k_c - 1
+            x = critical_state_from_record(records[0], float(target.t[k]), base, fit)
+            return objectives.ErrorTerms(x - target.x_pre[k], k, float(target.t[k]))
+
+        def qp_terms(self, terms, M_at, M_c):
+            return {"M_crit": M_at(terms.k_c), "err_crit": terms.err}
+
+    monkeypatch.setitem(objectives.OBJECTIVES, "before", StepBefore())
+    command, record, target, _ = problem
+    settings = UpdateSettings(
+        objective="before", weights=SMALL_CONTROL, limits=None, follow_through=False
+    )
+    res = ilc_update(record, command, target, robot, PARAMS, settings)
+    assert res.solved and res.objective == "before"
+    assert res.t_eff == pytest.approx(target.t_c - target.dt)
+    assert res.predicted_cost_after < 1e-3 * res.cost_before
