@@ -54,6 +54,10 @@ class SolverError(FlyknotError):
         return (type(self), (self.solver, self.status, self.detail))
 
 
+class RenderError(FlyknotError):
+    """No picture can be drawn here: no offscreen OpenGL context (EGL, OSMesa) to be had."""
+
+
 class HardwareError(FlyknotError):
     """The real robot or motion capture refused or failed a request."""
 

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from flyknot.errors import FlyknotError
+from flyknot.errors import FlyknotError, RenderError
 from flyknot.judge import MarkerJudge
 from flyknot.record import TrialRecord, read_outcome
 from flyknot.verdict import KNOT, JudgeParams, Verdict, judge_centreline, tube_axis_of
@@ -339,7 +339,11 @@ def report_section(out_dir: str | Path) -> list[str]:
         "|---|---|---|",
     ]
     chosen = picture_rows(rows)
-    files = write_pictures(chosen, out_dir / "verdicts")
+    try:
+        files = write_pictures(chosen, out_dir / "verdicts")
+    except RenderError as e:  # no OpenGL here: the verdicts without their pictures
+        lines += [f"| {r.name} | {r.new.describe()} | - |" for r in chosen]
+        return [*lines, "", f"Pictures not drawn: {e}.", ""]
     for r, f in zip(chosen, files, strict=True):
         rel = f.relative_to(out_dir)
         lines.append(f"| {r.name} | {r.new.describe()} | [{rel.name}]({rel}) |")

@@ -26,7 +26,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from flyknot.errors import ConfigError, check_int, check_positive
+from flyknot.errors import ConfigError, RenderError, check_int, check_positive
 from flyknot.geometry import quat_to_matrix
 from flyknot.record import TrialRecord
 
@@ -85,14 +85,21 @@ def _gl_context(width: int, height: int):
     3.1-3.3 s on threads, 2-core machine; docs/performance.md), and pool workers can draw
     their runs' pictures."""
     os.environ.setdefault("LP_NUM_THREADS", "0")
-    backend = os.environ.get("MUJOCO_GL", "").strip().lower()
-    if backend == "osmesa":
-        from mujoco.osmesa import GLContext
-    elif backend in ("glfw", "glx"):
-        from mujoco.glfw import GLContext
-    else:
-        from mujoco.egl import GLContext
-    return GLContext(width, height)
+    backend = os.environ.get("MUJOCO_GL", "").strip().lower() or "egl"
+    try:
+        if backend == "osmesa":
+            from mujoco.osmesa import GLContext
+        elif backend in ("glfw", "glx"):
+            from mujoco.glfw import GLContext
+        else:
+            from mujoco.egl import GLContext
+        return GLContext(width, height)
+    except Exception as e:  # a missing library shows as any of several errors
+        raise RenderError(
+            f"no offscreen OpenGL context ({backend}: {type(e).__name__}: {e}); install "
+            "Mesa's EGL (Debian: libegl1 libgl1-mesa-dri) or set MUJOCO_GL to a backend "
+            "this machine has"
+        ) from None
 
 
 def rope_radius_of(record: TrialRecord) -> float | None:

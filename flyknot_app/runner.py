@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import json
 import platform
+import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -31,7 +32,7 @@ from flyknot import __version__
 from flyknot.cache import cache_root
 from flyknot.constants import DEMOS_DIR, FOLLOW_THROUGH_S, PATH_FRAC
 from flyknot.demo_formats import read_demonstration
-from flyknot.errors import ConfigError, FlyknotError, RecordError
+from flyknot.errors import ConfigError, FlyknotError, RecordError, RenderError
 from flyknot.judge import CellVerdict
 from flyknot.limits import JointLimits
 from flyknot.progress import bar_disable
@@ -200,7 +201,10 @@ def finish_run(spec: RunSpec, out_dir: Path, summary: RunSummary, *, figure: boo
     if (run_dir / FINISHED).is_file():
         return
     store_diagnoses(run_dir)
-    draw_run_knots(run_dir, out_dir)
+    try:
+        draw_run_knots(run_dir, out_dir)
+    except RenderError as e:  # no OpenGL here: the run is whole, its pictures are not drawn
+        print(f"flyknot: warning: {e}; the knots' pictures are not drawn", file=sys.stderr)
     if figure:
         plot_critical_overlays(run_dir, summary, critical_figure_path(out_dir, spec.name))
     if run_dir.is_dir():

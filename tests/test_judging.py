@@ -273,3 +273,38 @@ def test_a_run_ends_with_its_knots_drawn(egl, monkeypatch, tmp_path):
     spec = parse_scenario({"run": [{"name": "a"}]}, name="x").runs[0]
     assert runner.execute_run(spec, tmp_path, None, resume=False, progress=False) == "summary"
     assert (tmp_path / "verdicts" / "runs__a__learning__t0.knot.png").is_file()
+
+
+def _no_opengl(monkeypatch):
+    """Every offscreen context refused, as on a machine without EGL or OSMesa."""
+    from flyknot.errors import RenderError
+    from flyknot_app import render
+
+    def refuse(width, height):
+        raise RenderError("no offscreen OpenGL context (egl: ImportError: libEGL.so.1)")
+
+    monkeypatch.setattr(render, "_gl_context", refuse)
+
+
+def test_without_opengl_a_run_ends_whole_and_its_report_says_why(run_dir, monkeypatch, capsys):
+    """No pictures can be drawn: the run's post-run work and its report end all the same,
+    the verdicts listed without pictures and the reason named once in each."""
+    from flyknot.options import from_mapping
+    from flyknot_app.judging import report_section
+    from flyknot_app.runner import FINISHED, finish_run
+    from flyknot_app.scenario import RunSpec
+
+    _no_opengl(monkeypatch)
+    finish_run(from_mapping(RunSpec, {"name": "rope1"}), run_dir, summary=None)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        "flyknot: warning: no offscreen OpenGL context (egl: ImportError: libEGL.so.1); "
+        "the knots' pictures are not drawn"
+    ]
+    assert (run_dir / "runs" / "rope1" / FINISHED).is_file()
+    lines = report_section(run_dir)
+    knot_rows = [line for line in lines if line.startswith("| runs/rope1/learning/trial_0002")]
+    assert len(knot_rows) == 1 and knot_rows[0].endswith("| - |")
+    reason = "no offscreen OpenGL context (egl: ImportError: libEGL.so.1)"
+    assert f"Pictures not drawn: {reason}." in lines
+    assert not (run_dir / "verdicts").exists()
