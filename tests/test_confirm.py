@@ -13,10 +13,8 @@ from learner.bezier import BezierCommand
 from learner.ilc import ILCParams, learn
 from learner.kinematics import RobotModel
 from learner.run_directory import RunDirectory
-from learner.system_model import model_demonstration
-from learner.target import DemoTarget
 from tests.knot_curves import judged, verdict
-from tests.test_ilc import ROPE, T_C, ModelCell, T, _knots
+from tests.test_ilc import ROPE, ModelCell, model_problem
 
 
 @pytest.fixture(scope="module")
@@ -26,11 +24,7 @@ def arm():
 
 @pytest.fixture(scope="module")
 def setup(arm):
-    target_knots = _knots(np.array([0.3, 0.25, -0.2, 0.3, 0.2, -0.3, 0.2]))
-    demo = model_demonstration(BezierCommand(target_knots, T), T_C, arm, ROPE)
-    target = DemoTarget.from_demonstration(demo, dt=ROPE.dt)
-    start = _knots(np.array([0.22, 0.3, -0.12, 0.22, 0.26, -0.22, 0.25]))
-    return target, start
+    return model_problem(arm)
 
 
 class ScriptedCell(ModelCell):

@@ -63,13 +63,19 @@ class ModelCell:
         return judged(rec, cost < self.knot_cost)
 
 
-@pytest.fixture(scope="module")
-def problem(robot):
+def model_problem(robot):
+    """The learner's own model as the lab: a target made by a command 0.1 rad off the start's,
+    and that start (its knots)."""
     target_knots = _knots(np.array([0.3, 0.25, -0.2, 0.3, 0.2, -0.3, 0.2]))
     demo = model_demonstration(BezierCommand(target_knots, T), T_C, robot, ROPE)
     target = DemoTarget.from_demonstration(demo, dt=ROPE.dt)
     start = _knots(np.array([0.22, 0.3, -0.12, 0.22, 0.26, -0.22, 0.25]))
     return target, start
+
+
+@pytest.fixture(scope="module")
+def problem(robot):
+    return model_problem(robot)
 
 
 def _cell_for(robot, target, **kw):

@@ -8,15 +8,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from flyknot.errors import ConfigError
-from learner.bezier import BezierCommand
 from learner.ilc import ILCParams, learn
 from learner.jacobians import SecantCorrection
 from learner.kinematics import RobotModel
-from learner.system_model import model_demonstration
-from learner.target import DemoTarget
 from learner.update import UpdateSettings
 from tests.test_confirm import DisturbedCell, _spy
-from tests.test_ilc import ROPE, T_C, T, _knots
+from tests.test_ilc import ROPE, model_problem
 
 
 @settings(max_examples=25, deadline=None)
@@ -57,12 +54,7 @@ def arm():
 
 @pytest.fixture(scope="module")
 def setup(arm):
-    """The learner's own model as the lab, a start 0.1 rad off the target's knots."""
-    target_knots = _knots(np.array([0.3, 0.25, -0.2, 0.3, 0.2, -0.3, 0.2]))
-    demo = model_demonstration(BezierCommand(target_knots, T), T_C, arm, ROPE)
-    target = DemoTarget.from_demonstration(demo, dt=ROPE.dt)
-    start = _knots(np.array([0.22, 0.3, -0.12, 0.22, 0.26, -0.22, 0.25]))
-    return target, start
+    return model_problem(arm)
 
 
 def _secant_run(arm, target, start, monkeypatch, run_dir, trials, resume=False, cell=None):

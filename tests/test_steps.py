@@ -16,11 +16,9 @@ from learner.inverse_qp import InverseModelWeights
 from learner.kinematics import RobotModel
 from learner.run_directory import RunDirectory
 from learner.steps import STEPS, Damping, DampingParams
-from learner.system_model import model_demonstration
-from learner.target import DemoTarget
 from learner.update import UpdateSettings, ilc_update
 from tests.test_confirm import DisturbedCell, _spy
-from tests.test_ilc import ROPE, T_C, T, _knots
+from tests.test_ilc import ROPE, model_problem
 
 
 @pytest.fixture(scope="module")
@@ -30,12 +28,7 @@ def arm():
 
 @pytest.fixture(scope="module")
 def setup(arm):
-    """The learner's own model as the lab (no mismatch), a start 0.1 rad off the target."""
-    target_knots = _knots(np.array([0.3, 0.25, -0.2, 0.3, 0.2, -0.3, 0.2]))
-    demo = model_demonstration(BezierCommand(target_knots, T), T_C, arm, ROPE)
-    target = DemoTarget.from_demonstration(demo, dt=ROPE.dt)
-    start = _knots(np.array([0.22, 0.3, -0.12, 0.22, 0.26, -0.22, 0.25]))
-    return target, start
+    return model_problem(arm)
 
 
 def test_damping_memory():

@@ -10,14 +10,11 @@ import pytest
 
 from flyknot.errors import SolverError
 from learner import ilc_step
-from learner.bezier import BezierCommand
 from learner.ilc import ILCParams, learn
 from learner.kinematics import RobotModel
 from learner.run_directory import RunDirectory
-from learner.system_model import model_demonstration
-from learner.target import DemoTarget
-from tests.test_confirm import ScriptedCell
-from tests.test_ilc import ROPE, T_C, T, _knots
+from tests.test_confirm import _cell
+from tests.test_ilc import ROPE, model_problem
 
 
 @pytest.fixture(scope="module")
@@ -27,11 +24,7 @@ def arm():
 
 @pytest.fixture(scope="module")
 def setup(arm):
-    target_knots = _knots(np.array([0.3, 0.25, -0.2, 0.3, 0.2, -0.3, 0.2]))
-    demo = model_demonstration(BezierCommand(target_knots, T), T_C, arm, ROPE)
-    target = DemoTarget.from_demonstration(demo, dt=ROPE.dt)
-    start = _knots(np.array([0.22, 0.3, -0.12, 0.22, 0.26, -0.22, 0.25]))
-    return target, start
+    return model_problem(arm)
 
 
 def _failing_on(monkeypatch, trials: set[int]):
@@ -47,18 +40,6 @@ def _failing_on(monkeypatch, trials: set[int]):
         return real(*args, **kwargs)
 
     monkeypatch.setattr(ilc_step, "ilc_update", update)
-
-
-def _cell(arm, target, script, monkeypatch):
-    cell = ScriptedCell(arm, target, script)
-    orig = BezierCommand.joint_command
-
-    def spy(self, rate_hz=250.0):
-        cell.current = np.asarray(self.knots)
-        return orig(self, rate_hz)
-
-    monkeypatch.setattr(BezierCommand, "joint_command", spy)
-    return cell
 
 
 def test_a_tying_trial_whose_update_fails_ends_the_run_with_its_knot(
