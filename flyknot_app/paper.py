@@ -19,20 +19,67 @@ import json
 import re
 import statistics
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from flyknot.constants import SCENARIOS_DIR
 from flyknot.errors import ConfigError
+from flyknot_app.scenario import PAPER_SETTINGS
 
 if TYPE_CHECKING:
     from flyknot_app.run_summary import RunSummary, ScenarioSummary
 
 PAPER_SCENARIOS = tuple(sorted(p.stem for p in SCENARIOS_DIR.glob("0*.toml")))
 """The paper's experiments, one scenario file each."""
-PAPER_SETTINGS_DIR = "paper-settings"
-"""Where ``flyknot paper --paper-settings`` runs (``OUT/paper-settings/<scenario>``): the same
-experiments with the paper's learner settings (``flyknot_app.scenario.PAPER_SETTINGS``)."""
+
+
+@dataclass(frozen=True)
+class Variant:
+    """The paper's experiments run again with a few options changed, into ``OUT/<name>``; the
+    table puts each run's results beside the scenarios' own, under ``label``.
+
+    Attributes:
+        name: ``flyknot paper --variant NAME`` and the directory under ``OUT``.
+        overrides: ``--set`` pairs applied before the user's.
+        label: The column heads' prefix in the table.
+        skips: Scenarios the variant does not apply to (run without it or not at all).
+    """
+
+    name: str
+    overrides: tuple[str, ...]
+    label: str
+    skips: tuple[str, ...] = ()
+
+
+VARIANTS: dict[str, Variant] = {
+    v.name: v
+    for v in (
+        Variant("paper-settings", PAPER_SETTINGS, "with the paper's learner settings"),
+        Variant(
+            "robot-demo",
+            ("demo=robot",),
+            "from the robot demonstration (a command searched in this lab, not the paper's "
+            "protocol)",
+            skips=("05-demos",),  # its runs name their demonstrations
+        ),
+        Variant(
+            "oracle",
+            ("jacobian=oracle",),
+            "the oracle learner (the lab's own Jacobian, a measuring stick)",
+            skips=("01-tracking", "02-objectives", "07-sensitivity"),  # no update / no model
+        ),
+    )
+}
+"""The variants ``flyknot paper --variant`` runs, by name."""
+
+
+def variant_kind(name: object) -> Variant:
+    """The registered variant ``name``; the error lists the valid ones."""
+    if not isinstance(name, str) or name not in VARIANTS:
+        raise ConfigError("--variant", f"unknown variant {name!r}", list(VARIANTS))
+    return VARIANTS[name]
+
 _SEED_SUFFIX = re.compile(r"-seed\d+$")
 
 
@@ -118,21 +165,22 @@ def repeats_text(runs: Sequence[RunSummary]) -> str:
 
 
 def _runs_section(
-    name: str, summary: ScenarioSummary, papers: ScenarioSummary | None = None
+    name: str, summary: ScenarioSummary, beside: dict[str, ScenarioSummary] | None = None
 ) -> list[str]:
-    """Each run over the seeds; with ``papers`` (the same scenario run with the paper's
-    learner settings) its results beside."""
+    """Each run over the seeds; with ``beside`` (the same scenario run as a variant, by the
+    variant's label) their results beside."""
     from flyknot_app.report import PAPER
 
+    beside = beside or {}
     paper = summary.paper or PAPER.get(summary.kind, "-")
     lines = [f"## `{name}` ({summary.kind})", "", f"Paper: {paper}", ""]
     head = "| run | rope | demo | objective | trials until the first knot | knots in repeats |"
     rule = "|---|---|---|---|---|---|"
-    other = {} if papers is None else _grouped(papers)
-    if papers is not None:
-        head += " with the paper's learner settings: trials | knots in repeats |"
+    for label in beside:
+        head += f" {label}: trials | knots in repeats |"
         rule += "---|---|"
     lines += [head, rule]
+    others = {label: _grouped(s) for label, s in beside.items()}
     for base, runs in _grouped(summary).items():
         r = runs[0]
         if r.start_from:
@@ -142,7 +190,7 @@ def _runs_section(
             f"| {base} | {r.rope} | {r.demo} | {objective} | {trials_text(runs)} | "
             f"{repeats_text(runs)} |"
         )
-        if papers is not None:
+        for other in others.values():
             theirs = other.get(base, [])
             row += f" {trials_text(theirs) if theirs else '-'} | {repeats_text(theirs)} |"
         lines.append(row)
@@ -216,13 +264,14 @@ def paper_table(out: str | Path, command: str) -> str:
     sections: list[str] = []
     for name in found:
         summary = read(out / name)
-        papers = read(out / PAPER_SETTINGS_DIR / name)
+        beside = {v.label: read(out / v.name / name) for v in VARIANTS.values()}
+        beside = {label: b for label, b in beside.items() if b is not None}
         seeds |= {r.seed for r in summary.runs}
         if summary.kind == "sensitivity":
             sections += [f"## `{name}` ({summary.kind})", ""]
             sections += _sensitivity_section(summary)
             continue
-        sections += _runs_section(name, summary, papers)
+        sections += _runs_section(name, summary, beside)
         if summary.kind == "transfer":
             sections += _transfer_section(summary)
     head = [
@@ -234,9 +283,10 @@ def paper_table(out: str | Path, command: str) -> str:
         "verdict `knot` of `flyknot.verdict` (an overhand knot in the hanging rope). Trials "
         "until the first knot: median (range) over the seeds that tied; knots in the repeats: "
         "pooled over the seeds, 95 % Wilson interval. Each run's report, with a picture of "
-        "every counted knot: `OUT/<scenario>/report.md`. Where the same experiments ran with "
-        "the paper's learner settings (`flyknot paper --paper-settings`), their results stand "
-        "beside.",
+        "every counted knot: `OUT/<scenario>/report.md`. Where the same experiments ran as a "
+        "variant (`flyknot paper --variant NAME`: "
+        + ", ".join(f"`{v.name}`, {v.label}" for v in VARIANTS.values())
+        + "), their results stand beside.",
         "",
     ]
     return "\n".join(head + sections)
@@ -266,10 +316,16 @@ def add_paper_parser(sub) -> None:
         "--results", default=None, help="also write the table to this file (docs/results.md)"
     )
     p.add_argument(
+        "--variant",
+        default=None,
+        metavar="NAME",
+        help="run the experiments as a variant, into OUT/NAME (the table puts it beside the "
+        "scenarios' own): " + "; ".join(f"{v.name}: {v.label}" for v in VARIANTS.values()),
+    )
+    p.add_argument(
         "--paper-settings",
         action="store_true",
-        help="run with the paper's learner settings, into OUT/paper-settings (the table puts "
-        "them beside the scenarios' own)",
+        help="the same as --variant paper-settings",
     )
     p.add_argument("--table-only", action="store_true", help="run nothing; write the table")
     p.set_defaults(func=_cmd_paper)
@@ -279,11 +335,14 @@ def _cmd_paper(args: argparse.Namespace) -> int:
     from flyknot_app.scenario import parse_overrides, parse_seeds
 
     seeds = parse_seeds(args.seeds)
-    overrides = parse_overrides(args.set, paper_settings=args.paper_settings)
+    name = "paper-settings" if args.paper_settings else args.variant
+    variant = None if name is None else variant_kind(name)
+    overrides = parse_overrides([*(variant.overrides if variant else ()), *(args.set or [])])
     out = Path(args.out)
-    where = out / PAPER_SETTINGS_DIR if args.paper_settings else out
+    where = out / variant.name if variant else out
+    scenarios = [n for n in args.scenarios if variant is None or n not in variant.skips]
     if not args.table_only:
-        if not args.resume and any((where / n / "manifest.json").is_file() for n in args.scenarios):
+        if not args.resume and any((where / n / "manifest.json").is_file() for n in scenarios):
             raise ConfigError("--out", f"{str(where)!r} already holds paper runs; use --resume")
         run_paper(
             where,
@@ -291,7 +350,7 @@ def _cmd_paper(args: argparse.Namespace) -> int:
             workers=args.workers,
             resume=args.resume,
             overrides=overrides,
-            scenarios=args.scenarios,
+            scenarios=scenarios,
         )
     command = f"flyknot paper --seeds {args.seeds} --out {args.out}"
     command += "".join(f" --set {p}" for p in args.set or [])

@@ -104,3 +104,47 @@ def test_one_scenario_over_two_seeds_then_resumed(egl, tmp_path, capsys):
     theirs = json.loads((out / "paper-settings" / "04-success-rate" / "summary.json").read_text())
     assert theirs["runs"][0]["gain"] == 1 and theirs["runs"][0]["weights"]["w_control"] == 0.5
     assert "with the paper's learner settings" in (out / "results.md").read_text()
+
+
+def test_every_variant_stands_beside_under_its_label(tmp_path):
+    _write(tmp_path, "03-ropes", "learn", [_run("rope1", s, 2 + s, rope=1) for s in (0, 1)])
+    robot = [_run("rope1", s, 1, rope=1) for s in (0, 1)]
+    _write(tmp_path / "robot-demo", "03-ropes", "learn", robot)
+    _write(tmp_path / "oracle", "03-ropes", "learn", [_run("rope1", 0, 4, rope=1)])
+    text = paper_table(tmp_path, "flyknot paper")
+    head = (
+        "| from the robot demonstration (a command searched in this lab, not the paper's "
+        "protocol): trials | knots in repeats | the oracle learner (the lab's own Jacobian, a "
+        "measuring stick): trials | knots in repeats |"
+    )
+    assert head in text
+    row = "| rope1 | 1 | robot | critical | 2.5 (2-3), 2 of 2 seeds tied | - | "
+    assert row + "1 (1-1), 2 of 2 seeds tied | - | 4 (4), 1 of 1 seed tied | - |" in text
+    assert "with the paper's learner settings" not in text.split("## ")[1]  # not run: no column
+
+
+def test_a_variant_runs_with_its_options_into_its_directory(tmp_path, monkeypatch):
+    import flyknot_app.paper as paper
+
+    seen = {}
+
+    def fake_run(where, seeds, *, workers, resume, overrides, scenarios):
+        seen.update(where=where, overrides=overrides, scenarios=scenarios)
+        _write(where, "03-ropes", "learn", [_run("rope1", 0, 2, rope=1)])
+
+    monkeypatch.setattr(paper, "run_paper", fake_run)
+    _write(tmp_path, "03-ropes", "learn", [_run("rope1", 0, 5, rope=1)])
+    argv = ["paper", "--out", str(tmp_path), "--variant", "robot-demo", "--seeds", "0"]
+    assert main([*argv, "--scenarios", "03-ropes", "05-demos", "--set", "max_trials=3"]) == 0
+    assert seen["where"] == tmp_path / "robot-demo"
+    assert seen["overrides"] == {"demo": "robot", "max_trials": 3}
+    assert seen["scenarios"] == ["03-ropes"]  # 05-demos names its own demonstrations
+
+
+def test_an_unknown_variant_is_one_line(tmp_path, capsys):
+    assert main(["paper", "--out", str(tmp_path), "--variant", "nope", "--table-only"]) == 2
+    err = capsys.readouterr().err
+    assert err == (
+        "flyknot: error: --variant: unknown variant 'nope' (valid choices: paper-settings, "
+        "robot-demo, oracle)\n"
+    )
