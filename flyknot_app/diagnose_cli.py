@@ -3,6 +3,7 @@
     flyknot diagnose floor RUN_DIR [--budget N] [--repeats K]     # a run of `flyknot run`
     flyknot diagnose floor --demo fast --rope 1 [--budget N]      # a demonstration alone
     flyknot diagnose decided DIR ... [--truth]                    # trials' records
+    flyknot diagnose variation RUN_DIR [--trial K] [--plays N]    # a run's command
 
 ``floor``: the reachable floor (:mod:`flyknot_app.floor`) from the run's initial command (or
 the demonstration's initial guess), for the run's rope, lab and demonstration window; written
@@ -12,6 +13,10 @@ diagnosed this way; a run on a real cell is refused in one line.
 
 ``decided``: when the rope states of the trials that tied and of those that did not part
 (:mod:`flyknot_app.decided`), from any records: a real lab's too (markers only).
+
+``variation``: which component of the lab's trial-to-trial variation decides the knot of a
+run's command (:mod:`flyknot_app.variation_split`): by default the command of the run's first
+knot, else of its lowest cost; written to ``RUN_DIR/variation.json`` (or ``--out``).
 """
 
 from __future__ import annotations
@@ -191,8 +196,45 @@ def format_decided(sep, source: str) -> str:
     return "\n".join(lines)
 
 
+def _run_command(run_dir: Path, trial: int | None) -> tuple[int, np.ndarray, float]:
+    """The run's trial ``trial`` (1-based; default its first knot, else its lowest cost) and
+    that trial's command (knots (10, 8), T [s])."""
+    opts = json.loads((run_dir / "result.json").read_text())
+    costs = opts["costs"]
+    if trial is None:
+        tts = opts.get("trials_to_success")
+        trial = int(tts) if tts else int(np.nanargmin(np.asarray(costs, dtype=float))) + 1
+    if not 1 <= trial <= len(costs):
+        raise ConfigError("--trial", f"must be 1..{len(costs)} (the run's trials), got {trial}")
+    return trial, np.load(run_dir / "learning" / f"knots_{trial - 1:04d}.npy"), float(opts["T"])
+
+
+def _cmd_variation(args: argparse.Namespace) -> int:
+    from flyknot_app.cells import cell_spec, sim_lab_params
+    from flyknot_app.variation_split import format_split, lab_play, split_variation
+
+    run_dir = Path(args.run)
+    inputs = _run_inputs(run_dir)
+    if inputs["cell"] != "sim":
+        raise ConfigError(
+            "RUN_DIR",
+            f"only a simulated lab can switch its variation off; this run's cell is "
+            f"{inputs['cell']!r}",
+            ["sim"],
+        )
+    trial, knots, T = _run_command(run_dir, args.trial)
+    lab_params = sim_lab_params(cell_spec("sim", inputs["cell_values"]))
+    split = split_variation(lab_params, lab_play(knots, T), args.plays)
+    out = split.to_json() | {"run": str(run_dir), "trial": trial}
+    path = Path(args.out) if args.out else run_dir / "variation.json"
+    path.write_text(json.dumps(out, indent=2))
+    text = f"trial {trial}'s command, {args.plays} plays per setting:\n" + format_split(split)
+    print(json.dumps(out) if args.json else text + f"\nwritten to {path}")
+    return 0
+
+
 def add_diagnose_parser(sub: argparse._SubParsersAction) -> None:
-    """``flyknot diagnose floor`` and ``flyknot diagnose decided``."""
+    """``flyknot diagnose floor``, ``decided`` and ``variation``."""
     d = sub.add_parser("diagnose", help="the learner's measuring sticks (simulated lab)")
     dsub = d.add_subparsers(dest="action", required=True, metavar="ACTION")
     f = dsub.add_parser(
@@ -223,3 +265,14 @@ def add_diagnose_parser(sub: argparse._SubParsersAction) -> None:
     k.add_argument("--out", help="write the result as JSON")
     k.add_argument("--json", action="store_true", help="print JSON")
     k.set_defaults(func=_cmd_decided)
+    v = dsub.add_parser(
+        "variation", help="which part of the lab's variation decides a command's knot"
+    )
+    v.add_argument("run", metavar="RUN_DIR", help="a run directory (OUT/runs/NAME)")
+    v.add_argument(
+        "--trial", type=int, help="its trial (default: the first knot, else lowest cost)"
+    )
+    v.add_argument("--plays", type=int, default=12, help="varied plays per setting (default 12)")
+    v.add_argument("--out", help="the result's JSON file (default RUN_DIR/variation.json)")
+    v.add_argument("--json", action="store_true", help="print JSON")
+    v.set_defaults(func=_cmd_variation)

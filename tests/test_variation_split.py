@@ -1,0 +1,113 @@
+"""Which part of the lab's variation decides a command's knot (flyknot_app.variation_split)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from flyknot.errors import ConfigError
+from flyknot_app.variation_split import alone, format_split, split_variation
+from flyknot_sim.lab_params import LabParams, VariationParams
+
+
+def _fake_play(lab_params) -> str:
+    """Ties unless the start delay is on and the seed is odd (a knife edge in timing)."""
+    delayed = lab_params.variation.start_delay_max_s > 0.0
+    return "unknot" if delayed and lab_params.seed % 2 else "knot"
+
+
+def test_each_component_alone_and_the_split_it_makes():
+    v = VariationParams()
+    only = alone(v, "servo_gain_rel")
+    assert only == VariationParams(0.0, v.servo_gain_rel, 0.0, False)
+    split = split_variation(LabParams(), _fake_play, 4, seeds=[1, 2, 3, 4])
+    assert list(split.classes) == [
+        "none",
+        "rest_start",
+        "servo_gain_rel",
+        "start_delay_max_s",
+        "all",
+    ]
+    assert split.classes["none"] == ("knot",)  # one play: without variation every play is one
+    assert split.knots("rest_start") == 4 and split.knots("servo_gain_rel") == 4
+    assert split.classes["start_delay_max_s"] == ("unknot", "knot", "unknot", "knot")
+    assert split.knots("all") == 2
+    assert format_split(split).splitlines() == [
+        "no variation: 1 of 1 tied",
+        "rest_start alone: 4 of 4 tied",
+        "servo_gain_rel alone: 4 of 4 tied",
+        "start_delay_max_s alone: 2 of 4 tied (misses: unknot)",
+        "all: 2 of 4 tied (misses: unknot)",
+    ]
+    assert json.loads(json.dumps(split.to_json()))["knots"]["all"] == 2
+
+
+def test_a_component_the_lab_does_not_vary_is_left_out():
+    lab = LabParams(variation=VariationParams(sway_deg=2.0, servo_gain_rel=0.0))
+    split = split_variation(lab, _fake_play, 2)
+    assert "sway_deg" in split.classes and "servo_gain_rel" not in split.classes
+    assert split.seeds == (1000, 1001)
+
+
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        (lambda: alone(VariationParams(), "wind"), "component: unknown variation component 'wind'"),
+        (lambda: split_variation(LabParams(), _fake_play, 0), "--plays: must be an integer >= 1"),
+        (lambda: split_variation(LabParams(), _fake_play, 2, seeds=[1]), "seeds: must be 2 seeds"),
+    ],
+)
+def test_bad_arguments_name_the_field(call, message):
+    with pytest.raises(ConfigError) as e:
+        call()
+    assert str(e.value).startswith(message)
+
+
+def _run_dir(tmp_path, cell="sim", tts=2):
+    run = tmp_path / "run"
+    (run / "learning").mkdir(parents=True)
+    for k in range(3):
+        np.save(run / "learning" / f"knots_{k:04d}.npy", np.full((10, 8), float(k)))
+    result = {
+        "demo": "fast-paced", "follow_through_s": 0.25, "path_frac": 0.0, "cell": cell,
+        "rope": 1, "seed": 0, "costs": [3.0, 0.5, 0.9], "trials_to_success": tts, "T": 1.0,
+    }  # fmt: skip
+    (run / "result.json").write_text(json.dumps(result))
+    return run
+
+
+def test_cli_plays_the_first_knots_command(tmp_path, capsys, monkeypatch):
+    import flyknot_app.variation_split as vs
+    from flyknot_app.cli import main
+
+    seen = []
+
+    def fake_lab_play(knots, T):
+        seen.append((float(knots[0, 0]), T))
+        return _fake_play
+
+    monkeypatch.setattr(vs, "lab_play", fake_lab_play)
+    run = _run_dir(tmp_path)
+    assert main(["diagnose", "variation", str(run), "--plays", "2"]) == 0
+    assert seen == [(1.0, 1.0)]  # trial 2's command: knots_0001
+    out = capsys.readouterr().out
+    assert out.startswith("trial 2's command, 2 plays per setting:\nno variation: 1 of 1 tied")
+    assert json.loads((run / "variation.json").read_text())["trial"] == 2
+    run = _run_dir(tmp_path / "b", tts=None)
+    assert main(["diagnose", "variation", str(run), "--plays", "1", "--json"]) == 0
+    assert seen[-1] == (1.0, 1.0)  # no knot: the lowest cost, trial 2
+
+
+def test_cli_refuses_a_real_cell_and_a_bad_trial(tmp_path, capsys):
+    from flyknot_app.cli import main
+
+    assert main(["diagnose", "variation", str(_run_dir(tmp_path, cell="xarm"))]) == 2
+    err = capsys.readouterr().err
+    assert err == (
+        "flyknot: error: RUN_DIR: only a simulated lab can switch its variation off; this run's "
+        "cell is 'xarm' (valid choices: sim)\n"
+    )
+    assert main(["diagnose", "variation", str(_run_dir(tmp_path / "b")), "--trial", "9"]) == 2
+    assert "--trial: must be 1..3 (the run's trials), got 9" in capsys.readouterr().err
