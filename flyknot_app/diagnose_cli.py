@@ -113,7 +113,9 @@ def _cmd_floor(args: argparse.Namespace) -> int:
         )
     finally:
         bar.close()
-    out = res.to_json() | {"demo": inputs["demo"], "rope": spec.rope, "t_c": target.t_c}
+    out = res.to_json() | {
+        "demo": inputs["demo"], "rope": spec.rope, "t_c": target.t_c, "T": target.T
+    }  # fmt: skip
     if args.repeats:
         out["repeats"] = _repeat_classes(lab_params, res.knots, target.T, args.repeats)
     inputs["out"].parent.mkdir(parents=True, exist_ok=True)
@@ -213,6 +215,10 @@ def _cmd_variation(args: argparse.Namespace) -> int:
     from flyknot_app.cells import cell_spec, sim_lab_params
     from flyknot_app.variation_split import format_split, lab_play, split_variation
 
+    if (args.run is None) == (args.floor is None):
+        raise ConfigError("RUN_DIR", "give a run directory or --floor, not both or neither")
+    if args.floor:
+        return _variation_of_floor(args)
     run_dir = Path(args.run)
     inputs = _run_inputs(run_dir)
     if inputs["cell"] != "sim":
@@ -230,6 +236,24 @@ def _cmd_variation(args: argparse.Namespace) -> int:
     path.write_text(json.dumps(out, indent=2))
     text = f"trial {trial}'s command, {args.plays} plays per setting:\n" + format_split(split)
     print(json.dumps(out) if args.json else text + f"\nwritten to {path}")
+    return 0
+
+
+def _variation_of_floor(args: argparse.Namespace) -> int:
+    """``diagnose variation --floor F.json``: the floor's command on its rope."""
+    from flyknot_app.cells import cell_spec, sim_lab_params
+    from flyknot_app.variation_split import format_split, lab_play, split_variation
+
+    doc = json.loads(Path(args.floor).read_text())
+    if "knots" not in doc or "T" not in doc:
+        raise ConfigError("--floor", f"{args.floor!r} is not a result of `flyknot diagnose floor`")
+    lab_params = sim_lab_params(cell_spec("sim", {"rope": doc["rope"], "seed": 0}))
+    split = split_variation(lab_params, lab_play(np.asarray(doc["knots"]), doc["T"]), args.plays)
+    out = split.to_json() | {"floor": str(args.floor)}
+    if args.out:
+        Path(args.out).write_text(json.dumps(out, indent=2))
+    text = f"the floor's command, {args.plays} plays per setting:\n" + format_split(split)
+    print(json.dumps(out) if args.json else text)
     return 0
 
 
@@ -268,7 +292,8 @@ def add_diagnose_parser(sub: argparse._SubParsersAction) -> None:
     v = dsub.add_parser(
         "variation", help="which part of the lab's variation decides a command's knot"
     )
-    v.add_argument("run", metavar="RUN_DIR", help="a run directory (OUT/runs/NAME)")
+    v.add_argument("run", nargs="?", metavar="RUN_DIR", help="a run directory (OUT/runs/NAME)")
+    v.add_argument("--floor", help="a result of `flyknot diagnose floor` instead of a run")
     v.add_argument(
         "--trial", type=int, help="its trial (default: the first knot, else lowest cost)"
     )

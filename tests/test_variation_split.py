@@ -111,3 +111,25 @@ def test_cli_refuses_a_real_cell_and_a_bad_trial(tmp_path, capsys):
     )
     assert main(["diagnose", "variation", str(_run_dir(tmp_path / "b")), "--trial", "9"]) == 2
     assert "--trial: must be 1..3 (the run's trials), got 9" in capsys.readouterr().err
+
+
+def test_cli_plays_a_floors_command(tmp_path, capsys, monkeypatch):
+    import flyknot_app.variation_split as vs
+    from flyknot_app.cli import main
+
+    seen = []
+    monkeypatch.setattr(vs, "lab_play", lambda knots, T: seen.append(T) or _fake_play)
+    floor = tmp_path / "floor.json"
+    floor.write_text(json.dumps({"knots": np.zeros((10, 8)).tolist(), "T": 1.044, "rope": 1}))
+    out = tmp_path / "split.json"
+    assert (
+        main(["diagnose", "variation", "--floor", str(floor), "--plays", "2", "--out", str(out)])
+        == 0
+    )
+    assert seen == [1.044] and json.loads(out.read_text())["knots"]["all"] == 1
+    assert capsys.readouterr().out.startswith("the floor's command, 2 plays per setting:\n")
+    floor.write_text("{}")
+    assert main(["diagnose", "variation", "--floor", str(floor)]) == 2
+    assert "is not a result of `flyknot diagnose floor`" in capsys.readouterr().err
+    assert main(["diagnose", "variation"]) == 2
+    assert "give a run directory or --floor, not both or neither" in capsys.readouterr().err
