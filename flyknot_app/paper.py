@@ -80,6 +80,7 @@ def variant_kind(name: object) -> Variant:
         raise ConfigError("--variant", f"unknown variant {name!r}", list(VARIANTS))
     return VARIANTS[name]
 
+
 _SEED_SUFFIX = re.compile(r"-seed\d+$")
 
 
@@ -242,6 +243,52 @@ def _transfer_section(summary: ScenarioSummary) -> list[str]:
     return [*lines, ""]
 
 
+BASELINES_DIR = "baselines"
+"""Where the table looks for black-box searches from the same start: ``OUT/baselines/<name>``,
+each a ``flyknot baseline NAME --demo ... --seeds ... --out`` directory."""
+
+
+def _rope1(runs) -> tuple[list[int], int]:
+    """A :class:`flyknot_app.compare.RunSet`'s rope-1 runs: their trials until the first knot
+    (a run that did not tie: its trials + 1) and how many tied."""
+    pick = [i for i, (rope, _) in enumerate(runs.keys) if rope in (1, "1", None)]
+    return [runs.trials[i] for i in pick], sum(runs.trials_to_success[i] is not None for i in pick)
+
+
+def _baselines_section(out: Path) -> list[str]:
+    """ILC's rope-1 runs (``03-ropes``) beside each black-box search in ``OUT/baselines``:
+    the trials until the first knot, median with a run that did not tie counted as its
+    budget + 1, and that median's ratio to ILC's."""
+    from flyknot_app.compare import load_runset
+
+    found = sorted(d for d in (out / BASELINES_DIR).glob("*") if (d / "baseline.json").is_file())
+    if not found or not (out / "03-ropes" / "summary.json").is_file():
+        return []
+    ilc, ilc_tied = _rope1(load_runset(out / "03-ropes"))
+    rows = [("ILC (`03-ropes`)", ilc, ilc_tied)]
+    for d in found:
+        rs = load_runset(d)
+        rows.append((f"{rs.kind} (`{d.name}`)", *_rope1(rs)))
+    lines = [
+        "## Baselines from the same start (rope 1)",
+        "",
+        "Black-box searches over the same command from the same initial command, lab seeds and "
+        "budget (`flyknot baseline NAME --demo DEMO --budget 10 --seeds ... --out "
+        f"OUT/{BASELINES_DIR}/NAME`), beside ILC's rope-1 runs of `03-ropes`. A seed without a "
+        "knot counts as its budget + 1.",
+        "",
+        "| learner | seeds tied | median trials until the first knot | median / ILC's |",
+        "|---|---|---|---|",
+    ]
+    for label, trials, tied in rows:
+        if not trials:
+            continue
+        med = statistics.median(trials)
+        ratio = f"{med / statistics.median(ilc):.2g}" if ilc else "-"
+        lines.append(f"| {label} | {tied} of {len(trials)} | {med:g} | {ratio} |")
+    return [*lines, ""]
+
+
 def paper_table(out: str | Path, command: str) -> str:
     """The results document of a ``flyknot paper`` directory (module docstring).
 
@@ -274,6 +321,7 @@ def paper_table(out: str | Path, command: str) -> str:
         sections += _runs_section(name, summary, beside)
         if summary.kind == "transfer":
             sections += _transfer_section(summary)
+    sections += _baselines_section(out)
     head = [
         "# Results",
         "",

@@ -148,3 +148,27 @@ def test_an_unknown_variant_is_one_line(tmp_path, capsys):
         "flyknot: error: --variant: unknown variant 'nope' (valid choices: paper-settings, "
         "robot-demo, oracle)\n"
     )
+
+
+def test_the_baselines_stand_beside_ilc_on_rope_1(tmp_path):
+    ilc = [_run("rope1", 0, 2, rope=1), _run("rope1", 1, 4, rope=1), _run("rope1", 2, None, rope=1)]
+    ilc.append(_run("rope2", 0, 3, rope=2))  # another rope: not in the comparison
+    _write(tmp_path, "03-ropes", "learn", ilc)
+    for name, tts in (("cma", [None, None, 9]), ("random", [None, None, None])):
+        d = tmp_path / "baselines" / name
+        d.mkdir(parents=True)
+        runs = [
+            {"name": name, "seed": s, "costs": [1.0] * (t or 10), "trials_to_success": t}
+            for s, t in enumerate(tts)
+        ]
+        (d / "baseline.json").write_text(json.dumps({"rope": 1, "runs": runs}))
+    text = paper_table(tmp_path, "flyknot paper")
+    assert "## Baselines from the same start (rope 1)" in text
+    assert "| ILC (`03-ropes`) | 2 of 3 | 4 | 1 |" in text  # 2, 4, 11 (no knot in 10)
+    assert "| cma (`cma`) | 1 of 3 | 11 | 2.8 |" in text  # 11, 11, 9
+    assert "| random (`random`) | 0 of 3 | 11 | 2.8 |" in text
+
+
+def test_no_baselines_no_section(tmp_path):
+    _write(tmp_path, "03-ropes", "learn", [_run("rope1", 0, 2, rope=1)])
+    assert "Baselines" not in paper_table(tmp_path, "flyknot paper")
