@@ -151,7 +151,8 @@ def test_an_oracle_run_updates_with_the_lab_s_jacobian(egl, tmp_path):
     out = tmp_path / "run"
     proc = subprocess.run(
         [sys.executable, "-m", "flyknot_app", "run", "quick", "--set", "jacobian=oracle",
-         "--set", "max_trials=1", "--out", str(out)],
+         "--set", "max_trials=1", "--set", "step=gain", "--set", "gain=0.5",
+         "--set", "weights.w_control=5", "--out", str(out)],
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
@@ -181,9 +182,11 @@ learning = Path(sys.argv[1])
 knots0, knots1 = np.load(learning / "knots_0000.npy"), np.load(learning / "knots_0001.npy")
 record = TrialRecord.load(learning / "trial_0000_a0")
 rope_model = RopeModelParams(stiffness=2.0, damping=0.0)
-_, target = prepare_target("robot", rope_model.dt, (0.25, 0.0))
+_, target = prepare_target("fast-paced", rope_model.dt, (0.25, 0.0))
 M = oracle_provider("sim", SimCellSpec(rope=1, settle_s=0.5), target.t_c)(knots0, target.T)
-settings = UpdateSettings(weights=InverseModelWeights(w_control=5.0), jacobian="oracle")
+settings = UpdateSettings(
+    weights=InverseModelWeights(w_control=5.0), jacobian="oracle", follow_through=False
+)
 command = BezierCommand(knots0, target.T)
 res = ilc_update(record, command, target, RobotModel.from_mjcf(), rope_model, settings, jacobian=M)
 print(float(np.abs(knots1 - (knots0 - 0.5 * np.asarray(res.dkappa))).max()))

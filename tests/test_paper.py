@@ -94,7 +94,7 @@ def test_one_scenario_over_two_seeds_then_resumed(egl, tmp_path, capsys):
     text = (tmp_path / "results.md").read_text()
     assert text == (out / "results.md").read_text()
     assert (
-        "| rope1 | 1 | robot | critical |" in text and "(2 seeds)" in text
+        "| rope1 | 1 | fast-paced | critical |" in text and "(2 seeds)" in text
     ) or "seeds tied" in text
     assert main(argv) == 2  # the runs are there: --resume or another --out
     assert "use --resume" in capsys.readouterr().err
