@@ -22,13 +22,14 @@ Everything is written to the run directory as it happens (see
 losing or repeating a trial.
 
 :func:`learn` is the algorithm above line by line; one step (assess a trial, decide the next
-command, the stop rules) is :mod:`learner.ilc_step`, the options :mod:`learner.ilc_params`.
+command) is :mod:`learner.ilc_step`, the rules it decides by :mod:`learner.stops` (a resumed run
+replays its ledger through the same rules), the options :mod:`learner.ilc_params`.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -41,7 +42,6 @@ from flyknot.record import Cell, TrialRecord
 from learner.bezier import BezierCommand
 from learner.ilc_params import ILCParams, parse_confirm
 from learner.ilc_step import (
-    DAMPED_ACTIONS,
     UPDATE_FAILED,
     Context,
     LoopState,
@@ -53,6 +53,7 @@ from learner.ilc_step import (
 from learner.jacobians import JacobianProvider
 from learner.kinematics import RobotModel
 from learner.run_directory import RunDirectory, TrialSummary, written_record
+from learner.stops import RETRY, Trial
 from learner.target import DemoTarget
 
 __all__ = [
@@ -128,10 +129,10 @@ def learn(
         knots, and why the loop stopped.
     """
     rd = RunDirectory(run_dir) if run_dir is not None else None
+    ctx = Context(target, robot, params, limits, judge, jacobian)
     state = LoopState.initial(knots0, params)
     if rd is not None:
-        state = _open_run(rd, state, cell, params, resume)
-    ctx = Context(target, robot, params, limits, judge, jacobian)
+        state = _open_run(rd, state, cell, ctx, resume)
     if resume and rd is not None and state.secant is not None:
         _relearn_secant(rd, state, ctx)
     while state.stop is None and state.k < params.trials:
@@ -140,7 +141,7 @@ def learn(
         for attempt in state.attempts(params):
             t0 = time.perf_counter()
             record = _play(cell, joint_cmd, rd, state.k, attempt, resume)  # the trial
-            w_control = state.w_control(params)  # the damped step's lambda, or None
+            w_control = state.w_control()  # the damped step's lambda, or None
             correct = state.correct(state.knots)  # the secant Jacobian's, or None
             summary, update = assess(
                 record, command, ctx, state.k, attempt, w_control=w_control, correct=correct
@@ -155,14 +156,14 @@ def learn(
 
 
 def _open_run(
-    rd: RunDirectory, state: LoopState, cell: Cell, params: ILCParams, resume: bool
+    rd: RunDirectory, state: LoopState, cell: Cell, ctx: Context, resume: bool
 ) -> LoopState:
     """A new run's directory (kappa_0 on disk), or the state a resumed run left: its ledger
     replayed through the stop rules, the cell's trial index continued."""
     if not resume and rd.ledger():
         raise ConfigError("run_dir", f"{str(rd.path)!r} already holds a run; use resume")
     if resume:
-        state = _restore(rd, state, params)
+        state = _restore(rd, state, ctx)
         if state.stop is not None:
             return state
         if hasattr(cell, "trial_index"):
@@ -174,42 +175,75 @@ def _open_run(
     return state
 
 
-def _restore(rd: RunDirectory, state: LoopState, params: ILCParams) -> LoopState:
-    """The loop's state after the ledger's counted trials (the stop rules' memory as the
-    loop left it), stopped when the ledger ends on a stop."""
-    state.trials = rd.ledger()
-    done = _counted(tuple(state.trials))
-    for s in done:  # the confirmation, safeguard and averaging states, as the loop left them
-        if s.average is not None and s.average < params.average:
-            state.group.append(TrialRecord.load(rd.record_stem(s.trial, s.attempt)))
-        else:
-            state.group.clear()
-        state.conf.observe(s.success)
-        if params.safeguard:
-            saved = rd.load_update(s.trial)
-            dkappa = None if saved is None else np.asarray(saved["dkappa"])
-            state.guard.observe(s, dkappa, rd.load_knots(s.trial))
-        damped = params.step == "damped" and s.action.startswith(DAMPED_ACTIONS)
-        if damped and state.damping.observe(s.cost, s.trial):
-            stem = rd.record_stem(s.trial, s.attempt)
-            state.best = (rd.load_knots(s.trial), TrialRecord.load(stem))
-        if state.conf.outcome != "confirmed":
-            state.conf.reset_if_failed()
-    if not done:
-        return state
-    last = done[-1]
-    if state.conf.outcome == "confirmed":
-        state.knots, state.stop = rd.load_knots(last.trial), "confirmed"
-        return state
-    if params.confirm is None and last.success and params.stop_at_success:
-        if rd.knots_path(last.trial).is_file():
-            state.knots = rd.load_knots(last.trial)
-        state.stop = "success"
-        return state
-    state.k = last.trial + 1
-    if not rd.knots_path(state.k).is_file():
-        raise ConfigError("run_dir", f"{str(rd.path)!r}: the knots of trial {state.k} are missing")
-    state.knots, state.prev_knots = rd.load_knots(state.k), rd.load_knots(state.k - 1)
+class WrittenTrial(Trial):
+    """A ledger line as the stop rules see it when a resumed run replays it: its record and
+    update read from the run directory (the loop's :class:`learner.ilc_step.PlayedTrial`
+    had them in hand)."""
+
+    def __init__(self, line: TrialSummary, state: LoopState, rd: RunDirectory, ctx: Context):
+        super().__init__(line, state.knots, state.prev_knots)
+        self._line, self._rd, self._ctx = line, rd, ctx
+        self._record: TrialRecord | None = None
+
+    def record(self) -> TrialRecord:
+        """The trial's record, read once."""
+        if self._record is None:
+            self._record = TrialRecord.load(
+                self._rd.record_stem(self._line.trial, self._line.attempt)
+            )
+        return self._record
+
+    def own_update(self) -> tuple[bool | None, np.ndarray | None]:
+        """The update written after the trial; the last play of an averaging group wrote the
+        update on the group's mean error, so its own is computed again from its record."""
+        line, plays = self._line, self._ctx.params.average
+        if plays > 1 and line.average == plays:
+            command = BezierCommand(self.knots, self._ctx.target.T)
+            own, update = assess(
+                self.record(), command, self._ctx, line.trial, line.attempt, judged=False
+            )
+            return own.update_solved, None if update is None else update.dkappa
+        saved = self._rd.load_update(line.trial)
+        return line.update_solved, None if saved is None else np.asarray(saved["dkappa"])
+
+    def average_over(self, group: Sequence[Trial]) -> bool | None:
+        """The line holds the update on the group's mean error already."""
+        return self._line.update_solved
+
+
+def _restore(rd: RunDirectory, state: LoopState, ctx: Context) -> LoopState:
+    """The loop's state after the ledger: every line replayed through the run's stop rules
+    (the loop's own, :meth:`learner.stops.StopRules.verdict`), the commands read from the
+    run directory; stopped when the ledger ends on a stop.
+
+    Raises:
+        ConfigError: A line does not follow the rules (another trial, or after a stop), or
+            the knots of the next trial are missing.
+    """
+    lines = rd.ledger()
+    if lines and rd.knots_path(0).is_file():
+        state.knots = rd.load_knots(0)  # what trial 0 played
+    for n, line in enumerate(lines, start=1):
+        if state.stop is not None or line.trial != state.k:
+            where = f"after a stop ({state.stop})" if state.stop else f"at trial {state.k}"
+            raise ConfigError(
+                "run_dir",
+                f"{str(rd.path)!r}: ledger line {n} (trial {line.trial}) does not follow the "
+                f"run's rules: the loop was {where}",
+            )
+        ruling = state.rules.verdict(WrittenTrial(line, state, rd, ctx))
+        state.trials.append(line)
+        if ruling.kind == RETRY:
+            continue
+        if ruling.stop is not None:
+            state.stop = ruling.stop
+            continue
+        state.k += 1
+        if not rd.knots_path(state.k).is_file():
+            raise ConfigError(
+                "run_dir", f"{str(rd.path)!r}: the knots of trial {state.k} are missing"
+            )
+        state.prev_knots, state.knots = state.knots, rd.load_knots(state.k)
     return state
 
 

@@ -3,14 +3,15 @@
 :func:`assess` turns a trial's record into its ledger line and the update (the critical-point
 error, the inverse-model QP: :func:`learner.update.ilc_update`). :func:`decide` takes that
 and the loop's state and returns the :class:`Step`: the line as written, the next command or
-why the loop stops. The stop rules' memory (:class:`Confirmation`, :class:`Safeguard`, the
-plays being averaged) lives in :class:`LoopState`; a resumed run rebuilds it by replaying its
-ledger through the same rules (:mod:`learner.ilc`).
+why the loop stops. The stop rules (:mod:`learner.stops`) rule on every attempt; their memory
+lives in :class:`LoopState`, and a resumed run rebuilds it by replaying its ledger through the
+same rules (:mod:`learner.ilc`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from functools import partial
 
 import numpy as np
@@ -31,12 +32,10 @@ from learner.jacobians import (
 from learner.kinematics import RobotModel
 from learner.limit_rows import sampled_violation
 from learner.run_directory import TrialSummary
-from learner.steps import Damping
+from learner.stops import REPLAY, RETRY, STEP, StopRules, Trial
 from learner.target import DemoTarget
 from learner.update import UpdateResult, ilc_update
 
-DAMPED_ACTIONS = ("update (damped", "cost rose: from the best command")
-"""How a ledger line the damped step took begins (a resumed run feeds the rule those)."""
 UPDATE_FAILED = "update failed"
 """The start of a ledger line's ``update_status`` when the update raised (the learner's model
 failed on the trial's measured motion): the trial counts, its command is played again."""
@@ -51,73 +50,6 @@ def critical_cost(err: np.ndarray, weights: InverseModelWeights) -> float:
     )
 
 
-class Safeguard:
-    """The safeguarded update's state: the best measured trial and the rejections since."""
-
-    def __init__(self, on: bool):
-        self.on = on
-        self.best: tuple[float, np.ndarray, np.ndarray] | None = None
-        self.rejects = 0
-
-    def observe(
-        self, summary: TrialSummary, dkappa: np.ndarray | None, knots: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray] | None:
-        """Take a counted trial; return (best knots, shrunk best dkappa) when its cost rose
-        above the best's, else None (and it may be the new best)."""
-        if not self.on or summary.cost is None or not summary.update_solved or dkappa is None:
-            return None
-        if self.best is None or summary.cost <= self.best[0]:
-            self.best = (summary.cost, np.array(knots, dtype=float), np.asarray(dkappa))
-            self.rejects = 0
-            return None
-        self.rejects += 1
-        _, best_knots, best_dk = self.best
-        return best_knots, best_dk * 0.5**self.rejects
-
-
-class Confirmation:
-    """The confirmed-success rule's state: the outcomes of the current command's repeats."""
-
-    def __init__(self, rule: tuple[int, int] | None):
-        self.rule = rule
-        self.streak: list[bool] = []
-
-    @property
-    def active(self) -> bool:
-        """A confirmation is under way (started, not yet decided)."""
-        return bool(self.streak) and self.outcome is None
-
-    @property
-    def outcome(self) -> str | None:
-        """``"confirmed"``, ``"failed"`` (k can no longer be reached, or n ran short) or None."""
-        if not self.streak or self.rule is None:
-            return None
-        k, n = self.rule
-        ties = sum(self.streak)
-        if ties >= k:
-            return "confirmed"
-        if ties + (n - len(self.streak)) < k:
-            return "failed"
-        return None
-
-    def observe(self, success: bool) -> int | None:
-        """Take a counted trial; return its position in the confirmation (None: not in one)."""
-        if self.rule is None:
-            return None
-        if self.active:
-            self.streak.append(bool(success))
-            return len(self.streak)
-        if success:
-            self.streak = [True]
-            return 1
-        return None
-
-    def reset_if_failed(self) -> None:
-        """Forget a confirmation that can no longer succeed."""
-        if self.outcome == "failed":
-            self.streak = []
-
-
 @dataclass
 class LoopState:
     """Algorithm 1's state between trials.
@@ -127,11 +59,8 @@ class LoopState:
         knots: kappa_k, the command of trial k, (10, 8).
         prev_knots: kappa_{k-1}, or None before the first update.
         trials: Every attempt's ledger line so far.
-        conf: The confirmed-success rule's memory.
-        guard: The safeguard's memory.
-        damping: The damped step's memory (``step = "damped"``).
-        group: Earlier plays of the current command (averaging).
-        best: The damped step's best trial: (its knots, its record), or None.
+        rules: The stop rules and their memories (:class:`learner.stops.StopRules`: the
+            confirmation, the safeguard, the plays being averaged, the damped step's).
         secant: The secant Jacobian's memory (``jacobian = "secant"``), or None.
         stop: Why the loop stops, once it does.
     """
@@ -140,11 +69,7 @@ class LoopState:
     knots: np.ndarray
     prev_knots: np.ndarray | None
     trials: list[TrialSummary]
-    conf: Confirmation
-    guard: Safeguard
-    damping: Damping
-    group: list[TrialRecord] = field(default_factory=list)
-    best: tuple[np.ndarray, TrialRecord] | None = None
+    rules: StopRules
     secant: SecantCorrection | None = None
     stop: str | None = None
 
@@ -153,16 +78,8 @@ class LoopState:
         """Before the first trial: kappa_0 and empty memories."""
         knots = np.asarray(knots0, dtype=float)
         learns = jacobian_kind(params.update.jacobian).learns
-        return cls(
-            0,
-            knots,
-            None,
-            [],
-            Confirmation(params.confirm),
-            Safeguard(params.safeguard),
-            Damping(params.damping),
-            secant=SecantCorrection() if learns else None,
-        )
+        secant = SecantCorrection() if learns else None
+        return cls(0, knots, None, [], StopRules(params), secant=secant)
 
     def correct(self, knots: np.ndarray, *, learn: bool = True):
         """The model-Jacobian correction of an update about ``knots`` (the secant source's,
@@ -171,10 +88,10 @@ class LoopState:
             return None
         return partial(self.secant.corrected, knots, learn=learn)
 
-    def w_control(self, params: ILCParams) -> float | None:
+    def w_control(self) -> float | None:
         """The QP's control weight of the next update: the damped step's lambda, or None
         (the run's own weights)."""
-        return self.damping.lam if params.step == "damped" else None
+        return self.rules.w_control()
 
     def attempts(self, params: ILCParams) -> list[int]:
         """The attempts of trial k still to play (a resumed run skips the ledger's)."""
@@ -222,6 +139,69 @@ class Context:
     jacobian: JacobianProvider | None = None
 
 
+class PlayedTrial(Trial):
+    """The attempt the loop just played, as its rules see it: record and update in hand."""
+
+    def __init__(
+        self,
+        state: LoopState,
+        summary: TrialSummary,
+        update: UpdateResult | None,
+        record: TrialRecord,
+        command: BezierCommand,
+        ctx: Context,
+    ) -> None:
+        super().__init__(summary, state.knots, state.prev_knots)
+        self.update = update
+        self._record, self._command, self._ctx = record, command, ctx
+        self._own = (summary.update_solved, None if update is None else update.dkappa)
+
+    def record(self) -> TrialRecord:
+        """What the trial measured."""
+        return self._record
+
+    def own_update(self) -> tuple[bool | None, np.ndarray | None]:
+        """(solved, dkappa) of the update assessed from this play alone."""
+        return self._own
+
+    def average_over(self, group: Sequence[Trial]) -> bool | None:
+        """The update on the mean error of this play and ``group``'s, taken as its update."""
+        extra = tuple(t.record() for t in group)
+        s = self.summary
+        _, self.update = assess(self._record, self._command, self._ctx, s.trial, s.attempt, extra)
+        return None if self.update is None else self.update.solved
+
+
+@dataclass(frozen=True)
+class LoopMoves:
+    """The loop's :class:`learner.stops.Moves`: steps and updates against its context."""
+
+    state: LoopState
+    ctx: Context
+
+    def step(self, knots: np.ndarray, dkappa: np.ndarray) -> np.ndarray:
+        """kappa - gain dkappa from ``knots``, limit-safe (:func:`safe_step`)."""
+        p, ctx = self.ctx.params, self.ctx
+        dk = p.gain * np.asarray(dkappa)
+        return safe_step(knots, dk, ctx.target.T, ctx.robot, ctx.limits, p.step_halvings)
+
+    def update_about(self, trial: Trial, w_control: float) -> UpdateResult | None:
+        """The update about ``trial``'s record and command again at control weight
+        ``w_control`` (already judged; the secant source's correction without learning)."""
+        command = BezierCommand(trial.knots, self.ctx.target.T)
+        _, update = assess(
+            trial.record(),
+            command,
+            self.ctx,
+            trial.summary.trial,
+            0,
+            w_control=w_control,
+            judged=False,
+            correct=self.state.correct(trial.knots, learn=False),
+        )
+        return update
+
+
 def decide(
     state: LoopState,
     summary: TrialSummary,
@@ -232,116 +212,21 @@ def decide(
 ) -> Step:
     """The loop's next move after one attempt of trial ``state.k`` (module docstring).
 
-    In order: a tracking loss with retries left repeats the trial; a knot stops the paper's
-    loop; a confirmation in progress replays the command; a safeguard rejection returns to
-    the best command with a shrunk step; an averaging group still filling replays the
-    command; otherwise the update (on the group's mean error when averaging) gives
-    kappa_{k+1} (:func:`next_knots`). Updates the stop rules' memory in ``state``.
+    The run's stop rules (:class:`learner.stops.StopRules`, in order: a tracking loss with
+    retries left repeats the trial; a knot stops the paper's loop; a confirmation in progress
+    replays the command; a safeguard rejection returns to the best command with a shrunk
+    step; an averaging group still filling replays the command, a full one updates on its
+    mean error; the damped or the gain step gives kappa_{k+1}) rule on it and update their
+    memory in ``state``; a step's move computes the new command.
     """
-    params = ctx.params
-    last = (
-        not summary.tracking_lost
-        or summary.success
-        or summary.fault is not None
-        or summary.attempt == params.tracking_retries
-    )
-    if not last:
-        return Step(summary, update, None, None, False)
-    conf, guard, group, knots = state.conf, state.guard, state.group, state.knots
-    back = guard.observe(summary, None if update is None else update.dkappa, knots)
-    position = conf.observe(summary.success)
-    if position is not None:
-        action = f"confirm {position}/{params.confirm[1]}: " + summary.action
-        summary = replace(summary, confirm=position, action=action)
-    if params.confirm is None and summary.success and params.stop_at_success:
-        return Step(summary, update, None, "success", True)
-    if conf.outcome == "confirmed":
-        return Step(summary, update, None, "confirmed", True)
-    if conf.active:
-        return Step(summary, update, knots, None, True)  # the same command, to confirm it
-    conf.reset_if_failed()
-    if back is not None:
-        group.clear()
-        action = f"cost rose: back to the best command, step x0.5^{guard.rejects}"
-        dk = params.gain * back[1]
-        new = safe_step(back[0], dk, ctx.target.T, ctx.robot, ctx.limits, params.step_halvings)
-        return Step(replace(summary, action=action), update, new, None, True)
-    measured = summary.fault is None and not summary.tracking_lost
-    if params.average > 1 and len(group) + 1 < params.average and measured:
-        group.append(record)
-        action = f"play {len(group)}/{params.average} of the command"
-        return Step(replace(summary, average=len(group), action=action), update, knots, None, True)
-    if group and measured:  # the update on the mean error of the group's plays
-        n_plays = len(group) + 1
-        _, update = assess(record, command, ctx, state.k, summary.attempt, tuple(group))
-        summary = replace(
-            summary,
-            average=n_plays,
-            update_solved=update.solved if update else None,
-            action=f"update on the mean error of {n_plays} plays",
-        )
-    group.clear()
-    if params.step == "damped" and measured and summary.update_solved:
-        return _damped(state, summary, update, record, ctx)
-    new, stop = next_knots(summary, update, knots, state.prev_knots, ctx)
-    return Step(summary, update, new, stop, True)
-
-
-def _damped(
-    state: LoopState, summary: TrialSummary, update: UpdateResult, record: TrialRecord, ctx
-) -> Step:
-    """The damped step (:mod:`learner.steps`): the full step from a new best trial, else a
-    more damped one from the best trial's command and record."""
-    params, lam_used = ctx.params, state.damping.lam
-    if state.damping.observe(summary.cost, state.k):
-        state.best = (np.array(state.knots), record)
-        base, step = state.knots, update
-        action = f"{DAMPED_ACTIONS[0]}, lambda {lam_used:.3g})"
-    else:
-        base, best_record = state.best
-        best_trial = state.damping.best[1]
-        command = BezierCommand(base, ctx.target.T)
-        _, step = assess(
-            best_record,
-            command,
-            ctx,
-            best_trial,
-            0,
-            w_control=state.damping.lam,
-            judged=False,
-            correct=state.correct(base, learn=False),
-        )
-        action = f"{DAMPED_ACTIONS[1]} (trial {best_trial + 1}), lambda {state.damping.lam:.3g}"
-    if step is None or not step.solved:
-        return Step(replace(summary, action=action + ": QP failed"), update, base, None, True)
-    dk = params.gain * np.asarray(step.dkappa)
-    new = safe_step(base, dk, ctx.target.T, ctx.robot, ctx.limits, params.step_halvings)
-    return Step(replace(summary, action=action), update, new, None, True)
-
-
-def next_knots(
-    summary: TrialSummary,
-    update: UpdateResult | None,
-    knots: np.ndarray,
-    prev_knots: np.ndarray | None,
-    ctx: Context,
-) -> tuple[np.ndarray | None, str | None]:
-    """The next trial's knots after ``summary``, or (None, why the loop stops).
-
-    A fault or lost tracking halves the step back toward the previous command (stops if there
-    is none); a solved update takes kappa - gain dkappa (limit-safe); a failed QP keeps the
-    command.
-    """
-    if summary.fault is not None or summary.tracking_lost:
-        if prev_knots is None:
-            why = "initial command faults" if summary.fault else "tracking lost before t_c"
-            return None, why
-        return prev_knots + 0.5 * (knots - prev_knots), None
-    if summary.update_solved:
-        dk = ctx.params.gain * np.asarray(update.dkappa)
-        halvings = ctx.params.step_halvings
-        return safe_step(knots, dk, ctx.target.T, ctx.robot, ctx.limits, halvings), None
-    return knots, None  # failed QP: command unchanged (reported in the ledger)
+    trial = PlayedTrial(state, summary, update, record, command, ctx)
+    ruling = state.rules.verdict(trial)
+    new = None
+    if ruling.kind == REPLAY:
+        new = state.knots
+    elif ruling.kind == STEP:
+        new = ruling.move(LoopMoves(state, ctx))
+    return Step(trial.summary, trial.update, new, ruling.stop, ruling.kind != RETRY)
 
 
 def safe_step(

@@ -1,0 +1,515 @@
+"""What the ILC loop does after a trial: its stop rules, a registry.
+
+After each attempt the loop (:func:`learner.ilc_step.decide`) asks its rules, in the order of
+:data:`STOPS`, what comes next; the first that rules decides:
+
+* ``"retry"`` (:class:`Retry`): tracking lost before t_c with retries left: the trial again
+  (the attempt does not count).
+* ``"success"`` (:class:`StopAtSuccess`, the paper's): stop at the first knot.
+* ``"confirm"`` (:class:`Confirmation`): a command that ties is played again until k of n of
+  its trials tie (option ``confirm``).
+* ``"safeguard"`` (:class:`Safeguard`): a cost above the best trial's: back to the best
+  command, its own step shrunk (option ``safeguard``).
+* ``"average"`` (:class:`Averaging`): each command played ``average`` times, the update on the
+  mean error of its plays.
+* ``"damped"`` (:class:`DampedStep`): the damped step (:mod:`learner.steps`, ``step``).
+* ``"gain"`` (:class:`GainStep`, the paper's): kappa - gain dkappa; a fault or lost tracking
+  halfway back to the previous command, or stop when there is none.
+
+A :class:`Ruling` says: another attempt (``RETRY``), stop and why (``STOP``), the same command
+again as the next trial (``REPLAY``) or a new command (``STEP``, which its ``move`` computes).
+A rule keeps its own memory (the confirmation's outcomes, the safeguard's best trial, the
+plays being averaged, the damped step's lambda and best trial). The loop and a resumed run
+feed it alike: :mod:`learner.ilc` replays the ledger's lines through the same
+:class:`StopRules`, so a run resumed after any line holds the memory the loop held there. Only
+a step's move (the new command: a QP solve, the limit checks) is the loop's alone; a resumed
+run reads the commands from the run directory.
+
+A rule's hooks, in the order :meth:`StopRules.verdict` calls them (each optional):
+
+    screen(trial) -> Ruling | None    every rule, before any memory (an attempt not counted)
+    observe(trial)                    every rule, every counted trial
+    verdict(trial) -> Ruling | None   in order, until one rules
+    settle(trial, ruling)             every rule, once the ruling is known
+
+Adding a rule is one :class:`StopRule` subclass and one line in :data:`STOPS`, at its place in
+the order.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, is_dataclass, replace
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
+
+import numpy as np
+
+from flyknot.errors import ConfigError
+from flyknot.record import TrialRecord
+from learner.run_directory import TrialSummary
+from learner.steps import Damping
+
+if TYPE_CHECKING:
+    from learner.ilc_params import ILCParams
+    from learner.update import UpdateResult
+
+RETRY, STOP, REPLAY, STEP = "retry", "stop", "replay", "step"
+"""The kinds of :class:`Ruling`."""
+
+
+class Moves(Protocol):
+    """What a step's move may ask of the loop (:mod:`learner.ilc_step` gives it)."""
+
+    def step(self, knots: np.ndarray, dkappa: np.ndarray) -> np.ndarray:
+        """kappa - gain dkappa from ``knots`` (10, 8), halved while it breaks a limit."""
+        ...
+
+    def update_about(self, trial: Trial, w_control: float) -> UpdateResult | None:
+        """The update about ``trial``'s record and command again, with the QP's control
+        weight ``w_control`` (None: the model failed on it)."""
+        ...
+
+
+@dataclass(frozen=True)
+class Ruling:
+    """What a rule says about a trial.
+
+    Attributes:
+        kind: ``RETRY``, ``STOP``, ``REPLAY`` or ``STEP``.
+        rule: The name of the rule that ruled.
+        why: Why the loop stops (``STOP``), else None.
+        move: The new command (``STEP``), from the loop's :class:`Moves`; it may complete the
+            trial's ledger line (e.g. the QP failed). Only the loop calls it.
+    """
+
+    kind: str
+    rule: str
+    why: str | None = None
+    move: Callable[[Moves], np.ndarray] | None = None
+
+    @property
+    def stop(self) -> str | None:
+        """Why the loop stops, or None (it goes on)."""
+        return self.why if self.kind == STOP else None
+
+
+class Trial(ABC):
+    """One attempt as the rules see it: the loop's (just played) or a resumed run's (a line
+    of its ledger).
+
+    Attributes:
+        summary: Its ledger line; the rules complete it (``confirm``, ``average``,
+            ``action``) as the loop writes it.
+        knots: The command it played (10, 8).
+        prev_knots: The command of the trial before, or None (the first trial).
+        update: The update computed from it, which the loop's moves step by (a resumed run
+            never moves: None there).
+    """
+
+    update: UpdateResult | None = None
+
+    def __init__(
+        self, summary: TrialSummary, knots: np.ndarray, prev_knots: np.ndarray | None
+    ) -> None:
+        self.summary = summary
+        self.knots = knots
+        self.prev_knots = prev_knots
+
+    @property
+    def measured(self) -> bool:
+        """The trial measured an error to learn from: no fault, tracking kept to t_c."""
+        return self.summary.fault is None and not self.summary.tracking_lost
+
+    @abstractmethod
+    def record(self) -> TrialRecord:
+        """What the trial measured."""
+
+    @abstractmethod
+    def own_update(self) -> tuple[bool | None, np.ndarray | None]:
+        """(solved, dkappa) of the update computed from this trial alone (not from the
+        mean of an averaging group); dkappa None when there is none."""
+
+    @abstractmethod
+    def average_over(self, group: Sequence[Trial]) -> bool | None:
+        """Take the update on the mean error of this trial and ``group`` (earlier plays of
+        its command) as its update; return whether that QP was solved (None: no update)."""
+
+
+class StopRule:
+    """One rule of the loop and its memory; the hooks do nothing unless overridden."""
+
+    name: ClassVar[str]
+    description: ClassVar[str]
+
+    def __init__(self, params: ILCParams) -> None:
+        pass
+
+    def screen(self, trial: Trial) -> Ruling | None:
+        """Before any memory: a ruling on an attempt that does not count, or None."""
+        return None
+
+    def observe(self, trial: Trial) -> None:
+        """Take a counted trial into the memory (every rule sees every counted trial)."""
+
+    def verdict(self, trial: Trial) -> Ruling | None:
+        """This rule's ruling on the trial, or None (the next rule's turn)."""
+        return None
+
+    def settle(self, trial: Trial, ruling: Ruling) -> None:
+        """Update the memory once the trial's ruling (maybe another rule's) is known."""
+
+    def w_control(self) -> float | None:
+        """The QP's control weight for the next update, or None (the run's own)."""
+        return None
+
+    def memory(self) -> dict[str, Any]:
+        """The memory as plain data (a trial by its (trial, attempt)): its public
+        attributes."""
+        return {k: _plain(v) for k, v in vars(self).items() if not k.startswith("_")}
+
+
+def _plain(v: Any) -> Any:
+    """``v`` as lists, dicts and scalars (a trial as its (trial, attempt))."""
+    if isinstance(v, Trial):
+        return [v.summary.trial, v.summary.attempt]
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, list | tuple):
+        return [_plain(x) for x in v]
+    if isinstance(v, dict):
+        return {k: _plain(x) for k, x in v.items()}
+    if hasattr(v, "__dict__") and not is_dataclass(v):
+        return {k: _plain(x) for k, x in vars(v).items()}
+    return v
+
+
+class Retry(StopRule):
+    """Tracking lost before t_c: the same trial again, at most ``tracking_retries`` times."""
+
+    name = "retry"
+    description = "tracking lost before t_c: the trial again (not counted)"
+
+    def __init__(self, params: ILCParams) -> None:
+        self.retries = params.tracking_retries
+
+    def screen(self, trial: Trial) -> Ruling | None:
+        """Another attempt when tracking was lost, without fault or knot, and retries
+        remain."""
+        s = trial.summary
+        if s.tracking_lost and s.fault is None and not s.success and s.attempt < self.retries:
+            return Ruling(RETRY, self.name)
+        return None
+
+
+class StopAtSuccess(StopRule):
+    """The paper's: stop at the first knot (``stop_at_success``, no ``confirm`` rule)."""
+
+    name = "success"
+    description = "stop at the first knot (the paper's)"
+
+    def __init__(self, params: ILCParams) -> None:
+        self.on = params.stop_at_success and params.confirm is None
+
+    def verdict(self, trial: Trial) -> Ruling | None:
+        """Stop when the trial tied the knot."""
+        return Ruling(STOP, self.name, "success") if self.on and trial.summary.success else None
+
+
+class Confirmation(StopRule):
+    """The confirmed-success rule ``confirm = (k, n)``: a tie is played again until n trials
+    of its command have run; stop when k tie, learn on once k can no longer be reached."""
+
+    name = "confirm"
+    description = "a tie played again until k of n tie (confirm = k/n)"
+
+    def __init__(self, params: ILCParams) -> None:
+        self.k_of_n = params.confirm
+        self.streak: list[bool] = []
+        """The outcomes of the current command's trials since its first tie."""
+
+    @property
+    def active(self) -> bool:
+        """A confirmation is under way (started, not yet decided)."""
+        return bool(self.streak) and self.outcome is None
+
+    @property
+    def outcome(self) -> str | None:
+        """``"confirmed"``, ``"failed"`` (k can no longer be reached, or n ran short) or None."""
+        if not self.streak or self.k_of_n is None:
+            return None
+        k, n = self.k_of_n
+        ties = sum(self.streak)
+        if ties >= k:
+            return "confirmed"
+        if ties + (n - len(self.streak)) < k:
+            return "failed"
+        return None
+
+    def observe(self, trial: Trial) -> None:
+        """A tie starts a confirmation; a trial inside one adds its outcome and its position
+        to the line (``confirm``, the action's prefix)."""
+        if self.k_of_n is None:
+            return
+        s = trial.summary
+        if self.active:
+            self.streak.append(bool(s.success))
+        elif s.success:
+            self.streak = [True]
+        else:
+            return
+        position = len(self.streak)
+        action = f"confirm {position}/{self.k_of_n[1]}: " + s.action
+        trial.summary = replace(s, confirm=position, action=action)
+
+    def verdict(self, trial: Trial) -> Ruling | None:
+        """Stop when confirmed; play the command again while the confirmation runs."""
+        if self.outcome == "confirmed":
+            return Ruling(STOP, self.name, "confirmed")
+        if self.active:
+            return Ruling(REPLAY, self.name)
+        return None
+
+    def settle(self, trial: Trial, ruling: Ruling) -> None:
+        """Forget a confirmation that can no longer succeed."""
+        if self.outcome == "failed":
+            self.streak = []
+
+
+class Safeguard(StopRule):
+    """The safeguarded update (``safeguard``): after a trial that measured a higher cost than
+    the best trial so far, the next command is the best trial's command moved by its own
+    update, shrunk by 1/2 per consecutive rejection."""
+
+    name = "safeguard"
+    description = "a cost above the best trial's: back to the best command, step shrunk"
+
+    def __init__(self, params: ILCParams) -> None:
+        self.on = params.safeguard
+        self.best: tuple[float, np.ndarray, np.ndarray] | None = None
+        """(cost, knots, dkappa) of the best measured trial."""
+        self.rejects = 0
+        self._back: tuple[np.ndarray, np.ndarray] | None = None
+
+    def observe(self, trial: Trial) -> None:
+        """Keep the trial when it is the best so far; count a rejection when its cost rose."""
+        self._back = None
+        s = trial.summary
+        if not self.on or s.cost is None:
+            return
+        solved, dkappa = trial.own_update()
+        if not solved or dkappa is None:
+            return
+        if self.best is None or s.cost <= self.best[0]:
+            self.best = (s.cost, np.array(trial.knots, dtype=float), np.asarray(dkappa))
+            self.rejects = 0
+            return
+        self.rejects += 1
+        self._back = (self.best[1], self.best[2] * 0.5**self.rejects)
+
+    def verdict(self, trial: Trial) -> Ruling | None:
+        """Back to the best command, when the trial's cost rose above the best's."""
+        if self._back is None:
+            return None
+        knots, dkappa = self._back
+        action = f"cost rose: back to the best command, step x0.5^{self.rejects}"
+        trial.summary = replace(trial.summary, action=action)
+        return Ruling(STEP, self.name, move=lambda moves: moves.step(knots, dkappa))
+
+
+class Averaging(StopRule):
+    """``average`` plays of each command; the update on the mean error of the plays."""
+
+    name = "average"
+    description = "each command played `average` times, the update on their mean error"
+
+    def __init__(self, params: ILCParams) -> None:
+        self.plays = params.average
+        self.group: list[Trial] = []
+        """The earlier plays of the current command."""
+
+    def verdict(self, trial: Trial) -> Ruling | None:
+        """Play the command again while the group fills; the last play takes the update on
+        the group's mean error (the next rule steps by it)."""
+        if not trial.measured:
+            return None
+        s = trial.summary
+        if len(self.group) + 1 < self.plays:
+            self.group.append(trial)
+            n = len(self.group)
+            action = f"play {n}/{self.plays} of the command"
+            trial.summary = replace(s, average=n, action=action)
+            return Ruling(REPLAY, self.name)
+        if self.group:
+            n = len(self.group) + 1
+            solved = trial.average_over(self.group)
+            action = f"update on the mean error of {n} plays"
+            trial.summary = replace(s, average=n, update_solved=solved, action=action)
+        return None
+
+    def settle(self, trial: Trial, ruling: Ruling) -> None:
+        """A new command empties the group (a replay or a stop leaves it)."""
+        if ruling.kind == STEP:
+            self.group.clear()
+
+
+class DampedStep(StopRule):
+    """The damped step (``step = "damped"``, :mod:`learner.steps`): the full step from a new
+    best trial, else a more damped one from the best trial's command and record."""
+
+    name = "damped"
+    description = "Levenberg-Marquardt on the measured cost: back to the best when it rose"
+
+    def __init__(self, params: ILCParams) -> None:
+        self.on = params.step == "damped"
+        self.damping = Damping(params.damping)
+        self.best: Trial | None = None
+        """The trial of ``damping.best``: its command and record."""
+
+    def w_control(self) -> float | None:
+        """lambda, the next update's control weight."""
+        return self.damping.lam if self.on else None
+
+    def verdict(self, trial: Trial) -> Ruling | None:
+        """The damped step after a trial with a solved update."""
+        s = trial.summary
+        if not (self.on and trial.measured and s.update_solved):
+            return None
+        lam_used = self.damping.lam
+        took = self.damping.observe(s.cost, s.trial)
+        if took:
+            self.best = trial
+        if took or self.best is None:
+            base, action = trial.knots, f"update (damped, lambda {lam_used:.3g})"
+
+            def step_of(moves: Moves) -> UpdateResult | None:
+                return trial.update
+        else:
+            best, lam = self.best, self.damping.lam
+            base = best.knots
+            action = (
+                f"cost rose: from the best command (trial {best.summary.trial + 1}), "
+                f"lambda {lam:.3g}"
+            )
+
+            def step_of(moves: Moves) -> UpdateResult | None:
+                return moves.update_about(best, lam)
+
+        def move(moves: Moves) -> np.ndarray:
+            step = step_of(moves)
+            done = step is not None and step.solved
+            trial.summary = replace(trial.summary, action=action + ("" if done else ": QP failed"))
+            return moves.step(base, step.dkappa) if done else base
+
+        return Ruling(STEP, self.name, move=move)
+
+
+class GainStep(StopRule):
+    """The paper's step, the last rule: kappa - gain dkappa (limit-safe) after a solved
+    update, the same command after a failed QP; a fault or lost tracking halves the step back
+    toward the previous command, or stops the loop when there is none."""
+
+    name = "gain"
+    description = "kappa - gain dkappa (the paper's); a fault halfway back"
+
+    def verdict(self, trial: Trial) -> Ruling | None:
+        """Always rules (a step or a stop)."""
+        s, knots, prev = trial.summary, trial.knots, trial.prev_knots
+        if not trial.measured:
+            if prev is None:
+                why = "initial command faults" if s.fault else "tracking lost before t_c"
+                return Ruling(STOP, self.name, why)
+            return Ruling(STEP, self.name, move=lambda moves: prev + 0.5 * (knots - prev))
+        if s.update_solved:
+
+            def move(moves: Moves) -> np.ndarray:
+                return moves.step(knots, trial.update.dkappa)
+
+            return Ruling(STEP, self.name, move=move)
+        return Ruling(STEP, self.name, move=lambda moves: knots)  # failed QP: unchanged
+
+
+STOPS: dict[str, type[StopRule]] = {
+    r.name: r
+    for r in (Retry, StopAtSuccess, Confirmation, Safeguard, Averaging, DampedStep, GainStep)
+}
+"""Every rule of the loop by name, in the order the loop asks them."""
+
+
+def stop_rule(name: object) -> type[StopRule]:
+    """The registered rule ``name``; the error lists the valid ones."""
+    if not isinstance(name, str) or name not in STOPS:
+        raise ConfigError("stop_rule", f"unknown stop rule {name!r}", list(STOPS))
+    return STOPS[name]
+
+
+class StopRules:
+    """A run's rules in their order, with their memories: what the loop asks after every
+    attempt and what a resumed run replays its ledger through."""
+
+    def __init__(self, params: ILCParams, names: Sequence[str] | None = None) -> None:
+        self.rules = tuple(stop_rule(n)(params) for n in (STOPS if names is None else names))
+        """The rules, in the order they are asked (``names``; default: all of :data:`STOPS`)."""
+
+    def __getitem__(self, name: str) -> StopRule:
+        """The rule ``name`` of this run."""
+        for rule in self.rules:
+            if rule.name == name:
+                return rule
+        raise ConfigError("stop_rule", f"no stop rule {name!r}", [r.name for r in self.rules])
+
+    def verdict(self, trial: Trial) -> Ruling:
+        """The ruling on ``trial``, every rule's memory updated (module docstring).
+
+        Raises:
+            ConfigError: No rule ruled (the last must always rule, as ``"gain"`` does).
+        """
+        for rule in self.rules:
+            ruling = rule.screen(trial)
+            if ruling is not None:
+                return ruling
+        for rule in self.rules:
+            rule.observe(trial)
+        for rule in self.rules:
+            ruling = rule.verdict(trial)
+            if ruling is not None:
+                break
+        else:
+            raise ConfigError(
+                "stop_rule",
+                f"no rule ruled on trial {trial.summary.trial}: the last must always rule, as "
+                "'gain' does",
+            )
+        for rule in self.rules:
+            rule.settle(trial, ruling)
+        return ruling
+
+    def w_control(self) -> float | None:
+        """The next update's control weight a rule sets (the damped step's lambda), or None."""
+        return next((w for r in self.rules if (w := r.w_control()) is not None), None)
+
+    def memory(self) -> dict[str, dict[str, Any]]:
+        """Every rule's memory as plain data, by name."""
+        return {r.name: r.memory() for r in self.rules}
+
+
+__all__ = [
+    "REPLAY",
+    "RETRY",
+    "STEP",
+    "STOP",
+    "STOPS",
+    "Averaging",
+    "Confirmation",
+    "DampedStep",
+    "GainStep",
+    "Moves",
+    "Retry",
+    "Ruling",
+    "Safeguard",
+    "StopAtSuccess",
+    "StopRule",
+    "StopRules",
+    "Trial",
+    "stop_rule",
+]

@@ -1,0 +1,310 @@
+"""The stop rules of the ILC loop (learner/stops.py): one registry that the loop and a resumed
+run share, so a run resumed after any line of its ledger holds the state the loop held there."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from flyknot.errors import ConfigError, FlyknotError
+from flyknot.judge import CellVerdict
+from flyknot.limits import JointLimits
+from learner import ilc, stops
+from learner.bezier import BezierCommand
+from learner.ilc import ILCParams, learn
+from learner.ilc_step import Context, LoopState
+from learner.kinematics import RobotModel
+from learner.run_directory import RunDirectory, TrialSummary
+from learner.stops import STOP, STOPS, Ruling, StopRule, StopRules, stop_rule
+from tests.knot_curves import judged
+from tests.test_ilc import ROPE, ModelCell, model_problem
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return RobotModel.from_mjcf()
+
+
+@pytest.fixture(scope="module")
+def setup(arm):
+    return model_problem(arm)
+
+
+class EventCell(ModelCell):
+    """The learner's model as the lab, with scripted plays (by the play's index): a knot for
+    those in ``ties``, markers shifted 5 cm in ``shifted`` (a bad measurement), lost in
+    ``lost``, a fault in ``fault_on``; ``die_at`` raises instead of playing (a kill)."""
+
+    def __init__(self, arm, target, ties=(), shifted=(), lost=(), fault_on=(), die_at=None):
+        super().__init__(arm, target, knot_cost=0.0, fault_on=fault_on)
+        self.ties, self.shifted, self.lost, self.die_at = ties, shifted, lost, die_at
+
+    def run(self, command):
+        i = self.n
+        if i == self.die_at:
+            raise KeyboardInterrupt("killed")
+        rec = super().run(command)
+        if rec.fault is not None:
+            return rec
+        if i in self.shifted:
+            rec = dataclasses.replace(rec, markers=rec.markers + np.array([0.05, 0.0, 0.0]))
+        if i in self.lost:
+            rec = dataclasses.replace(rec, markers=np.full_like(rec.markers, np.nan))
+        return judged(rec, i in self.ties)
+
+
+def _spy(cell, monkeypatch):
+    """Tell the cell which knots are played (a cell sees only joints)."""
+    orig = BezierCommand.joint_command
+
+    def spy(self, rate_hz=250.0):
+        cell.current = np.asarray(self.knots)
+        return orig(self, rate_hz)
+
+    monkeypatch.setattr(BezierCommand, "joint_command", spy)
+
+
+def _state(state: LoopState) -> dict:
+    """Everything the loop carries from one trial to the next, as plain data."""
+    return {
+        "k": state.k,
+        "knots": state.knots.tolist(),
+        "prev_knots": None if state.prev_knots is None else state.prev_knots.tolist(),
+        "stop": state.stop,
+        "trials": [dataclasses.replace(s, wall_s=0.0) for s in state.trials],
+        "rules": state.rules.memory(),
+    }
+
+
+def _loop_states(monkeypatch) -> dict[int, dict]:
+    """The loop's state after each ledger line (by the ledger's length), as the run goes."""
+    shots: dict[int, dict] = {}
+    commit, advance = ilc._commit, LoopState.advance
+
+    def spy_commit(rd, state, step, on_trial):
+        commit(rd, state, step, on_trial)
+        shots[len(state.trials)] = _state(state)
+
+    def spy_advance(self, step):
+        advance(self, step)
+        shots[len(self.trials)] = _state(self)
+
+    monkeypatch.setattr(ilc, "_commit", spy_commit)
+    monkeypatch.setattr(LoopState, "advance", spy_advance)
+    return shots
+
+
+class Prefix(RunDirectory):
+    """A run directory whose ledger ends after its first ``n`` lines (a kill there)."""
+
+    def __init__(self, path, n: int):
+        super().__init__(path)
+        self.n = n
+
+    def ledger(self):
+        return super().ledger()[: self.n]
+
+
+def _resumed(run_dir, n, start, target, arm, params) -> dict:
+    """The state a run resumed after ledger line ``n`` starts from."""
+    ctx = Context(target, arm, params, JointLimits(), CellVerdict())
+    state = ilc._restore(Prefix(run_dir, n), LoopState.initial(start, params), ctx)
+    return _state(state)
+
+
+SCENARIOS = {
+    # name: (ILCParams options, EventCell script, ledger actions the run must show)
+    "success": ({"max_trials": 5}, {"ties": {2}}, ["update"]),
+    "confirm": (
+        {"max_trials": 8, "confirm": (2, 3)},
+        {"ties": {0, 4, 5}},
+        ["confirm 1/3", "confirm 3/3"],
+    ),
+    "safeguard": (
+        {"max_trials": 5, "safeguard": True},
+        {"shifted": {2}},
+        ["cost rose: back to the best command"],
+    ),
+    "average": (
+        {"max_trials": 6, "average": 3},
+        {"shifted": {1}},
+        ["play 2/3 of the command", "update on the mean error of 3 plays"],
+    ),
+    "damped": (
+        {"max_trials": 5, "step": "damped"},
+        {"shifted": {2}},
+        ["update (damped", "cost rose: from the best command"],
+    ),
+    "retry and fault": (
+        {"max_trials": 5, "tracking_retries": 2},
+        {"lost": {1, 2, 5, 6, 7}, "fault_on": {4}},
+        ["repeat (tracking lost", "fault: step halfway back"],
+    ),
+    "initial fault": ({"max_trials": 3}, {"fault_on": {0}}, ["fault"]),
+    "confirm and average": (
+        {"max_trials": 6, "average": 2, "confirm": (2, 3)},
+        {"ties": {1}},
+        ["play 1/2", "confirm 2/3", "update on the mean error of 2 plays"],
+    ),
+    "safeguard and average": (
+        {"max_trials": 5, "average": 2, "safeguard": True},
+        {"shifted": {1, 4}},  # a shifted play measures a lower cost here
+        ["update on the mean error of 2 plays", "cost rose: back to the best command"],
+    ),
+}
+
+
+def _run(arm, setup, monkeypatch, run_dir, options, script, **kw):
+    target, start = setup
+    cell = EventCell(arm, target, **script, **kw)
+    _spy(cell, monkeypatch)
+    params = ILCParams(rope_model=ROPE, gain=1.0, **options)
+    return cell, params, learn(cell, target, start, arm, params, run_dir=run_dir)
+
+
+@pytest.mark.parametrize("name", list(SCENARIOS))
+def test_resume_after_every_line_holds_the_loops_state(name, arm, setup, monkeypatch, tmp_path):
+    options, script, shows = SCENARIOS[name]
+    shots = _loop_states(monkeypatch)
+    _, params, res = _run(arm, setup, monkeypatch, tmp_path / "run", options, script)
+    actions = " | ".join(s.action for s in res.trials)
+    for text in shows:  # the run exercised the rules it is meant to
+        assert text in actions, actions
+    n_lines = len(RunDirectory(tmp_path / "run").ledger())
+    assert sorted(shots) == list(range(1, n_lines + 1))
+    target, start = setup
+    for n in range(n_lines + 1):
+        expect = shots[n] if n else _state(LoopState.initial(start, params))
+        got = _resumed(tmp_path / "run", n, start, target, arm, params)
+        assert got == expect, f"{name}: resumed after line {n}"
+
+
+def _ledger(run_dir):
+    rows = [json.loads(x) for x in (run_dir / "ledger.jsonl").read_text().splitlines()]
+    return [{k: v for k, v in r.items() if k != "wall_s"} for r in rows]
+
+
+@pytest.mark.parametrize(
+    ("name", "kill_at"),
+    [
+        ("retry and fault", 2),  # after a lost attempt with retries left
+        ("retry and fault", 5),  # after a counted trial, before a lost attempt
+        ("confirm and average", 2),  # inside a confirmation, with a play being averaged
+        ("safeguard and average", 2),  # after a group whose last play is the best trial
+        ("safeguard and average", 4),  # then back to the best command
+    ],
+)
+def test_a_killed_run_resumed_is_the_uninterrupted_run(
+    name, kill_at, arm, setup, monkeypatch, tmp_path
+):
+    options, script, _ = SCENARIOS[name]
+    whole, _, res = _run(arm, setup, monkeypatch, tmp_path / "whole", options, script)
+    with pytest.raises(KeyboardInterrupt):
+        _run(arm, setup, monkeypatch, tmp_path / "cut", options, script, die_at=kill_at)
+    assert len(RunDirectory(tmp_path / "cut").ledger()) == kill_at
+    target, start = setup
+    cut = EventCell(arm, target, **script)
+    cut.n = kill_at  # the lab goes on with its next play
+    _spy(cut, monkeypatch)
+    params = ILCParams(rope_model=ROPE, gain=1.0, **options)
+    again = learn(cut, target, start, arm, params, run_dir=tmp_path / "cut", resume=True)
+    assert _ledger(tmp_path / "cut") == _ledger(tmp_path / "whole")
+    assert again.stopped_because == res.stopped_because
+    for a, b in zip(cut.played, whole.played[kill_at:], strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_an_unknown_rule_names_the_valid_ones():
+    with pytest.raises(ConfigError) as e:
+        stop_rule("patience")
+    assert str(e.value) == (
+        "stop_rule: unknown stop rule 'patience' (valid choices: retry, success, confirm, "
+        "safeguard, average, damped, gain)"
+    )
+    assert isinstance(e.value, FlyknotError)
+    with pytest.raises(ConfigError, match=r"unknown stop rule 3 \(valid choices: retry, "):
+        stop_rule(3)
+    with pytest.raises(ConfigError, match=r"unknown stop rule 'x' \(valid choices: retry, "):
+        StopRules(ILCParams(), names=("retry", "x"))
+    rules = StopRules(ILCParams(), names=("retry", "gain"))
+    with pytest.raises(ConfigError) as e:
+        rules["confirm"]
+    assert str(e.value) == "stop_rule: no stop rule 'confirm' (valid choices: retry, gain)"
+
+
+def test_the_registry_is_the_order_the_loop_asks():
+    assert list(STOPS) == ["retry", "success", "confirm", "safeguard", "average", "damped", "gain"]
+    for name, rule in STOPS.items():
+        assert rule.name == name and rule.description and rule.__doc__
+        assert stop_rule(name) is rule
+    rules = StopRules(ILCParams())
+    assert [r.name for r in rules.rules] == list(STOPS)
+    assert rules.w_control() is None
+    assert StopRules(ILCParams(step="damped")).w_control() == 1.0
+
+
+class StopAtCost(StopRule):
+    """Stop once a trial measures a cost below ``BOUND`` (a rule a test adds)."""
+
+    name = "cost"
+    description = "stop at a small measured cost"
+    BOUND = 1e-3
+
+    def verdict(self, trial):
+        c = trial.summary.cost
+        return Ruling(STOP, self.name, "small cost") if c is not None and c < self.BOUND else None
+
+
+def test_a_new_rule_is_one_class_and_one_registry_line(arm, setup, monkeypatch, tmp_path):
+    monkeypatch.setattr(stops, "STOPS", {"cost": StopAtCost, **STOPS})
+    shots = _loop_states(monkeypatch)
+    _, params, res = _run(arm, setup, monkeypatch, tmp_path / "run", {"max_trials": 8}, {})
+    assert res.stopped_because == "small cost"
+    assert res.costs[-1] < StopAtCost.BOUND <= min(c for c in res.costs[:-1])
+    target, start = setup
+    n = len(res.trials)
+    assert _resumed(tmp_path / "run", n, start, target, arm, params) == shots[n]
+    # a run resumed after the stop plays nothing more
+    again = learn(
+        EventCell(arm, target), target, start, arm, params, run_dir=tmp_path / "run", resume=True
+    )
+    assert again.stopped_because == "small cost" and again.trials == res.trials
+
+
+def test_a_chain_without_a_last_rule_says_so():
+    rules = StopRules(ILCParams(), names=("success",))
+
+    class Line(stops.Trial):
+        def record(self):
+            raise AssertionError
+
+        def own_update(self):
+            return None, None
+
+        def average_over(self, group):
+            return None
+
+    line = TrialSummary(0, 0, None, None, False, 1.0, True, "solved", 0.5, "update", 0.0)
+    with pytest.raises(ConfigError, match="no rule ruled on trial 0: the last must always rule"):
+        rules.verdict(Line(line, np.zeros((10, 8)), None))
+
+
+def test_a_ledger_that_does_not_follow_the_rules_is_refused(arm, setup, monkeypatch, tmp_path):
+    _run(arm, setup, monkeypatch, tmp_path / "run", {"max_trials": 3}, {})
+    target, start = setup
+    p = tmp_path / "run" / "ledger.jsonl"
+    lines = p.read_text().splitlines()
+    p.write_text("\n".join([lines[0], lines[2]]) + "\n")  # trial 1 left out
+    with pytest.raises(ConfigError, match="ledger line 2 \\(trial 2\\) does not follow"):
+        learn(
+            EventCell(arm, target),
+            target,
+            start,
+            arm,
+            ILCParams(rope_model=ROPE, max_trials=4),
+            run_dir=tmp_path / "run",
+            resume=True,
+        )
