@@ -153,9 +153,11 @@ def test_trust_region_override_and_bad_value():
     assert str(e.value) == "trust_region: must be a finite number > 0, got -1"
 
 
-def test_demo_window_fields():
-    assert load_scenario("05-demos").runs[0].window == (0.035, 0.05)  # the paper's
-    assert load_scenario("quick").runs[0].window == (0.25, 0.0)  # the robot demonstration's
+def test_demo_window_fields(tmp_path):
+    bare = tmp_path / "bare.toml"
+    bare.write_text('name = "bare"\nkind = "learn"\n[[run]]\nname = "r"\n')
+    assert load_scenario(str(bare)).runs[0].window == (0.035, 0.05)  # the paper's
+    assert load_scenario("quick").runs[0].window == (0.25, 0.0)  # the scenario files' own
     scen = load_scenario("05-demos", parse_overrides(["follow_through_s=0.1", "path_frac=0"]))
     assert all(r.window == (0.1, 0.0) for r in scen.runs)
     with pytest.raises(ConfigError) as e:
