@@ -4,13 +4,35 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
-from flyknot.errors import ConfigError
+from flyknot.errors import ConfigError, check_nonnegative
 from flyknot.limits import JointLimits
 from flyknot.options import INLINE
 from learner.jacobians import jacobian_kind
 from learner.rope_model import RopeModelParams
 from learner.steps import DampingParams, step_kind
 from learner.update import UpdateSettings
+
+
+@dataclass(frozen=True)
+class PlateauParams:
+    """The plateau stop rule's settings (:class:`learner.stops.Plateau`).
+
+    Attributes:
+        patience: Counted trials without progress after which the loop stops (0: never).
+        noise: Trial-to-trial noise floor of the critical cost [-]: a trial makes progress
+            when it lowers the best cost by more than this. Default 0.05, three standard
+            deviations of one command's cost over varied plays near the reachable floor
+            (0.104 +- 0.016 over 12 plays, rope 1, ``fast-paced``; docs/measuring-sticks.md).
+    """
+
+    patience: int = 0
+    noise: float = 0.05
+
+    def __post_init__(self) -> None:
+        v = self.patience
+        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+            raise ConfigError("plateau.patience", f"must be an integer >= 0, got {v!r}")
+        check_nonnegative("plateau.noise", self.noise)
 
 
 def parse_confirm(value: object, stop_at_success: bool = True) -> tuple[int, int] | None:
@@ -68,6 +90,8 @@ class ILCParams:
             ``"gain"`` (the paper's fixed gain) or ``"damped"`` (Levenberg-Marquardt on the
             measured cost, back to the best command when the cost rose).
         damping: The damped step's settings (``step = "damped"``).
+        plateau: Stop when the best measured cost has not fallen by more than the noise
+            floor in ``patience`` counted trials (off by default; the paper has none).
         step_halvings: Halvings of an update's step at most while its command breaks a
             joint limit on its samples (the QP holds torque limits to first order only); the
             last is taken anyway and the cell's controller decides (>= 0).
@@ -86,6 +110,7 @@ class ILCParams:
     average: int = 1
     step: str = "gain"
     damping: DampingParams = field(default_factory=DampingParams)
+    plateau: PlateauParams = field(default_factory=PlateauParams)
     step_halvings: int = 4
     update: UpdateSettings = field(default_factory=UpdateSettings, metadata=INLINE)
 
@@ -116,6 +141,7 @@ class ILCParams:
             ("rope_model", RopeModelParams),
             ("update", UpdateSettings),
             ("damping", DampingParams),
+            ("plateau", PlateauParams),
         ):
             if not isinstance(getattr(self, name), cls):
                 raise ConfigError(name, f"must be a {cls.__name__}, got {getattr(self, name)!r}")

@@ -8,6 +8,8 @@ After each attempt the loop (:func:`learner.ilc_step.decide`) asks its rules, in
 * ``"success"`` (:class:`StopAtSuccess`, the paper's): stop at the first knot.
 * ``"confirm"`` (:class:`Confirmation`): a command that ties is played again until k of n of
   its trials tie (option ``confirm``).
+* ``"plateau"`` (:class:`Plateau`): stop when the best measured cost has not fallen by more
+  than the trial-to-trial noise floor in ``plateau.patience`` counted trials.
 * ``"safeguard"`` (:class:`Safeguard`): a cost above the best trial's: back to the best
   command, its own step shrunk (option ``safeguard``).
 * ``"average"`` (:class:`Averaging`): each command played ``average`` times, the update on the
@@ -276,6 +278,36 @@ class Confirmation(StopRule):
             self.streak = []
 
 
+class Plateau(StopRule):
+    """Stop at the noise floor (``plateau``): no counted trial in the last ``patience`` lowered
+    the best measured cost c* by more than ``noise``, c_k >= c* - noise (a fault or a trial
+    without a cost makes no progress either)."""
+
+    name = "plateau"
+    description = "stop when the best cost has not fallen by more than the noise floor"
+
+    def __init__(self, params: ILCParams) -> None:
+        self.patience, self.noise = params.plateau.patience, params.plateau.noise
+        self.best: float | None = None
+        """c*, the best cost that made progress."""
+        self.since = 0
+        """Counted trials since the last progress."""
+
+    def observe(self, trial: Trial) -> None:
+        """Progress resets the count; any other counted trial adds one."""
+        cost = trial.summary.cost
+        if cost is not None and (self.best is None or cost < self.best - self.noise):
+            self.best, self.since = cost, 0
+        else:
+            self.since += 1
+
+    def verdict(self, trial: Trial) -> Ruling | None:
+        """Stop when ``patience`` counted trials in a row made no progress."""
+        if self.patience and self.since >= self.patience:
+            return Ruling(STOP, self.name, "plateau")
+        return None
+
+
 class Safeguard(StopRule):
     """The safeguarded update (``safeguard``): after a trial that measured a higher cost than
     the best trial so far, the next command is the best trial's command moved by its own
@@ -431,7 +463,16 @@ class GainStep(StopRule):
 
 STOPS: dict[str, type[StopRule]] = {
     r.name: r
-    for r in (Retry, StopAtSuccess, Confirmation, Safeguard, Averaging, DampedStep, GainStep)
+    for r in (
+        Retry,
+        StopAtSuccess,
+        Confirmation,
+        Plateau,
+        Safeguard,
+        Averaging,
+        DampedStep,
+        GainStep,
+    )
 }
 """Every rule of the loop by name, in the order the loop asks them."""
 
@@ -504,6 +545,7 @@ __all__ = [
     "DampedStep",
     "GainStep",
     "Moves",
+    "Plateau",
     "Retry",
     "Ruling",
     "Safeguard",

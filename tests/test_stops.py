@@ -15,6 +15,7 @@ from flyknot.limits import JointLimits
 from learner import ilc, stops
 from learner.bezier import BezierCommand
 from learner.ilc import ILCParams, learn
+from learner.ilc_params import PlateauParams
 from learner.ilc_step import Context, LoopState
 from learner.kinematics import RobotModel
 from learner.run_directory import RunDirectory, TrialSummary
@@ -144,6 +145,11 @@ SCENARIOS = {
         ["repeat (tracking lost", "fault: step halfway back"],
     ),
     "initial fault": ({"max_trials": 3}, {"fault_on": {0}}, ["fault"]),
+    "plateau": (
+        {"max_trials": 8, "plateau": PlateauParams(patience=2, noise=0.5)},
+        {"shifted": {2}},
+        ["update"],
+    ),
     "confirm and average": (
         {"max_trials": 6, "average": 2, "confirm": (2, 3)},
         {"ties": {1}},
@@ -222,7 +228,7 @@ def test_an_unknown_rule_names_the_valid_ones():
         stop_rule("patience")
     assert str(e.value) == (
         "stop_rule: unknown stop rule 'patience' (valid choices: retry, success, confirm, "
-        "safeguard, average, damped, gain)"
+        "plateau, safeguard, average, damped, gain)"
     )
     assert isinstance(e.value, FlyknotError)
     with pytest.raises(ConfigError, match=r"unknown stop rule 3 \(valid choices: retry, "):
@@ -236,7 +242,9 @@ def test_an_unknown_rule_names_the_valid_ones():
 
 
 def test_the_registry_is_the_order_the_loop_asks():
-    assert list(STOPS) == ["retry", "success", "confirm", "safeguard", "average", "damped", "gain"]
+    assert list(STOPS) == [
+        "retry", "success", "confirm", "plateau", "safeguard", "average", "damped", "gain"
+    ]  # fmt: skip
     for name, rule in STOPS.items():
         assert rule.name == name and rule.description and rule.__doc__
         assert stop_rule(name) is rule
@@ -308,3 +316,43 @@ def test_a_ledger_that_does_not_follow_the_rules_is_refused(arm, setup, monkeypa
             run_dir=tmp_path / "run",
             resume=True,
         )
+
+
+def test_the_plateau_stops_after_patience_trials_without_progress(
+    arm, setup, monkeypatch, tmp_path
+):
+    """Progress is a cost below the best by more than the noise floor: with a floor above
+    every cost after the first trial, the loop stops after ``patience`` more trials; with
+    none, it learns on to its budget."""
+    options = {"max_trials": 8, "plateau": PlateauParams(patience=2, noise=1e3)}
+    _, _, res = _run(arm, setup, monkeypatch, tmp_path / "a", options, {})
+    assert res.stopped_because == "plateau" and len(res.trials) == 3
+    options = {"max_trials": 4, "plateau": PlateauParams(patience=2, noise=0.0)}
+    _, _, res = _run(arm, setup, monkeypatch, tmp_path / "b", options, {})
+    assert res.stopped_because != "plateau"  # every trial of the model-as-lab lowers the cost
+    rule = stops.Plateau(ILCParams(plateau=PlateauParams(patience=2, noise=0.1)))
+    for cost, since in ((1.0, 0), (0.95, 1), (None, 2), (0.85, 0)):
+        rule.observe(_Line(cost))
+        assert rule.since == since
+    assert rule.best == 0.85
+
+
+class _Line:
+    """A counted trial as the plateau sees it: its cost."""
+
+    def __init__(self, cost):
+        self.summary = type("S", (), {"cost": cost})()
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ({"patience": -1}, "plateau.patience: must be an integer >= 0, got -1"),
+        ({"patience": True}, "plateau.patience: must be an integer >= 0, got True"),
+        ({"noise": -0.1}, "plateau.noise: must be a finite number >= 0, got -0.1"),
+    ],
+)
+def test_plateau_settings_are_checked(value, message):
+    with pytest.raises(ConfigError) as e:
+        PlateauParams(**value)
+    assert str(e.value).startswith(message)
