@@ -15,9 +15,19 @@ from pathlib import Path
 from typing import Any
 
 from flyknot.constants import MARKER_SPACING, N_MARKERS, ROPE_TABLE
-from flyknot.errors import ConfigError, check_choice, check_nonnegative, check_positive
-from flyknot_sim.rope_table import (
+from flyknot.errors import ConfigError
+from flyknot_sim.rope_fields import (
+    DEFAULT_SEGMENTS,
+    DEFAULT_TIMESTEP,
+    FIELD,
     MATERIALS,
+    MAX_TIMESTEP,
+    REQUIRED,
+    ROPE_FIELDS,
+    SAME,
+    ByMaterial,
+)
+from flyknot_sim.rope_table import (
     RopeParams,
     _check_keys,
     _default_table,
@@ -43,21 +53,11 @@ __all__ = [
 # ----------------------------------------------------------------------------------------
 # custom ropes: a user's own ropes file
 # ----------------------------------------------------------------------------------------
-CUSTOM_REQUIRED = ("name", "material", "diameter", "density", "length", "end_weight")
+_FILE_FIELDS = tuple(f for f in ROPE_FIELDS if f.in_file)
+CUSTOM_REQUIRED = tuple(f.file_key for f in _FILE_FIELDS if f.file_required)
 """Keys every ``[[rope]]`` table of a custom ropes file must have."""
-CUSTOM_OPTIONAL = (
-    "bend_modulus",
-    "shear_modulus",
-    "damping",
-    "friction",
-    "cd",
-    "condim",
-    "torsional_friction",
-    "bend_hysteresis",
-    "segments",
-    "timestep",
-)
-"""Keys a custom rope may give; missing ones come from its material (or the defaults below)."""
+CUSTOM_OPTIONAL = tuple(f.file_key for f in _FILE_FIELDS if not f.file_required)
+"""Keys a custom rope may give; missing ones come from its material (or the defaults)."""
 CUSTOM_KEYS = CUSTOM_REQUIRED + CUSTOM_OPTIONAL
 
 REFERENCE_CORD = {"cotton": (0.009, 0.040)}
@@ -67,16 +67,6 @@ REFERENCE_CORD = {"cotton": (0.009, 0.040)}
 ropes' does (EI = b tex, free-slip fibre-bundle scaling, see the comments there). Other
 materials are not scaled: steel (chain) has no stiffness; latex's values are those of 3/8"
 surgical tubing."""
-DEFAULT_SEGMENTS = 30
-"""Flex elements of a custom rope unless it says, capped so that length / segments > D."""
-DEFAULT_TIMESTEP = 0.001
-"""Simulation step of a custom rope unless it says [s] (the thin ropes' validated step)."""
-MAX_TIMESTEP = 0.004
-"""Largest simulation step of a custom rope [s]: the robot's 4 ms command tick."""
-
-
-def _is_number(v: object) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
 def _stiffness_scale(material: str, diameter: float, density: float) -> float:
@@ -110,54 +100,29 @@ def _custom_rope(entry: Mapping[str, Any], where: str, paper: Mapping[str, int])
     missing = [k for k in CUSTOM_REQUIRED if k not in entry]
     if missing:
         raise ConfigError(where, f"missing key(s) {', '.join(missing)}")
+    for f in _FILE_FIELDS:
+        if f.file_key in entry:
+            f.check(entry[f.file_key], f"{where}.{f.file_key}", in_file=True)
     name = _checked_name(entry["name"], where, paper)
-    material = entry["material"]
-    check_choice(f"{where}.material", material, MATERIALS)
-    diameter, length, n_max = _checked_size(entry, where)
-    values = _material_values(material, diameter, float(entry["density"]), n_max)
-    for k in CUSTOM_OPTIONAL:
-        if k in entry:
-            values[k] = entry[k]
-    if "timestep" in entry:
-        t = entry["timestep"]
-        if not (_is_number(t) and 0 < t <= MAX_TIMESTEP):
-            raise ConfigError(
-                f"{where}.timestep",
-                f"must lie in (0, {MAX_TIMESTEP:g}] s (the robot's command tick), got {t!r}",
-            )
+    diameter, n_max = _checked_size(entry, where)
+    values = _material_values(entry["material"], diameter, float(entry["density"]), n_max)
+    values.update({f.name: entry[f.file_key] for f in _FILE_FIELDS if f.file_key in entry})
     try:
-        p = RopeParams(
-            id=name,
-            name=name,
-            material=material,
-            diameter=diameter,
-            density=entry["density"],
-            end_mass=entry["end_weight"],
-            length=length,
-            **values,
-        )
-    except ConfigError as e:  # name the rope's field (RopeParams' own names but end_mass)
-        field_name = "end_weight" if e.field == "end_mass" else e.field
-        raise ConfigError(f"{where}.{field_name}", e.problem, e.choices) from None
-    floats = (
-        "density",
-        "end_mass",
-        "bend_modulus",
-        "shear_modulus",
-        "damping",
-        "friction",
-        "bend_hysteresis",
-    )
-    as_float = {k: float(getattr(p, k)) for k in (*floats, "timestep")}
-    if p.cd is not None:
-        as_float["cd"] = float(p.cd)
+        p = RopeParams(id=name, **values)
+    except ConfigError as e:  # name the rope's field as the file does (end_weight)
+        key = FIELD[e.field].file_key if e.field in FIELD else e.field
+        raise ConfigError(f"{where}.{key}", e.problem, e.choices) from None
+    as_float = {
+        f.name: float(getattr(p, f.name))
+        for f in ROPE_FIELDS
+        if f.type is float and getattr(p, f.name) is not None
+    }
     return replace(p, **as_float)
 
 
 def _checked_name(name: Any, where: str, paper: Mapping[str, int]) -> str:
-    """A custom rope's name: a non-empty string, not a number, not a paper rope's name."""
-    if not isinstance(name, str) or not name.strip():
-        raise ConfigError(f"{where}.name", f"must be a non-empty string, got {name!r}")
+    """A custom rope's name (a non-empty string already): not a number, not a paper rope's
+    name."""
     if name.strip().isdigit():
         raise ConfigError(
             f"{where}.name", f"must not be a number (1..7 are the paper's rope ids), got {name!r}"
@@ -170,12 +135,10 @@ def _checked_name(name: Any, where: str, paper: Mapping[str, int]) -> str:
     return name
 
 
-def _checked_size(entry: Mapping[str, Any], where: str) -> tuple[float, float, int]:
-    """Diameter and length [m], checked (positive; the length past the markers' span, the
-    diameter under half the length), and the most segments the rope can have."""
-    for k in ("diameter", "density", "length"):
-        check_positive(f"{where}.{k}", entry[k])
-    check_nonnegative(f"{where}.end_weight", entry["end_weight"])
+def _checked_size(entry: Mapping[str, Any], where: str) -> tuple[float, int]:
+    """The diameter [m] and the most segments the rope can have, the size checked (each value
+    is in its range already): the length past the markers' span, the diameter under half the
+    length."""
     diameter, length = float(entry["diameter"]), float(entry["length"])
     span = MARKER_SPACING * (N_MARKERS - 1)
     if length <= span:
@@ -190,39 +153,40 @@ def _checked_size(entry: Mapping[str, Any], where: str) -> tuple[float, float, i
             f"{where}.diameter",
             f"must be less than half the length ({length / 2:g} m), got {entry['diameter']!r}",
         )
-    return diameter, length, n_max
+    return diameter, n_max
 
 
 def _material_values(material: str, diameter: float, density: float, n_max: int) -> dict:
-    """The material's defaults for a rope of this size: moduli scaled by
-    :func:`_stiffness_scale`, the default segments (at most ``n_max``) and step."""
+    """The defaults of a rope of this material and size for every field a ropes file may
+    leave out: the material's values in the lab's table (moduli scaled by
+    :func:`_stiffness_scale`), else the field's default; segments at most ``n_max``."""
     mat = _material_defaults()[material]
     scale = _stiffness_scale(material, diameter, density)
-    return {
-        "bend_modulus": mat["bend_modulus"] * scale,
-        "shear_modulus": mat["shear_modulus"] * scale,
-        "damping": mat["damping"],
-        "friction": mat["friction"],
-        "cd": None,
-        "condim": 3,
-        "torsional_friction": None,
-        "bend_hysteresis": mat.get("bend_hysteresis", 0.0),
-        "segments": min(DEFAULT_SEGMENTS, n_max),
-        "timestep": DEFAULT_TIMESTEP,
-    }
+    out = {}
+    for f in _FILE_FIELDS:
+        if f.file_required:
+            continue
+        if f.by_material is ByMaterial.NO:
+            out[f.name] = f.default if f.file_default is SAME else f.file_default
+            continue
+        value = mat.get(f.name, f.default)
+        if value is REQUIRED:
+            raise ConfigError(f"materials.{material}.{f.name}", f"missing from {ROPE_TABLE}")
+        out[f.name] = value * scale if f.by_material is ByMaterial.SCALED else value
+    out["segments"] = min(out["segments"], n_max)
+    return out
 
 
 def parse_custom_ropes(doc: Mapping[str, Any]) -> dict[str, RopeParams]:
     """A user's ropes from a parsed TOML document: name -> :class:`RopeParams`.
 
-    The document holds ``[[rope]]`` tables with the keys :data:`CUSTOM_REQUIRED` (``name``,
-    ``material`` of :data:`MATERIALS`, ``diameter`` [m], ``density`` [kg/m], ``length`` [m],
-    ``end_weight`` [kg]) and optionally :data:`CUSTOM_OPTIONAL` (``bend_modulus``,
-    ``shear_modulus`` [Pa], ``damping`` [s], ``friction`` [-], ``cd`` [-], ``bend_hysteresis``
-    [1/m], ``segments``, ``timestep`` [s]). Missing optional values: the material's in
-    ``assets/ropes.toml`` (E and G of cotton scaled by (rho / 40 g/m) (9 mm / D)^4, see
-    :data:`REFERENCE_CORD`), ``cd`` None (the Re-dependent curve), ``segments`` 30 capped so
-    that length / segments > D, ``timestep`` 1 ms. Each rope's id is its name.
+    The document holds ``[[rope]]`` tables with the keys :data:`CUSTOM_REQUIRED` and
+    optionally :data:`CUSTOM_OPTIONAL`: the fields of
+    :data:`~flyknot_sim.rope_fields.ROPE_FIELDS` (their units, valid values and defaults
+    there) but the ``id`` (each rope's id is its name), ``end_mass`` given as ``end_weight``.
+    Missing optional values: the material's in ``assets/ropes.toml`` (E and G of cotton
+    scaled by (rho / 40 g/m) (9 mm / D)^4, see :data:`REFERENCE_CORD`), else the field's
+    default (``segments`` 30 capped so that length / segments > D, ``timestep`` 1 ms).
 
     Raises:
         ConfigError: Unknown key, missing key, bad value, duplicate name, or a name that is

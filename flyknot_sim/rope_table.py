@@ -18,7 +18,8 @@ from pathlib import Path
 from typing import Any
 
 from flyknot.constants import ROPE_TABLE
-from flyknot.errors import ConfigError, check_choice, check_nonnegative, check_positive
+from flyknot.errors import ConfigError, check_choice, check_positive
+from flyknot_sim.rope_fields import MATERIALS, REQUIRED, ROPE_FIELDS, ByMaterial, rope_dataclass
 
 __all__ = [
     "CLEARANCE_EXTRA",
@@ -36,9 +37,6 @@ __all__ = [
     "parse_rope_table",
 ]
 
-MATERIALS = ("cotton", "steel", "latex")
-"""Materials of the paper's ropes."""
-
 STEEL_DENSITY = 7850.0
 """Density of carbon steel [kg/m^3] (e.g. ASM Handbook vol. 1), for the end-weight sphere."""
 
@@ -54,58 +52,15 @@ CONES = ("pyramidal", "elliptic")
 # ----------------------------------------------------------------------------------------
 # parameters
 # ----------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@rope_dataclass
 class RopeParams:
     """One rope of the paper's table plus the material and discretisation we chose for it, or
-    a user's own rope (:func:`load_custom_ropes`).
+    a user's own rope (:func:`~flyknot_sim.rope_custom.load_custom_ropes`).
 
-    Attributes:
-        id: Rope id of the paper (1..7), or, for a custom rope, its name (a string).
-        name: Name in the paper's table (or the custom rope's name).
-        material: One of :data:`MATERIALS`.
-        diameter: Rope diameter [m]; the flex capsule radius is half of it.
-        density: Linear density [kg/m].
-        end_mass: Mass of the weight at the free end [kg] (separate from the rope's mass).
-        length: Rope length [m].
-        bend_modulus: Effective Young's modulus E of a solid circular section of the rope's
-            diameter [Pa]; bending stiffness EI = E pi r^4 / 4 [N m^2].
-        shear_modulus: Effective shear modulus G [Pa]; torsional stiffness GJ = G pi r^4 / 2.
-            0 lets MuJoCo use E / (2 (1 + nu)) with nu = 0.
-        damping: Rayleigh damping time of the bending/torsion stiffness [s].
-        friction: Sliding friction coefficient of rope-rope and rope-geom contact [-].
-        segments: Number of flex elements (capsules); length / segments > diameter.
-        timestep: Largest simulation step this rope was validated at [s].
-        cd: Fixed cross-flow drag coefficient [-] replacing the C_D(Re) curve of
-            :mod:`flyknot_sim.aero` (the labs pass it on as ``AeroParams.cd``), or None.
-        condim: Contact dimensionality of the rope's contacts: 3 (sliding friction, the
-            default) or 4 (plus torsional friction about the contact normal).
-        torsional_friction: MuJoCo's torsional friction coefficient [m] (the moment about the
-            normal is this times the normal force) when ``condim`` is 4; None:
-            (2/3) friction r, the moment of uniform pressure over a contact disc of radius a
-            = r (K. L. Johnson, "Contact Mechanics", 1985, sec. 7.4; a soft cord flattens to
-            a patch about its radius wide -- an upper bound, no measured value found).
-        bend_hysteresis: Kawabata's HB / B [1/m]: the frictional couple of bending (Grosberg's
-            M_0 = HB, :mod:`flyknot_sim.bend_friction`) over the elastic stiffness B = EI, i.e.
-            the curvature at which the two moments are equal; 0: purely elastic bending.
+    Its fields, their units, valid values and defaults are declared once, in
+    :data:`flyknot_sim.rope_fields.ROPE_FIELDS` (listed below); every field is checked on
+    construction (:class:`ConfigError` naming the field and its valid values).
     """
-
-    id: int | str
-    name: str
-    material: str
-    diameter: float
-    density: float
-    end_mass: float
-    length: float
-    bend_modulus: float
-    shear_modulus: float
-    damping: float
-    friction: float
-    segments: int
-    timestep: float
-    cd: float | None = None
-    condim: int = 3
-    torsional_friction: float | None = None
-    bend_hysteresis: float = 0.0
 
     def __post_init__(self) -> None:
         if isinstance(self.id, str):
@@ -115,17 +70,8 @@ class RopeParams:
                 )
         elif isinstance(self.id, bool) or not isinstance(self.id, int) or self.id < 1:
             raise ConfigError("id", f"must be an integer >= 1, got {self.id!r}")
-        if not isinstance(self.name, str) or not self.name.strip():
-            raise ConfigError("name", f"must be a non-empty string, got {self.name!r}")
-        check_choice("material", self.material, MATERIALS)
-        for f in ("diameter", "density", "length", "friction", "timestep"):
-            check_positive(f, getattr(self, f))
-        for f in ("end_mass", "bend_modulus", "shear_modulus", "damping", "bend_hysteresis"):
-            check_nonnegative(f, getattr(self, f))
-        if isinstance(self.segments, bool) or not isinstance(self.segments, int):
-            raise ConfigError("segments", f"must be an integer, got {self.segments!r}")
-        if self.segments < 2:
-            raise ConfigError("segments", f"must be >= 2, got {self.segments}")
+        for f in ROPE_FIELDS:
+            f.check(getattr(self, f.name))
         if self.length / self.segments <= self.diameter:
             n_max = max(1, int(self.length // self.diameter))
             while n_max > 1 and self.length / n_max <= self.diameter:
@@ -136,11 +82,6 @@ class RopeParams:
                 f"{self.diameter:.4g} m (elements sharing no vertex would touch at rest); "
                 f"use at most {n_max} segments",
             )
-        if self.cd is not None:
-            check_positive("cd", self.cd)
-        check_choice("condim", self.condim, (3, 4))
-        if self.torsional_friction is not None:
-            check_nonnegative("torsional_friction", self.torsional_friction)
 
     @property
     def friction_triple(self) -> list[float]:
@@ -156,18 +97,13 @@ class RopeParams:
         return isinstance(self.id, str)
 
     def to_dict(self) -> dict[str, Any]:
-        """The parameters as plain data (``cd`` only when set, so that a paper rope without its
-        own drag coefficient reads without the key)."""
-        d = {f.name: getattr(self, f.name) for f in fields(self)}
-        for k, default in (
-            ("cd", None),
-            ("condim", 3),
-            ("torsional_friction", None),
-            ("bend_hysteresis", 0.0),
-        ):
-            if d[k] == default:
-                del d[k]
-        return d
+        """The parameters as plain data; a field with a default only when it differs from it
+        (``cd`` only when set), so that a record reads as before the field existed."""
+        return {
+            f.name: getattr(self, f.name)
+            for f in ROPE_FIELDS
+            if f.default is REQUIRED or getattr(self, f.name) != f.default
+        }
 
     @property
     def n_segments(self) -> int:
@@ -220,9 +156,8 @@ class RopeParams:
         return self.radius + CLEARANCE_EXTRA
 
 
-_ROPE_FIELDS = tuple(f.name for f in fields(RopeParams))
-_OPTIONAL_ROPE_FIELDS = ("cd", "condim", "torsional_friction", "bend_hysteresis")
-_MATERIAL_FIELDS = ("bend_modulus", "shear_modulus", "damping", "friction", "bend_hysteresis")
+_ROPE_FIELDS = tuple(f.name for f in ROPE_FIELDS)
+_MATERIAL_FIELDS = tuple(f.name for f in ROPE_FIELDS if f.by_material is not ByMaterial.NO)
 
 
 @dataclass(frozen=True)
@@ -317,8 +252,9 @@ def _check_keys(where: str, table: Mapping[str, Any], allowed: Sequence[str]) ->
 def parse_rope_table(doc: Mapping[str, Any]) -> dict[int, RopeParams]:
     """Build the rope table from a parsed TOML document (see ``assets/ropes.toml``).
 
-    Each ``[[rope]]`` entry takes its material's values from ``[materials.<material>]`` and
-    may override any of them.
+    Each ``[[rope]]`` entry gives the fields of :data:`~flyknot_sim.rope_fields.ROPE_FIELDS`
+    (their units and valid values there): every field without a default, but those its
+    material's ``[materials.<material>]`` gives (it may override them).
 
     Raises:
         ConfigError: Missing or unknown keys, bad values, duplicate ids.
@@ -336,7 +272,7 @@ def parse_rope_table(doc: Mapping[str, Any]) -> dict[int, RopeParams]:
         mat = materials.get(material, {})
         _check_keys(f"materials.{material}", mat, _MATERIAL_FIELDS)
         values = {**mat, **entry}
-        missing = [f for f in _ROPE_FIELDS if f not in values and f not in _OPTIONAL_ROPE_FIELDS]
+        missing = [f.name for f in ROPE_FIELDS if f.default is REQUIRED and f.name not in values]
         if missing:
             raise ConfigError(where, f"missing key(s) {', '.join(missing)}")
         p = RopeParams(**{f: values[f] for f in _ROPE_FIELDS if f in values})

@@ -35,6 +35,7 @@ from collections.abc import Sequence
 
 from flyknot.errors import ConfigError, check_int
 from flyknot_app.dispatch import dispatch
+from flyknot_sim.rope_fields import FIELD, SETTABLE
 from flyknot_tools.demo_cli import add_demo_parser
 
 PROG = "flyknot-tools"
@@ -244,11 +245,18 @@ def _add_rope_validate_parser(sub: argparse._SubParsersAction) -> None:
         "--set",
         action="append",
         metavar="FIELD=VALUE",
-        help="change a rope field or a [simulation] setting (e.g. bend_hysteresis=0)",
+        help=f"change a rope field ({_rope_fields_help()}) or a [simulation] setting (e.g. "
+        "bend_hysteresis=0)",
     )
     rv.add_argument("--workers", type=int, default=1, help="worker processes")
     rv.add_argument("--json", action="store_true", help="print the results as JSON")
     rv.set_defaults(func=_cmd_rope_validate)
+
+
+def _rope_fields_help() -> str:
+    """The rope fields ``--set`` may change, with their units: ``diameter [m], ...``."""
+    units = {n: FIELD[n].unit for n in SETTABLE}
+    return ", ".join(f"{n} [{u}]" if u else n for n, u in units.items())
 
 
 def _add_closure_study_parser(sub: argparse._SubParsersAction) -> None:

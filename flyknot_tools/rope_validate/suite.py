@@ -8,6 +8,7 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import fields, replace
 
 from flyknot.errors import ConfigError
+from flyknot_sim.rope_fields import FIELD, SETTABLE
 from flyknot_sim.rope_table import RopeParams, SimSettings, load_sim_settings
 from flyknot_tools.rope_validate.bench import RopeModel
 from flyknot_tools.rope_validate.cases import (
@@ -72,6 +73,7 @@ CASE_NAMES = (
 
 
 def _coerce(name: str, text: str, current: object) -> object:
+    """A ``[simulation]`` setting's value from its text, typed as its current value."""
     if isinstance(current, bool):
         if text not in ("true", "false"):
             raise ConfigError(name, f"must be true or false, got {text!r}")
@@ -93,24 +95,28 @@ def model_with(
 ) -> RopeModel:
     """A :class:`RopeModel` of ``params`` with rope fields and ``[simulation]`` settings
     changed (``changes``: field name -> text, e.g. ``{"bend_hysteresis": "38", "cone":
-    "elliptic"}``); rope fields win where a name is both. ``settings``: the ``[simulation]``
-    settings changed (None: those of ``assets/ropes.toml``).
+    "elliptic"}``); rope fields win where a name is both. The rope fields are those of
+    :data:`~flyknot_sim.rope_fields.SETTABLE`, each read as its declaration says
+    (:meth:`~flyknot_sim.rope_fields.RopeField.from_text`). ``settings``: the
+    ``[simulation]`` settings changed (None: those of ``assets/ropes.toml``).
 
     Raises:
-        ConfigError: Unknown field (the valid names listed) or a bad value.
+        ConfigError: Unknown field (the valid names listed) or a bad value (the message
+            names the field and its valid values).
     """
-    rope_names = [f.name for f in fields(RopeParams) if f.name not in ("id", "name")]
     sim_names = [f.name for f in fields(SimSettings)]
     rope_kw, sim_kw = {}, {}
     given = settings
     settings = load_sim_settings() if settings is None else settings
     for key, text in changes.items():
-        if key in rope_names:
-            rope_kw[key] = _coerce(key, text, getattr(params, key))
+        if key in SETTABLE:
+            rope_kw[key] = FIELD[key].from_text(text)
         elif key in sim_names:
             sim_kw[key] = _coerce(key, text, getattr(settings, key))
         else:
-            raise ConfigError("--set", f"unknown field {key!r}", sorted(rope_names + sim_names))
+            raise ConfigError(
+                "--set", f"unknown field {key!r}", sorted(SETTABLE + tuple(sim_names))
+            )
     p = replace(params, **rope_kw)
     s = replace(settings, **sim_kw) if sim_kw else given
     text = ", ".join(f"{k}={v}" for k, v in changes.items())
