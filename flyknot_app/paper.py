@@ -289,8 +289,21 @@ def _baselines_section(out: Path) -> list[str]:
     return [*lines, ""]
 
 
-def paper_table(out: str | Path, command: str) -> str:
-    """The results document of a ``flyknot paper`` directory (module docstring).
+def knot_pictures(out: str | Path) -> dict[str, Path]:
+    """Per paper scenario in ``out``, the picture of its first knot (by run and trial name)
+    that its report drew (``OUT/<scenario>/verdicts/*.knot.png``)."""
+    out = Path(out)
+    found = {}
+    for name in PAPER_SCENARIOS:
+        knots = sorted((out / name / "verdicts").glob("*.knot.png"))
+        if knots:
+            found[name] = knots[0]
+    return found
+
+
+def paper_table(out: str | Path, command: str, pictures: dict[str, str] | None = None) -> str:
+    """The results document of a ``flyknot paper`` directory (module docstring); under each
+    scenario in ``pictures`` its picture (a path relative to the document).
 
     Raises:
         ConfigError: ``out`` holds no scenario's ``summary.json``.
@@ -317,10 +330,13 @@ def paper_table(out: str | Path, command: str) -> str:
         if summary.kind == "sensitivity":
             sections += [f"## `{name}` ({summary.kind})", ""]
             sections += _sensitivity_section(summary)
-            continue
-        sections += _runs_section(name, summary, beside)
+        else:
+            sections += _runs_section(name, summary, beside)
         if summary.kind == "transfer":
             sections += _transfer_section(summary)
+        if name in (pictures or {}):
+            picture = pictures[name]
+            sections += [f"The first knot of `{name}`: ![a knot of `{name}`]({picture})", ""]
     sections += _baselines_section(out)
     head = [
         "# Results",
@@ -338,6 +354,23 @@ def paper_table(out: str | Path, command: str) -> str:
         "",
     ]
     return "\n".join(head + sections)
+
+
+def _write_results(path: Path, out: Path, command: str, found: dict[str, Path]) -> None:
+    """The table at ``path`` (``docs/results.md``), its knot pictures copied beside it into
+    ``img/results/`` (the old ones of that folder removed)."""
+    import shutil
+
+    folder = path.parent / "img" / "results"
+    if folder.is_dir():
+        for old in folder.glob("*.png"):
+            old.unlink()
+    folder.mkdir(parents=True, exist_ok=True)
+    pictures = {}
+    for name, src in found.items():
+        shutil.copyfile(src, folder / f"{name}.png")
+        pictures[name] = f"img/results/{name}.png"
+    path.write_text(paper_table(out, command, pictures))
 
 
 def add_paper_parser(sub) -> None:
@@ -402,9 +435,10 @@ def _cmd_paper(args: argparse.Namespace) -> int:
         )
     command = f"flyknot paper --seeds {args.seeds} --out {args.out}"
     command += "".join(f" --set {p}" for p in args.set or [])
-    text = paper_table(out, command)
-    (out / "results.md").write_text(text)
+    found = knot_pictures(out)
+    pictures = {n: str(p.relative_to(out)) for n, p in found.items()}
+    (out / "results.md").write_text(paper_table(out, command, pictures))
     if args.results:
-        Path(args.results).write_text(text)
+        _write_results(Path(args.results), out, command, found)
     print(f"results: {out / 'results.md'}" + (f" and {args.results}" if args.results else ""))
     return 0

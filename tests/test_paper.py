@@ -172,3 +172,27 @@ def test_the_baselines_stand_beside_ilc_on_rope_1(tmp_path):
 def test_no_baselines_no_section(tmp_path):
     _write(tmp_path, "03-ropes", "learn", [_run("rope1", 0, 2, rope=1)])
     assert "Baselines" not in paper_table(tmp_path, "flyknot paper")
+
+
+def test_the_results_show_each_scenarios_first_knot(tmp_path, capsys):
+    out = tmp_path / "paper"
+    _write(out, "03-ropes", "learn", [_run("rope1", 0, 2, rope=1)])
+    _write(out, "02-objectives", "objectives", [_run("critical", 0, None, rope=1)])
+    verdicts = out / "03-ropes" / "verdicts"
+    verdicts.mkdir()
+    (verdicts / "runs__rope1-seed0__learning__trial_0001_a0.knot.png").write_bytes(b"first")
+    (verdicts / "runs__rope1-seed0__learning__trial_0000_a0.unknot.png").write_bytes(b"no")
+    (verdicts / "runs__rope1-seed1__learning__trial_0003_a0.knot.png").write_bytes(b"later")
+    docs = tmp_path / "docs"
+    stale = docs / "img" / "results" / "05-demos.png"
+    stale.parent.mkdir(parents=True)
+    stale.write_bytes(b"old")
+    argv = ["paper", "--out", str(out), "--table-only", "--results", str(docs / "results.md")]
+    assert main(argv) == 0
+    text = (docs / "results.md").read_text()
+    assert "The first knot of `03-ropes`: ![a knot of `03-ropes`](img/results/03-ropes.png)" in text
+    assert "![a knot of `02-objectives`]" not in text  # no knot there
+    assert (docs / "img" / "results" / "03-ropes.png").read_bytes() == b"first"
+    assert not stale.exists()  # a picture of an earlier table goes
+    own = (out / "results.md").read_text()
+    assert "(03-ropes/verdicts/runs__rope1-seed0__learning__trial_0001_a0.knot.png)" in own
