@@ -93,7 +93,7 @@ class JointCommand:
     def load(cls, path: str | Path) -> JointCommand:
         """Read a command file.
 
-        Formats (documented in the README):
+        Formats (README, "Command files"):
           * ``.npy``: an (n, 7) float array [rad], played at 250 Hz.
           * ``.csv``: a header line ``t,q1,...,q7`` then one row per sample; ``t`` [s] must
             start at 0 and be uniformly spaced (its spacing sets the rate).

@@ -112,9 +112,11 @@ class SettleParams:
         contact_free_unknot: Judge a rope early that has been unknotted and free of
             self-contact over a whole window: a knot forms only where the rope's end passes
             through a loop of itself, and a hanging rope that does not touch itself is not
-            doing that (measured in ``docs/rope-model.md``: such verdicts did not change when
-            the same trials ran on to the cap). Without it, an unknotted rope that swings on
-            (air drag damps a large swing over minutes) runs to the cap.
+            doing that (``docs/rope-model.md``, "The lab around the rope"). No measurement
+            compares its verdicts with the capped settle's: it is no key of
+            :data:`EARLY_ENDS`, so ``flyknot-tools settle-compare`` cannot turn it off.
+            Without it, an unknotted rope that swings on (air drag damps a large swing over
+            minutes) runs to the cap.
         knot_set_s: Judge a knotted rope early once its knot has *set*: every verdict sample
             over this long [s] was the same knot, and the rope round its self-contacts (the
             knot) kept its shape, no two of its vertices moving closer or apart by more than

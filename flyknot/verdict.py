@@ -84,8 +84,9 @@ class JudgeParams:
         n_directions: Closure directions of the whole-rope vote (odd: no ties).
         supermajority: Smallest fraction of the whole-rope vote a knot type needs to count,
             in (0.5, 1]. Over the recorded trials of ``docs/judge.md`` the tube-closure vote
-            is 31 of 31 in all but a few; 0.8 (25 of 31) leaves room for a few threading
-            directions of a knot low in the rope while a near-tie never passes.
+            is 31 of 31 in all but a few and never below 21; 2/3 (21 of 31) leaves room for
+            the threading directions of a knot low in the rope (the lowest counted knot votes
+            24 of 31) while a coin flip (about half) never passes.
         clearance_m: Smallest arc length from the held end to the knot's core [m]: 0.10 m,
             the first marker's distance from the fingertip, so that a counted knot lies in the
             rope the motion capture sees and a loop round the tube (which sits above the first

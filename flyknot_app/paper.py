@@ -358,7 +358,7 @@ def paper_table(out: str | Path, command: str, pictures: dict[str, str] | None =
 
 def _write_results(path: Path, out: Path, command: str, found: dict[str, Path]) -> None:
     """The table at ``path`` (``docs/results.md``), its knot pictures copied beside it into
-    ``img/results/`` (the old ones of that folder removed)."""
+    ``img/results/`` (the pictures already in that folder removed)."""
     import shutil
 
     folder = path.parent / "img" / "results"

@@ -15,7 +15,8 @@ reached (at rest, contact-free, at the cap), the mean simulated seconds per tria
 seconds per simulated second. The switches are the lab's own (``LabParams`` / ``HandParams``
 fields) and the rope table's (:class:`flyknot_sim.rope_table.RopeParams` fields); no value
 here is new physics: each comes with its source in ``assets/ropes.toml`` or
-``docs/rope-model.md``. The sensitivity table of ``docs/rope-model.md`` is this tool's output.
+``docs/rope-model.md``. The results of ``docs/rope-model.md``, "Sensitivity over the
+brackets" (prose, robot / Swipe ties per row), are this tool's output.
 """
 
 from __future__ import annotations

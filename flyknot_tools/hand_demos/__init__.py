@@ -7,8 +7,9 @@ follow-through brings the hand to rest. That motion is a small family
 :mod:`flyknot_sim.hand`; this offline tool searches it with CMA-ES for members that tie the knot
 and keep tying it under the lab's trial-to-trial variation, and records them as demonstrations
 (``flyknot-tools demo synthesize``). Replaying a stored demonstration is part of the simulated
-lab (:mod:`flyknot_sim.hand_replay`, ``flyknot demo replay``). See ``docs/demo-synthesis.md``
-for the measured budgets and hit rates.
+lab (:mod:`flyknot_sim.hand_replay`, ``flyknot demo replay``). How the search works:
+``docs/demo-synthesis.md``; the shipped files' budgets and hit rates:
+``assets/demos/README.md``.
 
 Modules:
 

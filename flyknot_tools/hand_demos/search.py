@@ -3,8 +3,8 @@
 A motion is scored (:mod:`flyknot_tools.hand_demos.score`) on simulated trials of the hand
 lab (:mod:`flyknot_sim.hand`) under the lab's trial-to-trial variation; :func:`search` runs
 CMA-ES inside a variant's box (:mod:`flyknot_tools.hand_demos.variants`) and confirms
-the candidates that tie. See ``docs/demo-synthesis.md`` for the measured budgets and hit
-rates.
+the candidates that tie. How it works: ``docs/demo-synthesis.md``; the shipped
+demonstrations' searches (trials, minutes, varied checks): ``assets/demos/README.md``.
 """
 
 from __future__ import annotations
