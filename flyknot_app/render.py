@@ -186,8 +186,8 @@ class TrialRenderer:
         self.scene = mujoco.MjvScene(self.model, maxgeom=2000)
         # The scene's light casts shadows onto a floor the pedestal stands on and the rope
         # hangs high above: the shadow-map and reflection passes drew no pixel differently in
-        # whole-trial and close-up views (640x480), and without them a frame takes 0.03-0.04
-        # s against 0.09-0.10 s on Mesa's software rasteriser (docs/performance.md).
+        # whole-trial and close-up views (640x480), and without them a picture takes 0.19 s
+        # against 0.41 s on Mesa's software rasteriser (docs/performance.md).
         for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION):
             self.scene.flags[flag] = False
         self._option = mujoco.MjvOption()
