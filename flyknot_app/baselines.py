@@ -1,10 +1,10 @@
 """Baselines to compare Task-Level ILC with, played through the gym envs.
 
 The black-box searches ``random`` and ``cma`` play whole commands through
-:class:`flyknot_app.gym_env.FlyknotEnv`. Both search the offset x (80,) of the command's
+:class:`flyknot_app.gym.env.FlyknotEnv`. Both search the offset x (80,) of the command's
 knots from the initial command (the one ILC starts from), scaled by ``scale`` [rad per unit
 for joint rows, m per unit for base rows], made a valid command by
-:meth:`flyknot_app.gym_env.FlyknotEnv.constrain`, and see only the env's reward (minus the
+:meth:`flyknot_app.gym.env.FlyknotEnv.constrain`, and see only the env's reward (minus the
 critical-point cost, plus the knot bonus) and whether the knot tied:
 
 - ``random``: random search around the best offset so far, x = x_best + sigma N(0, I); the
@@ -13,7 +13,7 @@ critical-point cost, plus the knot bonus) and whether the knot tied:
   first trial plays the mean (the initial command).
 
 ``ppo`` (the ``rl`` extra: stable-baselines3 and torch) trains PPO on the tick-level env
-:class:`flyknot_app.gym_tick_env.FlyknotTickEnv`, one episode per trial: a Gaussian policy
+:class:`flyknot_app.gym.tick_env.FlyknotTickEnv`, one episode per trial: a Gaussian policy
 with state-dependent exploration (gSDE, its noise matrix drawn anew for every episode: the
 smooth exploration a 250 Hz arm needs, see the env's docstring) from the initial command (a
 zero action replays it); reward, cost and knot are the env's (:class:`PPOParams`).
@@ -206,7 +206,7 @@ def require_rl() -> None:
 def run_ppo(
     env: Any, params: BaselineParams = BaselineParams(), seed: int = 0, ppo: PPOParams = PPOParams()
 ) -> BaselineResult:
-    """Train PPO on ``env`` (a :class:`~flyknot_app.gym_tick_env.FlyknotTickEnv`) until its
+    """Train PPO on ``env`` (a :class:`~flyknot_app.gym.tick_env.FlyknotTickEnv`) until its
     first knot or ``params.budget`` episodes, then replay the best episode's actions
     ``params.repeats`` times. The lab's variation starts at trial 0 of ``seed``; the policy's
     initial weights and noise come from ``seed`` too. Torch runs on one CPU thread.
@@ -276,8 +276,8 @@ def run_ppo(
 def run_baseline(
     name: str, env: Any, params: BaselineParams = BaselineParams(), seed: int = 0
 ) -> BaselineResult:
-    """Search with baseline ``name`` on ``env`` (a :class:`~flyknot_app.gym_env.FlyknotEnv`;
-    for ``ppo`` a :class:`~flyknot_app.gym_tick_env.FlyknotTickEnv`, see :func:`run_ppo`).
+    """Search with baseline ``name`` on ``env`` (a :class:`~flyknot_app.gym.env.FlyknotEnv`;
+    for ``ppo`` a :class:`~flyknot_app.gym.tick_env.FlyknotTickEnv`, see :func:`run_ppo`).
 
     ``env.reset(seed=seed)`` plays nothing of the search: its one trial (the initial command)
     is not counted, and the lab is rewound (``env.restart_variation()``), so the search's
@@ -313,7 +313,7 @@ def write_results(
     interval; below, the mean trials until the first knot (a seed without a knot counted as
     its trials + 1: then a lower bound, >=) and the repeats pooled over the seeds (the success
     rate after the budget). ``settings``: more to record in the JSON (e.g. the env's)."""
-    from flyknot_app.report import wilson_interval
+    from flyknot_app.reports.report import wilson_interval
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -82,7 +82,7 @@ def _open_sim(spec: SimCellSpec) -> Cell:
 
 
 def _sim_oracle(spec: SimCellSpec, t_c: float) -> JacobianProvider:
-    from flyknot_app.oracle import LabJacobian
+    from flyknot_app.diagnose.oracle import LabJacobian
 
     return LabJacobian(sim_lab_params(spec), t_c)
 

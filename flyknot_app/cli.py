@@ -8,9 +8,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from flyknot.errors import ConfigError
-from flyknot_app.bench import BENCHMARKS
+from flyknot_app.bench.sim import BENCHMARKS
 from flyknot_app.dispatch import dispatch
-from flyknot_app.paper import add_paper_parser
+from flyknot_app.reports.paper import add_paper_parser
 from flyknot_app.scenario import parse_rope_arg, parse_seeds
 from flyknot_app.trial_cli import add_trial_parsers
 
@@ -25,7 +25,7 @@ def _cmd_showcase(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     path = record.save(out / "trial")
     swing_command().save(out / "command.csv")
-    from flyknot_app.plots import plot_trial
+    from flyknot_app.reports.plots import plot_trial
 
     fig_path = plot_trial(record, out / "trial.png")
     print(f"fault: {record.fault}")
@@ -86,11 +86,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
         executor=args.executor,
         address=args.address,
     )
-    from flyknot_app.report import outcome_line
+    from flyknot_app.reports.report import outcome_line
 
     print(f"{outcome_line(scen.kind, summary.runs)} Report: {out / 'report.md'}")
     if args.view:
-        from flyknot_app.viewer import serve
+        from flyknot_app.viewer.server import serve
 
         serve(out, port=args.port)
     elif args.dry_run:
@@ -99,14 +99,14 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_view(args: argparse.Namespace) -> int:
-    from flyknot_app.viewer import serve
+    from flyknot_app.viewer.server import serve
 
     serve(args.path, host=args.host, port=args.port)
     return 0
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from flyknot_app.render import RenderParams, render_trial
+    from flyknot_app.viewer.render import RenderParams, render_trial
 
     params = RenderParams(width=args.width, height=args.height, fps=args.fps)
     out = render_trial(args.record, args.out, time=args.time, params=params)
@@ -118,7 +118,7 @@ def _cmd_explain(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from flyknot.errors import check_nonnegative
-    from flyknot_app.anatomy_report import explain_directory, format_table, plot_anatomy
+    from flyknot_app.anatomy.report import explain_directory, format_table, plot_anatomy
 
     def progress(files):
         return tqdm(
@@ -162,7 +162,7 @@ def _cmd_baseline(args: argparse.Namespace) -> int:
     if args.name == "ppo":
         from dataclasses import asdict
 
-        from flyknot_app.gym_tick_env import FlyknotTickEnv
+        from flyknot_app.gym.tick_env import FlyknotTickEnv
 
         require_rl()  # before the initial guess is computed
         env = FlyknotTickEnv(rope=args.rope, demo=args.demo, settle_s=args.settle)
@@ -174,7 +174,7 @@ def _cmd_baseline(args: argparse.Namespace) -> int:
             "ppo": asdict(PPOParams()),
         }
     else:
-        from flyknot_app.gym_env import FlyknotEnv
+        from flyknot_app.gym.env import FlyknotEnv
 
         n = params.budget + params.repeats + 1
         env = FlyknotEnv(rope=args.rope, demo=args.demo, max_trials=n, settle_s=args.settle)
@@ -195,7 +195,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
-    from flyknot_app.compare import compare
+    from flyknot_app.reports.compare import compare
 
     path = compare(args.dirs, args.out)
     print(path.read_text().split("\n\n![")[0].removeprefix("# Comparison\n\n"))
@@ -204,7 +204,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from flyknot_app import bench
+    from flyknot_app.bench import sim as bench
 
     return bench.main(
         args.what,
@@ -231,7 +231,7 @@ def _parse_model(text: str) -> tuple[float, float]:
 
 
 def _cmd_model_check(args: argparse.Namespace) -> int:
-    from flyknot_app.model_check import check_models, format_table, grid_models, load_knots
+    from flyknot_app.diagnose.model_check import check_models, format_table, grid_models, load_knots
 
     knots = None if args.knots is None else load_knots(args.knots)
     if args.grid and args.model:
@@ -302,7 +302,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_calibrate_parser(sub)
     _add_compare_parser(sub)
     _add_bench_parser(sub)
-    from flyknot_app.diagnose_cli import add_diagnose_parser
+    from flyknot_app.diagnose.cli import add_diagnose_parser
 
     add_diagnose_parser(sub)
     return p

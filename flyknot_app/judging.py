@@ -1,7 +1,7 @@
 """Re-judging trials with :mod:`flyknot.verdict`, and the pictures a person audits them by.
 
 ``flyknot judge DIR [--pictures] [--out OUT] [--json]`` reads every trial under a run or
-replay directory (:func:`flyknot_app.anatomy_trials.find_trials`), judges the rope as it was
+replay directory (:func:`flyknot_app.anatomy.trials.find_trials`), judges the rope as it was
 at the end (the simulator's last centreline frame; without truth, the last fully tracked
 marker frame with the fingertip's tube axis) and prints, per trial, the verdict it was given
 when it ran (``old``: its stored knot type and class, if any), the new verdict, its closure
@@ -26,7 +26,7 @@ from flyknot.errors import FlyknotError, RenderError
 from flyknot.judge import MarkerJudge
 from flyknot.record import TrialRecord, read_outcome
 from flyknot.verdict import KNOT, JudgeParams, Verdict, judge_centreline, tube_axis_of
-from flyknot_app.anatomy_trials import (
+from flyknot_app.anatomy.trials import (
     TrialFile,
     find_trials,
     load_record,
@@ -35,7 +35,7 @@ from flyknot_app.anatomy_trials import (
 )
 
 if TYPE_CHECKING:
-    from flyknot_app.render import RendererCache
+    from flyknot_app.viewer.render import RendererCache
 
 FAULT = "fault"
 """The class column of a faulted trial (no verdict)."""
@@ -244,7 +244,7 @@ def verdict_picture(
     (many pictures: set up once); None: opened and closed here."""
     import imageio.v2 as imageio
 
-    from flyknot_app.render import RendererCache, RenderParams, rope_radius_of, trial_end
+    from flyknot_app.viewer.render import RendererCache, RenderParams, rope_radius_of, trial_end
 
     if renderers is None:
         with RendererCache() as own:
@@ -281,7 +281,7 @@ def write_pictures(rows: Sequence[Rejudged], out: str | Path) -> list[Path]:
     Returns:
         The files, in the order of :func:`picture_rows`.
     """
-    from flyknot_app.render import RendererCache
+    from flyknot_app.viewer.render import RendererCache
 
     out = Path(out)
     written = []

@@ -12,7 +12,7 @@ Output layout of ``flyknot run SCENARIO --out DIR``::
     DIR/runs/<run>/repeats/...     records of the repeated final command, if any
     DIR/runs/<run>/result.json     this run's summary
     DIR/summary.json               every run's summary
-    DIR/*.png, DIR/report.md       figures and the report (flyknot_app.report)
+    DIR/*.png, DIR/report.md       figures and the report (flyknot_app.reports.report)
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ from flyknot.record import TrialRecord, atomic_save_npy, atomic_write_text
 from flyknot.verdict import JUDGE_NAME
 from flyknot_app.cells import check_oracle, open_cell, oracle_provider
 from flyknot_app.guess_cache import cached_guess, guess_cache_name, guess_key, store_guess
-from flyknot_app.run_summary import RunSummary, ScenarioSummary
+from flyknot_app.reports.run_summary import RunSummary, ScenarioSummary
 from flyknot_app.scenario import RunSpec, Scenario, find_named_file
 
 
@@ -193,9 +193,9 @@ def finish_run(spec: RunSpec, out_dir: Path, summary: RunSummary, *, figure: boo
     and, with ``figure``, its critical-point figure. Done once: a resumed scenario skips the
     runs whose directory holds :data:`FINISHED`.
     """
-    from flyknot_app.anatomy_report import store_diagnoses
+    from flyknot_app.anatomy.report import store_diagnoses
     from flyknot_app.judging import draw_run_knots
-    from flyknot_app.report import critical_figure_path, plot_critical_overlays
+    from flyknot_app.reports.report import critical_figure_path, plot_critical_overlays
 
     run_dir = out_dir / "runs" / spec.name
     if (run_dir / FINISHED).is_file():
@@ -316,7 +316,7 @@ def _learn(lab, spec: RunSpec, target, knots0, robot, run_dir: Path, judge, *, r
 
 def _measured_jacobian(spec: RunSpec, t_c: float):
     """The run's measured M(t_c) provider when its ``jacobian`` source needs one (the
-    oracle: :mod:`flyknot_app.oracle`), else None."""
+    oracle: :mod:`flyknot_app.diagnose.oracle`), else None."""
     from learner.jacobians import jacobian_kind
 
     if not jacobian_kind(spec.learner.update.jacobian).needs_provider:
@@ -477,7 +477,7 @@ def run_scenarios(
     """
     from tqdm import tqdm
 
-    from flyknot_app.report import CRITICAL_FIGURES
+    from flyknot_app.reports.report import CRITICAL_FIGURES
     from flyknot_app.schedule import EXECUTORS, RunJob, run_jobs
 
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
@@ -575,7 +575,7 @@ def finish_scenario(
     scen: Scenario, out_dir: Path, results: dict[str, RunSummary], workers: int
 ) -> ScenarioSummary:
     """Every run has finished: write the scenario's summary and report."""
-    from flyknot_app.report import write_report
+    from flyknot_app.reports.report import write_report
 
     runs = tuple(results[r.name] for r in scen.runs)
     summary = ScenarioSummary(scen.name, scen.kind, runs, scen.paper)

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from flyknot.errors import ConfigError
-from flyknot_app.run_summary import RunSummary
+from flyknot_app.reports.run_summary import RunSummary
 from flyknot_app.scenario import RunSpec
 
 __all__ = ["EXECUTORS", "RunJob", "expected_trials", "ranks", "run_jobs"]

@@ -217,7 +217,7 @@ def _cmd_judge(args: argparse.Namespace) -> int:
 
 
 def _cmd_results(args: argparse.Namespace) -> int:
-    from flyknot_app.results import results_table
+    from flyknot_app.reports.results import results_table
 
     command = "flyknot results " + " ".join(args.dirs) + (f" --out {args.out}" if args.out else "")
     text = results_table(args.dirs, command)

@@ -2,7 +2,7 @@
 
 A :class:`TrialSession` is a trial in progress. :meth:`SimLab.run` plays a whole command
 through one (the command known up front); :meth:`SimLab.start` opens one for a caller that
-decides each 4 ms target as it goes (a policy, :mod:`flyknot_app.gym_tick_env`):
+decides each 4 ms target as it goes (a policy, :mod:`flyknot_app.gym.tick_env`):
 
 1. opening it draws the trial's variation from ``(seed, trial index)``, resets the arm at
    ``q0`` with the rope in a settled start and lets the seeded start delay pass;

@@ -25,7 +25,7 @@ import numpy as np
 
 from flyknot.knot import DEFAULT_DIRECTIONS, closure_votes
 from flyknot.verdict import JudgeParams, judge_centreline, with_tube
-from flyknot_app.anatomy_trials import load_record
+from flyknot_app.anatomy.trials import load_record
 from flyknot_app.judging import final_frame, rejudge_directory
 
 BINS = ((0, 12), (13, 18), (19, 20), (21, 24), (25, 28), (29, 30), (31, 31))

@@ -10,7 +10,8 @@ initial sway of ``sway_deg``):
   (:func:`flyknot_sim.hand_replay.replay`), replays ``0 .. n - 1`` of seed ``seed``;
 
 and reports per row the knots tied, the failure anatomy of the rest
-(:func:`flyknot_app.anatomy.diagnose`, against each demonstration's t_c), how the verdict was
+(:func:`flyknot_app.anatomy.diagnosis.diagnose`, against each demonstration's t_c), how the
+verdict was
 reached (at rest, contact-free, at the cap), the mean simulated seconds per trial and the wall
 seconds per simulated second. The switches are the lab's own (``LabParams`` / ``HandParams``
 fields) and the rope table's (:class:`flyknot_sim.rope_table.RopeParams` fields); no value
@@ -157,7 +158,7 @@ def _robot_trials(arm, n: int, demo_path: Path = ROBOT_DEMO) -> list[dict[str, A
     """The robot command's trials ``0 .. n - 1`` in the arm's lab, diagnosed (the command
     stored in the robot demonstration ``demo_path``)."""
     from flyknot.demo import Demonstration
-    from flyknot_app.anatomy import diagnose
+    from flyknot_app.anatomy.diagnosis import diagnose
     from flyknot_sim.lab import SimLab
     from learner.bezier import BezierCommand
 
@@ -187,8 +188,8 @@ def _robot_trials(arm, n: int, demo_path: Path = ROBOT_DEMO) -> list[dict[str, A
 def _hand_trials(hand, n: int, seed: int) -> list[dict[str, Any]]:
     """Swipe's replays ``0 .. n - 1`` in the hand lab, diagnosed."""
     from flyknot.demo import Demonstration
-    from flyknot_app.anatomy import diagnose
-    from flyknot_app.anatomy_trials import load_replay
+    from flyknot_app.anatomy.diagnosis import diagnose
+    from flyknot_app.anatomy.trials import load_replay
     from flyknot_sim.hand import HandLab
     from flyknot_sim.hand_replay import motion_from_demo, save_replay
 

@@ -13,7 +13,7 @@ comes from; a run names one with the update option ``jacobian``:
   t_c over the knots, played without trial-to-trial variation. It bounds what any
   model-based ILC can do with this objective and QP. Only a simulated lab can replay a
   command without variation, so the cell's side supplies it (the application layer's
-  ``flyknot_app.oracle``); the learner sees an opaque :data:`JacobianProvider` and nothing
+  ``flyknot_app.diagnose.oracle``); the learner sees an opaque :data:`JacobianProvider` and nothing
   of the simulator.
 
 Adding a source is one :class:`JacobianKind` and one line in :data:`JACOBIANS`.

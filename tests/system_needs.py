@@ -25,7 +25,7 @@ EGL_PACKAGES = "libegl1, libgl1-mesa-dri and libegl-mesa0"
 ROOT = Path(__file__).resolve().parent.parent
 
 _EGL_PROBE = """
-from flyknot_app.render import _gl_context
+from flyknot_app.viewer.render import _gl_context
 context = _gl_context(16, 16)
 context.make_current()
 context.free()

@@ -1,4 +1,5 @@
-"""Failure anatomy (flyknot_app.anatomy, _trials, _report): labels, a real trial, files, CLI.
+"""Failure anatomy (flyknot_app.anatomy.diagnosis, _trials, _report): labels, a real trial, files,
+CLI.
 
 Constructed records carry a truth centreline history written as a string, one character per
 10 ms frame: ``l`` a straight hanging rope (unknot), ``T`` the hanging overhand knot of
@@ -14,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import flyknot_app.anatomy as an
-import flyknot_app.anatomy_report as ar
+import flyknot_app.anatomy.diagnosis as an
+import flyknot_app.anatomy.report as ar
 from flyknot.errors import ConfigError, RecordError
 from flyknot.knot import load_centreline
 from flyknot.record import TrialRecord
@@ -536,8 +537,8 @@ def test_cli_explain_errors_are_one_line(tmp_path, capsys):
 
 
 def test_report_has_an_anatomy_section(egl, tmp_path):
-    from flyknot_app.report import write_report
-    from flyknot_app.run_summary import RunSummary, ScenarioSummary
+    from flyknot_app.reports.report import write_report
+    from flyknot_app.reports.run_summary import RunSummary, ScenarioSummary
 
     root = run_directory(tmp_path)
     runs = tuple(

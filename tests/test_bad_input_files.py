@@ -14,7 +14,7 @@ import pytest
 from flyknot.constants import DEMOS_DIR
 from flyknot.demo import Demonstration
 from flyknot.errors import ConfigError, RecordError
-from flyknot_app.model_check import load_knots
+from flyknot_app.diagnose.model_check import load_knots
 from flyknot_app.scenario import check_demo
 
 FORMATS = (

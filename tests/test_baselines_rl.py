@@ -15,7 +15,7 @@ pytest.importorskip(
 
 from flyknot.record import TrialRecord
 from flyknot_app.baselines import BaselineParams, run_baseline, write_results
-from flyknot_app.gym_tick_env import FlyknotTickEnv
+from flyknot_app.gym.tick_env import FlyknotTickEnv
 from flyknot_sim.commands import SWING_AMPLITUDE, swing_command
 
 # 41 ticks of a gentle swing, inside every limit: a few PPO episodes take seconds. Its t_c

@@ -7,7 +7,7 @@ import json
 import pytest
 
 from flyknot.errors import ConfigError
-from flyknot_app.bench_protocol import (
+from flyknot_app.bench.protocol import (
     PAPER_SCENARIOS,
     QUICK,
     QuickCase,

@@ -129,21 +129,21 @@ def test_every_rope_option_takes_a_name():
     [(1, [1, 2]), (2, [1, 2, 2, 1]), (3, [1, 2, 2, 1, 1, 2])],
 )
 def test_bench_sweep_alternates_worker_counts(repeats, order):
-    from flyknot_app.bench import sweep_order
+    from flyknot_app.bench.sim import sweep_order
 
     assert sweep_order(repeats) == order
 
 
 def test_bench_sweep_order_rejects_no_repeats():
     from flyknot.errors import ConfigError
-    from flyknot_app.bench import sweep_order
+    from flyknot_app.bench.sim import sweep_order
 
     with pytest.raises(ConfigError, match="repeats: must be >= 1, got 0"):
         sweep_order(0)
 
 
 def test_bench_sweep_speedup_is_a_ratio_of_means():
-    from flyknot_app.bench import sweep_speedups
+    from flyknot_app.bench.sim import sweep_speedups
 
     out = sweep_speedups({"ray": {1: [100.0, 80.0], 2: [40.0, 60.0]}})
     assert out["ray_wall_s_1"] == 90.0 and out["ray_wall_s_2"] == 50.0

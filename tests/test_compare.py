@@ -8,7 +8,7 @@ import pytest
 
 from flyknot.errors import ConfigError
 from flyknot_app import cli
-from flyknot_app.compare import compare, load_runset, mean_trials, ratios, seed_table
+from flyknot_app.reports.compare import compare, load_runset, mean_trials, ratios, seed_table
 
 
 def _write(d, runs, name="summary.json"):

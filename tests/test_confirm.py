@@ -119,8 +119,8 @@ def test_confirm_errors(kwargs, message):
 
 
 def test_outcome_line_reports_both_stop_rules():
-    from flyknot_app.report import outcome_line
-    from flyknot_app.run_summary import RunSummary
+    from flyknot_app.reports.report import outcome_line
+    from flyknot_app.reports.run_summary import RunSummary
 
     def run(name, n, why):
         return RunSummary(

@@ -321,7 +321,7 @@ def test_scenario_with_a_ropes_file(ropes_file, tmp_path, monkeypatch):
 
 def test_gym_env_accepts_a_rope_name(ropes_file):
     pytest.importorskip("gymnasium")
-    from flyknot_app.gym_env import FlyknotEnv
+    from flyknot_app.gym.env import FlyknotEnv
 
     env = FlyknotEnv(rope="my cord", ropes=str(ropes_file), settle_s=0.1)
     assert env._lab.rope_params.name == "my cord" and env._lab.plant.drag.params.cd == 1.5

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from flyknot.errors import ConfigError
-from flyknot_app.decided import class_separation, decided_time, separation
+from flyknot_app.diagnose.decided import class_separation, decided_time, separation
 
 
 def test_class_separation_by_hand():

@@ -6,8 +6,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import flyknot_app.gym_env  # noqa: F401 - registers the environment
-from flyknot_app.gym_env import FlyknotEnv
+import flyknot_app.gym.env  # noqa: F401 - registers the environment
+from flyknot_app.gym.env import FlyknotEnv
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +74,7 @@ def test_bad_actions_are_refused_before_anything_changes(env):
 
 def test_info_names_the_record_and_the_failure_class(env):
     from flyknot.record import TrialRecord
-    from flyknot_app.anatomy import LABELS
+    from flyknot_app.anatomy.diagnosis import LABELS
 
     _, info = env.reset(seed=1)
     assert info["failure"] in LABELS
@@ -88,7 +88,7 @@ def test_the_env_is_made_with_gymnasium_alone(tmp_path):
 
     code = (
         "import gymnasium as gym\n"
-        "env = gym.make('flyknot_app.gym_env:flyknot/FlyingKnot-v0', settle_s=0.2)\n"
+        "env = gym.make('flyknot_app.gym.env:flyknot/FlyingKnot-v0', settle_s=0.2)\n"
         "print(type(env.unwrapped).__name__, env.observation_space.is_bounded())\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

@@ -6,11 +6,11 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import flyknot_app.gym_tick_env  # noqa: F401 - registers the environment
+import flyknot_app.gym.tick_env  # noqa: F401 - registers the environment
 from flyknot.errors import ConfigError
 from flyknot.limits import JointLimits
 from flyknot.record import JointCommand, TrialRecord
-from flyknot_app.gym_tick_env import FlyknotTickEnv
+from flyknot_app.gym.tick_env import FlyknotTickEnv
 from flyknot_sim.commands import HOME_Q, SWING_AMPLITUDE, swing_command
 from flyknot_sim.lab import LabParams, SimLab
 
@@ -145,7 +145,7 @@ def test_bad_actions_are_refused_before_anything_changes(env):
 
 
 def test_the_reward_is_the_knot_bonus_minus_the_critical_cost(monkeypatch, env):
-    import flyknot_app.gym_tick_env as mod
+    import flyknot_app.gym.tick_env as mod
 
     def score(record, target, base_offset, weights, fault_penalty):
         np.testing.assert_array_equal(base_offset, np.zeros(3))
@@ -173,4 +173,4 @@ def test_options_are_checked():
     with pytest.raises(ConfigError, match=r"^base_offset: must be 3 finite numbers"):
         make(base_offset=np.zeros(2))
     spec = gym.spec("flyknot/FlyingKnotTick-v0")
-    assert spec.entry_point == "flyknot_app.gym_tick_env:FlyknotTickEnv"
+    assert spec.entry_point == "flyknot_app.gym.tick_env:FlyknotTickEnv"

@@ -108,7 +108,7 @@ def test_run_with_cell_dry_run_plays_the_scenario_through_the_preflight(egl, tmp
 def test_a_velocity_stream_dry_run_passes_and_view_opens_its_run(
     egl, tmp_path, capsys, monkeypatch
 ):
-    import flyknot_app.viewer as viewer
+    import flyknot_app.viewer.server as viewer
 
     served = []
     monkeypatch.setattr(viewer, "serve", lambda path, **kw: served.append((Path(path), kw)))

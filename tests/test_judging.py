@@ -141,8 +141,8 @@ def test_a_stored_verdict_is_the_old_class(run_dir, capsys):
 
 
 def test_the_viewer_shows_the_verdict(run_dir):
-    from flyknot_app.viewer import _title
-    from flyknot_app.viewer_trials import ViewTrial
+    from flyknot_app.viewer.server import _title
+    from flyknot_app.viewer.trials import ViewTrial
 
     rec = _record("knot_rope1_repeat", "trefoil")
     rec = dataclasses.replace(rec, verdict=verdict("knot"))
@@ -191,7 +191,7 @@ def test_a_learned_command_replays_from_its_run(tmp_path):
 
 
 def test_pictures_draw_the_rope_at_its_true_size():
-    from flyknot_app.render import rope_radius_of
+    from flyknot_app.viewer.render import rope_radius_of
 
     rec = _record("knot_rope1_repeat", "trefoil")
     assert rope_radius_of(rec) == pytest.approx(0.0045)  # rope 1: 9 mm
@@ -278,7 +278,7 @@ def test_a_run_ends_with_its_knots_drawn(egl, monkeypatch, tmp_path):
 def _no_opengl(monkeypatch):
     """Every offscreen context refused, as on a machine without EGL or OSMesa."""
     from flyknot.errors import RenderError
-    from flyknot_app import render
+    from flyknot_app.viewer import render
 
     def refuse(width, height):
         raise RenderError("no offscreen OpenGL context (egl: ImportError: libEGL.so.1)")

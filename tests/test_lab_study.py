@@ -58,7 +58,7 @@ def test_unknown_candidate_lists_the_valid_ones():
 
 
 def test_one_robot_trial_of_a_row_is_diagnosed_in_the_rows_lab():
-    from flyknot_app.anatomy import LABELS
+    from flyknot_app.anatomy.diagnosis import LABELS
     from flyknot_tools.lab_study import _labs, _robot_trials
 
     arm, hand = _labs(CANDIDATES["C_D 1.2"], 1, 1.0)

@@ -1,5 +1,5 @@
-"""Tests of flyknot_app/model_check.py: the agreement measures, the directions, the evaluation
-instant, and one tiny end-to-end check through the command line."""
+"""Tests of flyknot_app/diagnose/model_check.py: the agreement measures, the directions, the
+evaluation instant, and one tiny end-to-end check through the command line."""
 
 from __future__ import annotations
 
@@ -12,7 +12,12 @@ from hypothesis import strategies as st
 
 from flyknot.errors import ConfigError, RecordError
 from flyknot_app import cli
-from flyknot_app.model_check import agreement, best_model, evaluation_time, random_directions
+from flyknot_app.diagnose.model_check import (
+    agreement,
+    best_model,
+    evaluation_time,
+    random_directions,
+)
 
 
 def _responses(seed: int, n: int = 5) -> np.ndarray:
@@ -76,7 +81,7 @@ def test_evaluation_time_backs_off_before_tracking_loss():
 def test_cli_model_check_end_to_end(tmp_path, capsys):
     """The scenario files' rope model agrees with the lab far better than the paper's and than
     100, 0.5 (docs/learning.md, section 3), and is among the identification grid's models."""
-    from flyknot_app.model_check import grid_models
+    from flyknot_app.diagnose.model_check import grid_models
     from flyknot_app.scenario import load_scenario
 
     ours = load_scenario("03-ropes").runs[0].learner.rope_model

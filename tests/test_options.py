@@ -1,5 +1,5 @@
 """Options read from and written to mappings by their dataclass fields (flyknot.options),
-and a run's summary (flyknot_app.run_summary) read back as it was written."""
+and a run's summary (flyknot_app.reports.run_summary) read back as it was written."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from flyknot.options import (
     option_names,
     to_mapping,
 )
-from flyknot_app.run_summary import OPTION_KEYS, RunSummary, ScenarioSummary
+from flyknot_app.reports.run_summary import OPTION_KEYS, RunSummary, ScenarioSummary
 from flyknot_app.scenario import RunSpec
 from learner.ilc_params import ILCParams
 from learner.inverse_qp import InverseModelWeights

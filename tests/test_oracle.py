@@ -10,8 +10,8 @@ import pytest
 
 from flyknot.errors import ConfigError
 from flyknot_app.cells import check_oracle, oracle_provider
-from flyknot_app.floor import FloorParams, cost_parts
-from flyknot_app.oracle import LabJacobian, central_difference, knot_groups
+from flyknot_app.diagnose.floor import FloorParams, cost_parts
+from flyknot_app.diagnose.oracle import LabJacobian, central_difference, knot_groups
 from learner.inverse_qp import base_equality_rows, rest_equality_rows
 from learner.jacobians import JACOBIANS, jacobian_kind, provided_jacobian
 from learner.update import UpdateSettings

@@ -7,8 +7,8 @@ import json
 import pytest
 
 from flyknot_app.cli import main
-from flyknot_app.paper import paper_table, repeats_text, transfer_cell, trials_text
-from flyknot_app.run_summary import RunSummary, ScenarioSummary
+from flyknot_app.reports.paper import paper_table, repeats_text, transfer_cell, trials_text
+from flyknot_app.reports.run_summary import RunSummary, ScenarioSummary
 
 
 def _run(name, seed, tts, n=10, repeats=(), **options):
@@ -124,7 +124,7 @@ def test_every_variant_stands_beside_under_its_label(tmp_path):
 
 
 def test_a_variant_runs_with_its_options_into_its_directory(tmp_path, monkeypatch):
-    import flyknot_app.paper as paper
+    import flyknot_app.reports.paper as paper
 
     seen = {}
 

@@ -10,7 +10,7 @@ import pytest
 
 from flyknot.errors import ConfigError
 from flyknot_app.cli import main
-from flyknot_app.render import (
+from flyknot_app.viewer.render import (
     SUFFIXES,
     RenderParams,
     TrialRenderer,
@@ -116,7 +116,7 @@ def test_bad_requests_name_the_flag(stem, tmp_path, capsys):
 
 
 def test_a_renderer_bound_again_draws_what_a_new_one_draws(egl, record):
-    from flyknot_app.render import RendererCache
+    from flyknot_app.viewer.render import RendererCache
 
     moved = dataclasses.replace(record, q_meas=record.q_meas + np.array([0.6, 0, 0, 0, 0, 0, 0]))
     bare = dataclasses.replace(moved, truth={})
@@ -166,7 +166,7 @@ def test_a_renderer_names_what_it_cannot_draw(egl, record):
 FORK_AFTER_RENDER = """
 import multiprocessing, sys
 from flyknot.record import TrialRecord
-from flyknot_app.render import RenderParams, TrialRenderer
+from flyknot_app.viewer.render import RenderParams, TrialRenderer
 
 def draw():
     record = TrialRecord.load(sys.argv[1])

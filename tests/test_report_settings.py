@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import json
 
-from flyknot_app.report import plot_costs, settings_lines, write_report
-from flyknot_app.run_summary import RunSummary, ScenarioSummary
+from flyknot_app.reports.report import plot_costs, settings_lines, write_report
+from flyknot_app.reports.run_summary import RunSummary, ScenarioSummary
 
 
 def _run(name, knots):

@@ -10,7 +10,7 @@ import pytest
 
 from flyknot.constants import SCENARIOS_DIR
 from flyknot.errors import ConfigError
-from flyknot_app.run_summary import RunSummary, ScenarioSummary
+from flyknot_app.reports.run_summary import RunSummary, ScenarioSummary
 from flyknot_app.scenario import (
     RUN_KEYS,
     limit_runs,
@@ -257,7 +257,7 @@ def test_window_changes_the_target():
 
 
 def test_outcome_line_for_learning_and_tracking():
-    from flyknot_app.report import outcome_line
+    from flyknot_app.reports.report import outcome_line
 
     runs = [
         RunSummary({"name": "a"}, trials_to_success=3, repeat_classes=["knot", "unknot"]),
@@ -275,7 +275,7 @@ def test_outcome_line_for_learning_and_tracking():
 
 
 def test_wilson_interval_known_values():
-    from flyknot_app.report import wilson_interval
+    from flyknot_app.reports.report import wilson_interval
 
     # the bounds solve |p - k/n| = z sqrt(p (1 - p) / n) (z = 1.96)
     for k, n in [(15, 40), (1, 10), (7, 20), (39, 40)]:
@@ -355,7 +355,7 @@ def test_every_scenarios_description_says_what_it_runs(name):
 
 
 def test_the_smoke_line_says_whether_the_pipeline_worked():
-    from flyknot_app.report import outcome_line
+    from flyknot_app.reports.report import outcome_line
 
     ok = RunSummary(
         {"name": "a"},

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from flyknot.constants import SCENARIOS_DIR
-from flyknot_app.run_summary import ScenarioSummary
+from flyknot_app.reports.run_summary import ScenarioSummary
 from flyknot_app.runner import guess_cache_name, initial_knots, run_scenario
 from flyknot_app.scenario import load_scenario, parse_overrides
 from flyknot_sim.scene import SceneParams, robot_base_pose

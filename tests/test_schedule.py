@@ -231,11 +231,11 @@ def test_without_a_finish_a_run_is_yielded_when_it_ends():
 
 def test_a_runs_post_run_work_is_done_once(monkeypatch, tmp_path):
     from flyknot_app import runner
-    from flyknot_app.anatomy_report import store_diagnoses  # noqa: F401 (the patched module)
+    from flyknot_app.anatomy.report import store_diagnoses  # noqa: F401 (the patched module)
 
     calls = []
     monkeypatch.setattr(
-        "flyknot_app.anatomy_report.store_diagnoses", lambda d: calls.append(("diag", d))
+        "flyknot_app.anatomy.report.store_diagnoses", lambda d: calls.append(("diag", d))
     )
     monkeypatch.setattr(
         "flyknot_app.judging.draw_run_knots", lambda d, root: calls.append(("knots", d))

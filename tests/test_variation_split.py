@@ -1,4 +1,5 @@
-"""Which part of the lab's variation decides a command's knot (flyknot_app.variation_split)."""
+"""Which part of the lab's variation decides a command's knot
+(flyknot_app.diagnose.variation_split)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import numpy as np
 import pytest
 
 from flyknot.errors import ConfigError
-from flyknot_app.variation_split import alone, format_split, split_variation
+from flyknot_app.diagnose.variation_split import alone, format_split, split_variation
 from flyknot_sim.lab_params import LabParams, VariationParams
 
 
@@ -79,7 +80,7 @@ def _run_dir(tmp_path, cell="sim", tts=2):
 
 
 def test_cli_plays_the_first_knots_command(tmp_path, capsys, monkeypatch):
-    import flyknot_app.variation_split as vs
+    import flyknot_app.diagnose.variation_split as vs
     from flyknot_app.cli import main
 
     seen = []
@@ -114,7 +115,7 @@ def test_cli_refuses_a_real_cell_and_a_bad_trial(tmp_path, capsys):
 
 
 def test_cli_plays_a_floors_command(tmp_path, capsys, monkeypatch):
-    import flyknot_app.variation_split as vs
+    import flyknot_app.diagnose.variation_split as vs
     from flyknot_app.cli import main
 
     seen = []

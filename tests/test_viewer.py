@@ -18,8 +18,8 @@ import pytest
 
 from flyknot.errors import ConfigError
 from flyknot.record import TrialRecord
-from flyknot_app.viewer import COLOURS, NODES, RunViewer, start, trial_frames
-from flyknot_app.viewer_trials import (
+from flyknot_app.viewer.server import COLOURS, NODES, RunViewer, start, trial_frames
+from flyknot_app.viewer.trials import (
     TargetCache,
     base_offset,
     demo_to_lab,

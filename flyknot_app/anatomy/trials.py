@@ -1,10 +1,11 @@
-"""Reading trials for the failure anatomy (:mod:`flyknot_app.anatomy`): records, replays, dirs.
+"""Reading trials for the failure anatomy (:mod:`flyknot_app.anatomy.diagnosis`): records,
+replays, dirs.
 
-:class:`TrialEvidence` is what :func:`flyknot_app.anatomy.diagnose` reads from one trial, taken
-from a :class:`TrialRecord` (:meth:`TrialEvidence.from_record`) or a replay file
+:class:`TrialEvidence` is what :func:`flyknot_app.anatomy.diagnosis.diagnose` reads from one
+trial, taken from a :class:`TrialRecord` (:meth:`TrialEvidence.from_record`) or a replay file
 (:func:`load_replay`).
 
-Directories (:func:`find_trials`, for :func:`flyknot_app.anatomy_report.explain_directory`):
+Directories (:func:`find_trials`, for :func:`flyknot_app.anatomy.report.explain_directory`):
 a run directory of ``flyknot run`` (every trial record ``<stem>.json`` + ``<stem>.npz`` under
 it, recursively; t_c from each run's ``result.json`` or the run directory's ``summary.json``) or
 a directory of ``flyknot demo replay --out`` (``replay_*.npz``; t_c from the replayed
@@ -30,15 +31,16 @@ from flyknot.verdict import Verdict
 
 @dataclass(frozen=True)
 class TrialEvidence:
-    """What :func:`flyknot_app.anatomy.diagnose` reads from one trial (a record or a replay).
+    """What :func:`flyknot_app.anatomy.diagnosis.diagnose` reads from one trial (a record or a
+    replay).
 
     Attributes:
         name: Name of the trial in tables (a relative path).
         fault: The controller's fault, or None.
         knot: Knot type at the end, or None if not judged.
         verdict: The judged end (:class:`flyknot.verdict.Verdict`), or None (not judged, or
-            judged before verdicts carried their evidence: :func:`flyknot_app.anatomy.diagnose`
-            then judges the truth's last frame).
+            judged before verdicts carried their evidence:
+            :func:`flyknot_app.anatomy.diagnosis.diagnose` then judges the truth's last frame).
         first_contact_time: First self-contact [s], or None.
         contact_known: Whether None in ``first_contact_time`` means "no contact" (simulated
             lab) rather than "not annotated" (real lab).

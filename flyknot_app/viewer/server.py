@@ -14,7 +14,7 @@ on http://127.0.0.1:8080. Scene nodes:
 
 The GUI has a trial selector (every record under a run directory), a time slider with play
 (t_c marked) and a button that moves the slider to t_c. Which trials, and their targets:
-:mod:`flyknot_app.viewer_trials`.
+:mod:`flyknot_app.viewer.trials`.
 """
 
 from __future__ import annotations
@@ -28,8 +28,8 @@ import numpy as np
 
 from flyknot.errors import ConfigError
 from flyknot.record import TrialRecord
-from flyknot_app.frames import RATE_HZ, trial_frames
-from flyknot_app.viewer_trials import TargetCache, ViewTrial, find_view_trials, markers_at
+from flyknot_app.viewer.frames import RATE_HZ, trial_frames
+from flyknot_app.viewer.trials import TargetCache, ViewTrial, find_view_trials, markers_at
 
 NODES = ("/robot", "/rope", "/markers", "/fingertip_path", "/target_rope", "/critical")
 """Scene nodes the viewer draws (besides the ``/floor`` grid)."""

@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from flyknot.errors import ConfigError
-from flyknot_app.paper import PAPER_SCENARIOS
+from flyknot_app.reports.paper import PAPER_SCENARIOS
 
 BEFORE_LABS = ("no_knot_set", "no_unknot_held", "by_scenario")
 """The labs ``--quick`` compares with the lab as it is (module docstring)."""

@@ -3,7 +3,7 @@
 A measuring stick (``flyknot diagnose floor``): if the floor for a demonstration is far above
 the cost at which knots happen, its rope state at t_c is out of the arm's reach whatever a
 learner does. The search is Levenberg-Marquardt on the critical cost in the simulated lab
-without variation, with the lab's own Jacobian (:class:`flyknot_app.oracle.LabJacobian`):
+without variation, with the lab's own Jacobian (:class:`flyknot_app.diagnose.oracle.LabJacobian`):
 
     M_i = dx(t_c)/dkappa at kappa_i                      (66, 80), measured
     dk  = argmin ||M_i dk - e_i||_Q^2 + lambda ||dk_arm||^2
@@ -26,7 +26,7 @@ import numpy as np
 
 from flyknot.errors import ConfigError, check_positive
 from flyknot.limits import JointLimits
-from flyknot_app.oracle import LabJacobian, OracleParams, knot_groups
+from flyknot_app.diagnose.oracle import LabJacobian, OracleParams, knot_groups
 
 N_MARKERS = 11
 

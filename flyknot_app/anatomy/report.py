@@ -1,7 +1,8 @@
-"""The failure anatomy of a set of trials (:mod:`flyknot_app.anatomy`): tables, figures, reports.
+"""The failure anatomy of a set of trials (:mod:`flyknot_app.anatomy.diagnosis`): tables, figures,
+reports.
 
 :func:`explain` diagnoses trials in memory, :func:`explain_directory` every trial under a run or
-replay directory (:func:`flyknot_app.anatomy_trials.find_trials`); :func:`format_table`,
+replay directory (:func:`flyknot_app.anatomy.trials.find_trials`); :func:`format_table`,
 :func:`plot_anatomy`, :func:`markdown_section` and :func:`report_section` show the result.
 """
 
@@ -17,7 +18,7 @@ import numpy as np
 
 from flyknot.errors import ConfigError, FlyknotError, check_choice, check_int, check_nonnegative
 from flyknot.record import TrialRecord, atomic_write_text
-from flyknot_app.anatomy import (
+from flyknot_app.anatomy.diagnosis import (
     COLOURS,
     DESCRIPTIONS,
     LABELS,
@@ -27,7 +28,7 @@ from flyknot_app.anatomy import (
     Diagnosis,
     diagnose,
 )
-from flyknot_app.anatomy_trials import (
+from flyknot_app.anatomy.trials import (
     TrialEvidence,
     TrialFile,
     find_trials,
@@ -398,7 +399,8 @@ def markdown_section(anatomy: Anatomy, figure: str | None = None) -> list[str]:
     n = len(anatomy.diagnoses)
     lines = ["## Failure anatomy", ""]
     lines.append(
-        f"Why each of the {n} trials ended as it did (`flyknot_app.anatomy`; a trefoil lasting "
+        f"Why each of the {n} trials ended as it did "
+        f"(`flyknot_app.anatomy.diagnosis`; a trefoil lasting "
         f"{PERSIST_S:g} s or more was tied, a shorter one slipped out)."
     )
     lines += ["", "| class | meaning | count | share |", "|---|---|---|---|"]

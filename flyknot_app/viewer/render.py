@@ -250,7 +250,7 @@ class TrialRenderer:
 
     def _frame_camera(self) -> mujoco.MjvCamera:
         """A free camera framing the arm and the rope over the whole trial."""
-        from flyknot_app.frames import trial_frames
+        from flyknot_app.viewer.frames import trial_frames
 
         if self.params.focus is not None:
             first, last = self.params.focus

@@ -1,7 +1,7 @@
 """A trial's drawable state on one clock: the arm's links, the rope, the markers.
 
-:func:`trial_frames` is what the viewer (:mod:`flyknot_app.viewer`) and the renders
-(:mod:`flyknot_app.render`) draw.
+:func:`trial_frames` is what the viewer (:mod:`flyknot_app.viewer.server`) and the renders
+(:mod:`flyknot_app.viewer.render`) draw.
 """
 
 from __future__ import annotations

@@ -29,7 +29,7 @@ control tick at a time and sees what the lab measures between ticks.
 * Observation (59,), bounded (values beyond the bounds are clipped): measured joint angles
   (7) [rad] within the paper's position limits, joint velocities (7) [rad/s] within
   +-:data:`JOINT_VEL_BOUND`, the newest motion-capture frame of the 11 rope markers (33) [m],
-  lab frame, within +-:data:`~flyknot_app.gym_env.POS_BOUND` (0 where tracking is lost), the
+  lab frame, within +-:data:`~flyknot_app.gym.env.POS_BOUND` (0 where tracking is lost), the
   markers' validity mask (11: 1 seen, 0 lost), and the time fraction tick / n in [0, 1].
 * Episode: the initial command's n ticks from rest at its first sample; after the last, the
   lab holds the last target under its settle rule (``settle_s``: a fixed wait instead) and
@@ -38,12 +38,12 @@ control tick at a time and sees what the lab measures between ticks.
   episode at once, after the arm has braked.
 * Reward: 0 on every step but the last, then ``knot_bonus`` (1) when the knot tied (no fault,
   the settled rope's verdict is a knot in the hanging rope) minus the critical-point cost
-  (:func:`flyknot_app.gym_env.score_trial`, as :class:`~flyknot_app.gym_env.FlyknotEnv`
+  (:func:`flyknot_app.gym.env.score_trial`, as :class:`~flyknot_app.gym.env.FlyknotEnv`
   computes it; ``fault_penalty`` instead when the arm faulted or tracking was lost before
   t_c).
 * ``info`` on every step: ``tick``, ``fault``; at the end also ``knot``, ``cost``,
-  ``success``, ``failure`` (the failure class of :mod:`flyknot_app.anatomy`), ``trial`` (the
-  episodes so far), ``record`` (the saved record's path, when ``record_dir`` is given) and
+  ``success``, ``failure`` (the failure class of :mod:`flyknot_app.anatomy.diagnosis`), ``trial``
+  (the episodes so far), ``record`` (the saved record's path, when ``record_dir`` is given) and
   ``actions`` (the episode's actions as applied, (ticks, 7), to replay the command).
 * ``reset(seed=s)`` restarts the lab's trial-to-trial variation at trial 0 of seed ``s``;
   ``reset()`` without a seed continues the sequence (each episode is the lab's next trial).
@@ -65,7 +65,7 @@ from flyknot.constants import COMMAND_RATE_HZ, N_JOINTS, N_MARKERS
 from flyknot.errors import CommandError, ConfigError, check_nonnegative, check_positive
 from flyknot.limits import JointLimits
 from flyknot.record import JointCommand
-from flyknot_app.gym_env import POS_BOUND, checked_action, paper_initial_knots, score_trial
+from flyknot_app.gym.env import POS_BOUND, checked_action, paper_initial_knots, score_trial
 
 JOINT_VEL_BOUND = 10.0
 """Bound of the joint velocities in the observation [rad/s]."""
@@ -98,7 +98,7 @@ class FlyknotTickEnv(gym.Env):
         ropes: str | None = None,
         record_dir: str | None = None,
     ):
-        """``rope`` and ``ropes`` as for :class:`~flyknot_app.gym_env.FlyknotEnv`;
+        """``rope`` and ``ropes`` as for :class:`~flyknot_app.gym.env.FlyknotEnv`;
         ``command``: the initial command (its samples at 250 Hz) instead of the paper's
         initial guess; ``base_offset``: the robot base's position in the demonstration frame
         (3,) [m] for the critical-point cost (default: the initial guess's);
@@ -229,4 +229,4 @@ class FlyknotTickEnv(gym.Env):
         return self._obs(s.observe()), float(reward), True, False, info
 
 
-gym.register(id="flyknot/FlyingKnotTick-v0", entry_point="flyknot_app.gym_tick_env:FlyknotTickEnv")
+gym.register(id="flyknot/FlyingKnotTick-v0", entry_point="flyknot_app.gym.tick_env:FlyknotTickEnv")

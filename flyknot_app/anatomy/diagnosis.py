@@ -59,8 +59,8 @@ before verdicts carried their evidence) the last finite truth frame is judged wi
 ``contact_free``, ``knot_set``, ``settle_s`` or ``settle_time_s``, ``free_end_speed_m_s``),
 when present, adds a note to the reason of a rope judged before it was at rest.
 
-Reading trials (records, replay files, directories): :mod:`flyknot_app.anatomy_trials`; the
-anatomy of a set of trials, its tables and figures: :mod:`flyknot_app.anatomy_report`.
+Reading trials (records, replay files, directories): :mod:`flyknot_app.anatomy.trials`; the
+anatomy of a set of trials, its tables and figures: :mod:`flyknot_app.anatomy.report`.
 """
 
 from __future__ import annotations
@@ -86,7 +86,7 @@ from flyknot.record import TrialRecord
 from flyknot.verdict import AMBIGUOUS as AMBIGUOUS_CLASS
 from flyknot.verdict import OTHER_KNOT as OTHER_CLASS
 from flyknot.verdict import WRAPPED_AT_GRIP, JudgeParams, Verdict, judge_centreline
-from flyknot_app.anatomy_trials import TrialEvidence
+from flyknot_app.anatomy.trials import TrialEvidence
 
 # --- labels ----------------------------------------------------------------------------------
 SUCCESS = "success"

@@ -28,8 +28,8 @@ from flyknot.constants import REPO_ROOT
 from flyknot.errors import ConfigError
 from flyknot.verdict import JUDGE_NAME, KNOT
 from flyknot_app.judging import FAULT, rejudge_directory
-from flyknot_app.report import wilson_interval
-from flyknot_app.run_summary import ScenarioSummary
+from flyknot_app.reports.report import wilson_interval
+from flyknot_app.reports.run_summary import ScenarioSummary
 
 
 def _rate(classes: Sequence[str | None]) -> str:

@@ -20,8 +20,8 @@ state error at the critical time, from the motion-capture markers) plus the knot
   (trial i of an episode meets the same variation for the same seed); ``reset()`` without
   a seed continues the variation sequence.
 * ``info``: the trial number, fault, knot, cost, ``failure`` (the failure class of
-  :mod:`flyknot_app.anatomy`: ``success``, ``shaken_loose``, ...) and ``record`` (the saved
-  trial record's path under ``record_dir``, a temporary directory by default).
+  :mod:`flyknot_app.anatomy.diagnosis`: ``success``, ``shaken_loose``, ...) and ``record`` (the
+  saved trial record's path under ``record_dir``, a temporary directory by default).
 * Reward: -(critical-point cost ||x(t_c) - x_demo(t_c)||^2_Q) + ``knot_bonus`` when the
   trial's verdict is a knot in the hanging rope (:mod:`flyknot.verdict`; a rope wrapped at
   the grip earns no bonus); ``fault_penalty`` replaces the cost when the robot faults or tracking
@@ -98,10 +98,11 @@ def score_trial(
         (:func:`learner.ilc.critical_cost`; ``fault_penalty`` instead when the trial faulted or
         lost tracking) and ``info``: ``fault``, ``knot``, ``verdict`` (the verdict's class,
         :mod:`flyknot.verdict`; ``"knot"`` is the success), ``failure`` (the class of
-        :mod:`flyknot_app.anatomy`), ``cost`` and, when tracking was lost, ``tracking_lost``.
+        :mod:`flyknot_app.anatomy.diagnosis`), ``cost`` and, when tracking was lost,
+    ``tracking_lost``.
     """
     from flyknot.errors import RecordError
-    from flyknot_app.anatomy import diagnose
+    from flyknot_app.anatomy.diagnosis import diagnose
     from learner.critical_state import critical_state_from_record
     from learner.ilc import critical_cost
 
@@ -298,4 +299,4 @@ class FlyknotEnv(gym.Env):
         return obs, reward, success, truncated, info
 
 
-gym.register(id="flyknot/FlyingKnot-v0", entry_point="flyknot_app.gym_env:FlyknotEnv")
+gym.register(id="flyknot/FlyingKnot-v0", entry_point="flyknot_app.gym.env:FlyknotEnv")

@@ -28,7 +28,7 @@ from flyknot.errors import ConfigError
 from flyknot_app.scenario import PAPER_SETTINGS
 
 if TYPE_CHECKING:
-    from flyknot_app.run_summary import RunSummary, ScenarioSummary
+    from flyknot_app.reports.run_summary import RunSummary, ScenarioSummary
 
 PAPER_SCENARIOS = tuple(sorted(p.stem for p in SCENARIOS_DIR.glob("0*.toml")))
 """The paper's experiments, one scenario file each."""
@@ -155,7 +155,7 @@ def trials_text(runs: Sequence[RunSummary]) -> str:
 
 def repeats_text(runs: Sequence[RunSummary]) -> str:
     """Knots in the repeats pooled over seeds, with a 95 % Wilson interval, or ``-``."""
-    from flyknot_app.report import wilson_interval
+    from flyknot_app.reports.report import wilson_interval
 
     k = sum(r.n_knots_repeated for r in runs)
     n = sum(len(r.repeat_classes) for r in runs)
@@ -170,7 +170,7 @@ def _runs_section(
 ) -> list[str]:
     """Each run over the seeds; with ``beside`` (the same scenario run as a variant, by the
     variant's label) their results beside."""
-    from flyknot_app.report import PAPER
+    from flyknot_app.reports.report import PAPER
 
     beside = beside or {}
     paper = summary.paper or PAPER.get(summary.kind, "-")
@@ -199,7 +199,7 @@ def _runs_section(
 
 
 def _sensitivity_section(summary: ScenarioSummary) -> list[str]:
-    from flyknot_app.report import PAPER_SENSITIVITY
+    from flyknot_app.reports.report import PAPER_SENSITIVITY
 
     lines = ["Trials until the first knot on rope 1, by the learner's rope model.", ""]
     lines += ["| stiffness | end mass | trials until the first knot (ours) | paper |"]
@@ -249,8 +249,8 @@ each a ``flyknot baseline NAME --demo ... --seeds ... --out`` directory."""
 
 
 def _rope1(runs) -> tuple[list[int], int]:
-    """A :class:`flyknot_app.compare.RunSet`'s rope-1 runs: their trials until the first knot
-    (a run that did not tie: its trials + 1) and how many tied."""
+    """A :class:`flyknot_app.reports.compare.RunSet`'s rope-1 runs: their trials until the first
+    knot (a run that did not tie: its trials + 1) and how many tied."""
     pick = [i for i, (rope, _) in enumerate(runs.keys) if rope in (1, "1", None)]
     return [runs.trials[i] for i in pick], sum(runs.trials_to_success[i] is not None for i in pick)
 
@@ -259,7 +259,7 @@ def _baselines_section(out: Path) -> list[str]:
     """ILC's rope-1 runs (``03-ropes``) beside each black-box search in ``OUT/baselines``:
     the trials until the first knot, median with a run that did not tie counted as its
     budget + 1, and that median's ratio to ILC's."""
-    from flyknot_app.compare import load_runset
+    from flyknot_app.reports.compare import load_runset
 
     found = sorted(d for d in (out / BASELINES_DIR).glob("*") if (d / "baseline.json").is_file())
     if not found or not (out / "03-ropes" / "summary.json").is_file():
@@ -308,8 +308,8 @@ def paper_table(out: str | Path, command: str, pictures: dict[str, str] | None =
     Raises:
         ConfigError: ``out`` holds no scenario's ``summary.json``.
     """
-    from flyknot_app.results import git_commit
-    from flyknot_app.run_summary import ScenarioSummary
+    from flyknot_app.reports.results import git_commit
+    from flyknot_app.reports.run_summary import ScenarioSummary
 
     out = Path(out)
     found = [n for n in PAPER_SCENARIOS if (out / n / "summary.json").is_file()]

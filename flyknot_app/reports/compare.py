@@ -34,8 +34,8 @@ from matplotlib.ticker import MaxNLocator
 
 from flyknot.errors import ConfigError
 from flyknot.verdict import KNOT
-from flyknot_app.report import wilson_interval
-from flyknot_app.run_summary import ScenarioSummary
+from flyknot_app.reports.report import wilson_interval
+from flyknot_app.reports.run_summary import ScenarioSummary
 
 
 @dataclass(frozen=True)

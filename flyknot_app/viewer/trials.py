@@ -1,7 +1,7 @@
 """What ``flyknot view`` shows: the trials of a record or a run directory, and their targets.
 
 A path is one trial record (``<stem>.json`` with ``<stem>.npz``) or a directory; a directory's
-trials are those :func:`flyknot_app.anatomy_trials.find_trials` finds (every record under it,
+trials are those :func:`flyknot_app.anatomy.trials.find_trials` finds (every record under it,
 with its run's critical time t_c from ``result.json`` or ``summary.json``).
 
 The demonstration's rope at t_c is the learner's own target: the run's ``result.json`` names
@@ -27,7 +27,7 @@ from flyknot.constants import N_MARKERS
 from flyknot.errors import ConfigError, FlyknotError
 from flyknot.geometry import quat_to_matrix
 from flyknot.record import TrialRecord
-from flyknot_app.anatomy_trials import find_trials
+from flyknot_app.anatomy.trials import find_trials
 
 _LEARNING_STEM = re.compile(r"trial_(\d+)_a\d+")
 

@@ -225,7 +225,7 @@ def main(
                     print(f"{row['rope']:>4} now / {base}, wall s per sim s: {ratio:.2f}")
         return 0
     if what == "learner":
-        from flyknot_app.bench_learner import bench_learner, format_learner
+        from flyknot_app.bench.learner import bench_learner, format_learner
 
         res = bench_learner(repeats=repeats, progress=not as_json)
         print(json.dumps(res) if as_json else format_learner(res))
@@ -246,7 +246,7 @@ def main(
                 )
         return 0
     if what == "protocol":
-        from flyknot_app.bench_protocol import bench_protocol, format_protocol
+        from flyknot_app.bench.protocol import bench_protocol, format_protocol
 
         res = bench_protocol(workers=workers, quick=quick, progress=not as_json, keep=out)
         print(json.dumps(res) if as_json else format_protocol(res))

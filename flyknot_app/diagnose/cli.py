@@ -5,18 +5,18 @@
     flyknot diagnose decided DIR ... [--truth]                    # trials' records
     flyknot diagnose variation RUN_DIR [--trial K] [--plays N]    # a run's command
 
-``floor``: the reachable floor (:mod:`flyknot_app.floor`) from the run's initial command (or
-the demonstration's initial guess), for the run's rope, lab and demonstration window; written
+``floor``: the reachable floor (:mod:`flyknot_app.diagnose.floor`) from the run's initial command
+(or the demonstration's initial guess), for the run's rope, lab and demonstration window; written
 to ``RUN_DIR/floor.json`` (or ``--out``). ``--repeats K`` plays the floor's command K times
 with the lab's trial-to-trial variation and counts its knots. Only a simulated cell can be
 diagnosed this way; a run on a real cell is refused in one line.
 
 ``decided``: when the rope states of the trials that tied and of those that did not part
-(:mod:`flyknot_app.decided`), from any records: a real lab's too (markers only).
+(:mod:`flyknot_app.diagnose.decided`), from any records: a real lab's too (markers only).
 
 ``variation``: which component of the lab's trial-to-trial variation decides the knot of a
-run's command (:mod:`flyknot_app.variation_split`): by default the command of the run's first
-knot, else of its lowest cost; written to ``RUN_DIR/variation.json`` (or ``--out``).
+run's command (:mod:`flyknot_app.diagnose.variation_split`): by default the command of the run's
+first knot, else of its lowest cost; written to ``RUN_DIR/variation.json`` (or ``--out``).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ import numpy as np
 from flyknot.constants import FOLLOW_THROUGH_S, PATH_FRAC
 from flyknot.errors import ConfigError
 from flyknot.progress import bar_disable
-from flyknot_app.floor import FloorParams
+from flyknot_app.diagnose.floor import FloorParams
 from flyknot_app.scenario import parse_rope_arg
 
 
@@ -80,7 +80,7 @@ def _cmd_floor(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from flyknot_app.cells import cell_spec, check_oracle, sim_lab_params
-    from flyknot_app.floor import reachable_floor
+    from flyknot_app.diagnose.floor import reachable_floor
     from flyknot_app.runner import initial_knots, prepare_target
     from flyknot_sim.scene import robot_base_pose
     from learner.kinematics import RobotModel
@@ -159,7 +159,7 @@ def format_floor(out: dict, path: Path) -> str:
 
 
 def _cmd_decided(args: argparse.Namespace) -> int:
-    from flyknot_app.decided import record_stems, separation, trial_states
+    from flyknot_app.diagnose.decided import record_stems, separation, trial_states
 
     if args.step <= 0 or args.end <= 0:
         raise ConfigError("--step", "--step and --end must be > 0 [s]")
@@ -213,7 +213,7 @@ def _run_command(run_dir: Path, trial: int | None) -> tuple[int, np.ndarray, flo
 
 def _cmd_variation(args: argparse.Namespace) -> int:
     from flyknot_app.cells import cell_spec, sim_lab_params
-    from flyknot_app.variation_split import format_split, lab_play, split_variation
+    from flyknot_app.diagnose.variation_split import format_split, lab_play, split_variation
 
     if (args.run is None) == (args.floor is None):
         raise ConfigError("RUN_DIR", "give a run directory or --floor, not both or neither")
@@ -242,7 +242,7 @@ def _cmd_variation(args: argparse.Namespace) -> int:
 def _variation_of_floor(args: argparse.Namespace) -> int:
     """``diagnose variation --floor F.json``: the floor's command on its rope."""
     from flyknot_app.cells import cell_spec, sim_lab_params
-    from flyknot_app.variation_split import format_split, lab_play, split_variation
+    from flyknot_app.diagnose.variation_split import format_split, lab_play, split_variation
 
     doc = json.loads(Path(args.floor).read_text())
     if "knots" not in doc or "T" not in doc:

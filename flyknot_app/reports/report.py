@@ -15,9 +15,9 @@ import numpy as np
 from matplotlib.ticker import MaxNLocator
 
 from flyknot.verdict import KNOT
-from flyknot_app.anatomy_report import report_section
+from flyknot_app.anatomy.report import report_section
 from flyknot_app.judging import report_section as verdict_section
-from flyknot_app.run_summary import RunSummary, ScenarioSummary
+from flyknot_app.reports.run_summary import RunSummary, ScenarioSummary
 
 # The paper's results (Suresh & Atkeson), quoted per scenario kind.
 PAPER = {

@@ -1,0 +1,1 @@
+"""Failure anatomy: why each trial ended as it did, read from its records."""

@@ -1,0 +1,1 @@
+"""``flyknot bench``: the speed figures, each measured in one run."""

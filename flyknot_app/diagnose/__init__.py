@@ -1,0 +1,1 @@
+"""The learner's measuring sticks: oracle, reachable floor, where the knot is decided."""

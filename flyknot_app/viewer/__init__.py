@@ -1,0 +1,1 @@
+"""The 3D viewer and the pictures of trials."""
