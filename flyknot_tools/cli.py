@@ -123,7 +123,12 @@ def _cmd_rope_validate(args: argparse.Namespace) -> int:
     suite = "quick" if args.quick else "full"
     bar = tqdm(total=len(models), desc="rope-validate", unit="rope", disable=bar_disable(True))
     results = run_many(
-        models, suite, args.workers, on_done=lambda _r: bar.update(1), cases=args.cases
+        models,
+        suite,
+        args.workers,
+        on_done=lambda _r: bar.update(1),
+        cases=args.cases,
+        pictures=args.pictures,
     )
     bar.close()
     print(results_json(results) if args.json else table_markdown(results))
@@ -250,6 +255,12 @@ def _add_rope_validate_parser(sub: argparse._SubParsersAction) -> None:
     )
     rv.add_argument("--workers", type=int, default=1, help="worker processes")
     rv.add_argument("--json", action="store_true", help="print the results as JSON")
+    rv.add_argument(
+        "--pictures",
+        default=None,
+        metavar="DIR",
+        help="write the pictures of the cases that draw (rest_after_motion) into DIR",
+    )
     rv.set_defaults(func=_cmd_rope_validate)
 
 

@@ -11,7 +11,9 @@ as the lab steps it, :mod:`flyknot_tools.rope_validate.bench`) and prints a tabl
 * ``cantilever``: bending length from above and from below (a textile's hysteresis);
 * ``spring_back``: a released 5 cm loop keeps (cotton) or loses (rubber) its bend;
 * ``swing_decay``: a hanging rope's swing decays at least as fast as air drag makes it;
-* ``rest_shape``: hung between two points it takes the catenary.
+* ``rest_shape``: hung between two points it takes the catenary;
+* ``rest_after_motion``: thrown as in a flying knot, after 10 s it has no kinks
+  (:mod:`flyknot_tools.rope_validate.rest_after_motion`; a picture with ``--pictures DIR``).
 
 Each case names its expectation for the rope's material and the source of it. The results
 and the choice of the rope model they led to: ``docs/rope-model.md``.

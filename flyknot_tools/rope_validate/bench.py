@@ -22,7 +22,9 @@ from flyknot_tools.rope_study.harness import HOLDER_JOINTS, Harness, build_harne
 __all__ = ["Bench", "HolderPath", "RopeModel"]
 
 HolderPath = Callable[[float], tuple[np.ndarray, np.ndarray]]
-"""t [s] -> (holder slide offsets (3,) [m], their rates (3,) [m/s]); hinges stay at zero."""
+"""t [s] -> (holder slide offsets (3,) [m], their rates (3,) [m/s]), the hinges staying at
+zero; or the slides then the hinges b, a, c (6,) [m, rad] and their rates (6,) [m/s, rad/s]
+(:data:`~flyknot_tools.rope_study.harness.HOLDER_JOINTS`)."""
 
 
 @dataclass(frozen=True)
@@ -103,8 +105,8 @@ class Bench:
         d = self.data
         if path is not None:
             q, qd = path(self.t)
-            d.ctrl[0:6:2] = q
-            d.ctrl[1:6:2] = qd
+            d.ctrl[0 : 2 * len(q) : 2] = q
+            d.ctrl[1 : 2 * len(q) : 2] = qd
         if self._j % self._drag_every == 0:
             self._drag.apply(d)
         self._bend.apply(d)

@@ -6,7 +6,8 @@ material, and the source or physical reason of that expectation. Expectations pe
 (a link chain). Where a behaviour does not apply to a material, the case says so (e.g. a chain
 has no bending stiffness to measure; a latex tube's knots are reported, not judged). The knot
 cases are in :mod:`flyknot_tools.rope_validate.knots`; this module has the others and the
-table of all of them, :data:`CASES`.
+table of all of them, :data:`CASES`; the rest after a throw is in
+:mod:`flyknot_tools.rope_validate.rest_after_motion`.
 """
 
 from __future__ import annotations
@@ -23,11 +24,13 @@ from flyknot_tools.rope_study.crossings import resample_equal_chords
 from flyknot_tools.rope_validate.bench import Bench, RopeModel
 from flyknot_tools.rope_validate.common import DOWN, HOME, UP, CaseResult, G, hung, result
 from flyknot_tools.rope_validate.knots import Swing, knot_hold, static_hold
+from flyknot_tools.rope_validate.rest_after_motion import Throw, rest_after_motion
 
 __all__ = [
     "CASES",
     "CaseResult",
     "Swing",
+    "Throw",
     "cantilever",
     "capstan",
     "catenary_sag",
@@ -35,6 +38,7 @@ __all__ = [
     "knot_hold",
     "loop_spring_back",
     "peirce_bending_length",
+    "rest_after_motion",
     "rest_shape",
     "static_hold",
     "swing_decay",
@@ -430,5 +434,6 @@ CASES = {
     "spring_back": loop_spring_back,
     "swing_decay": swing_decay,
     "rest_shape": rest_shape,
+    "rest_after_motion": rest_after_motion,
 }
 """The cases by name (each ``f(rope: RopeModel, ...) -> CaseResult``)."""

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import fields, replace
+from pathlib import Path
 
 from flyknot.errors import ConfigError
 from flyknot_sim.rope_fields import FIELD, SETTABLE
@@ -18,18 +20,39 @@ from flyknot_tools.rope_validate.cases import (
     capstan,
     knot_hold,
     loop_spring_back,
+    rest_after_motion,
     rest_shape,
     static_hold,
     swing_decay,
 )
 
-__all__ = ["CASE_NAMES", "SUITES", "model_with", "run_many", "run_suite", "table_markdown"]
+__all__ = [
+    "CASE_NAMES",
+    "SUITES",
+    "model_with",
+    "picture_path",
+    "run_many",
+    "run_suite",
+    "table_markdown",
+]
 
 FULL_TAILS = (0.1, 0.2, 0.3)
 FULL_SWINGS = (Swing(0.0), Swing(0.15, 0.7), Swing(0.3, 0.5))
 
 
-def _full(m: RopeModel) -> list[tuple[str, Callable[[], CaseResult]]]:
+def picture_path(pictures: str | Path | None, case: str, m: RopeModel) -> Path | None:
+    """Where a case writes its picture of ``m``: ``<pictures>/<case>_rope<id>_<label>.png``
+    (characters other than letters, digits, ``.``, ``_`` and ``-`` as ``_``); None: none."""
+    if pictures is None:
+        return None
+    name = re.sub(r"[^A-Za-z0-9._-]+", "_", f"{case}_rope{m.params.id}_{m.label}")
+    return Path(pictures) / f"{name}.png"
+
+
+def _full(
+    m: RopeModel, pictures: str | Path | None = None
+) -> list[tuple[str, Callable[[], CaseResult]]]:
+    rest = picture_path(pictures, "rest_after_motion", m)
     out = [
         ("rest_shape", lambda: rest_shape(m)),
         ("cantilever", lambda: cantilever(m)),
@@ -37,6 +60,7 @@ def _full(m: RopeModel) -> list[tuple[str, Callable[[], CaseResult]]]:
         ("swing_decay", lambda: swing_decay(m)),
         ("capstan", lambda: capstan(m)),
         ("static_hold", lambda: static_hold(m, seconds=60.0)),
+        ("rest_after_motion", lambda: rest_after_motion(m, picture=rest)),
     ]
     for t in FULL_TAILS:
         for s in FULL_SWINGS:
@@ -44,7 +68,10 @@ def _full(m: RopeModel) -> list[tuple[str, Callable[[], CaseResult]]]:
     return out
 
 
-def _quick(m: RopeModel) -> list[tuple[str, Callable[[], CaseResult]]]:
+def _quick(
+    m: RopeModel, pictures: str | Path | None = None
+) -> list[tuple[str, Callable[[], CaseResult]]]:
+    rest = picture_path(pictures, "rest_after_motion", m)
     return [
         ("rest_shape", lambda: rest_shape(m, seconds=3.0)),
         ("cantilever", lambda: cantilever(m, seconds=4.0)),
@@ -53,13 +80,16 @@ def _quick(m: RopeModel) -> list[tuple[str, Callable[[], CaseResult]]]:
         ("static_hold", lambda: static_hold(m, seconds=10.0, tighten_s=10.0)),
         ("knot_hold", lambda: knot_hold(m, 0.1, Swing(0.3, 0.5))),
         ("knot_hold", lambda: knot_hold(m, 0.1, Swing(0.15, 0.7))),
+        ("rest_after_motion", lambda: rest_after_motion(m, picture=rest)),
     ]
 
 
 SUITES = {"full": _full, "quick": _quick}
 """``full``: every case, the static hold over 60 s, the knot hold over tails 0.1/0.2/0.3 m x
-no swing, +-0.15 m at 0.7 Hz, +-0.3 m at 0.5 Hz. ``quick``: one of each but the swing decay
-(shorter), the knot hold with a 0.1 m tail swung +-0.3 m at 0.5 Hz and +-0.15 m at 0.7 Hz."""
+no swing, +-0.15 m at 0.7 Hz, +-0.3 m at 0.5 Hz, the rest 10 s after the flying-knot throw.
+``quick``: one of each but the swing decay (shorter), the knot hold with a 0.1 m tail swung
++-0.3 m at 0.5 Hz and +-0.15 m at 0.7 Hz. Each takes a directory for the cases' pictures
+(:func:`picture_path`; None: none)."""
 
 CASE_NAMES = (
     "knot_hold",
@@ -69,6 +99,7 @@ CASE_NAMES = (
     "spring_back",
     "swing_decay",
     "rest_shape",
+    "rest_after_motion",
 )
 
 
@@ -124,18 +155,25 @@ def model_with(
 
 
 def run_suite(
-    model: RopeModel, suite: str = "full", cases: Sequence[str] | None = None
+    model: RopeModel,
+    suite: str = "full",
+    cases: Sequence[str] | None = None,
+    pictures: str | Path | None = None,
 ) -> list[CaseResult]:
-    """Every case of ``suite`` on ``model`` (only those named in ``cases``, if given)."""
+    """Every case of ``suite`` on ``model`` (only those named in ``cases``, if given); the
+    cases that draw write their pictures into the directory ``pictures`` (None: none)."""
     if suite not in SUITES:
         raise ConfigError("suite", f"unknown suite {suite!r}", list(SUITES))
     for c in cases or ():
         if c not in CASE_NAMES:
             raise ConfigError("--cases", f"unknown case {c!r}", CASE_NAMES)
-    return [run() for name, run in SUITES[suite](model) if not cases or name in cases]
+    jobs = SUITES[suite](model, pictures)
+    return [run() for name, run in jobs if not cases or name in cases]
 
 
-def _job(args: tuple[RopeModel, str, Sequence[str] | None]) -> list[CaseResult]:
+def _job(
+    args: tuple[RopeModel, str, Sequence[str] | None, str | Path | None],
+) -> list[CaseResult]:
     return run_suite(*args)
 
 
@@ -145,12 +183,13 @@ def run_many(
     workers: int = 1,
     on_done: Callable[[list[CaseResult]], None] | None = None,
     cases: Sequence[str] | None = None,
+    pictures: str | Path | None = None,
 ) -> list[CaseResult]:
     """:func:`run_suite` on every model (``workers`` processes), results in model order."""
     for c in cases or ():
         if c not in CASE_NAMES:
             raise ConfigError("--cases", f"unknown case {c!r}", CASE_NAMES)
-    jobs = [(m, suite, cases) for m in models]
+    jobs = [(m, suite, cases, pictures) for m in models]
     if workers <= 1:
         results = []
         for job in jobs:
