@@ -196,3 +196,20 @@ def test_the_results_show_each_scenarios_first_knot(tmp_path, capsys):
     assert not stale.exists()  # a picture of an earlier table goes
     own = (out / "results.md").read_text()
     assert "(03-ropes/verdicts/runs__rope1-seed0__learning__trial_0001_a0.knot.png)" in own
+
+
+def test_a_variant_stands_beside_the_sensitivity_table(tmp_path):
+    rm = {"stiffness": 100.0, "end_mass": 5.0}
+    _write(tmp_path, "07-sensitivity", "sensitivity", [_run("k1e2-me5", 0, 2, rope_model=rm)])
+    _write(
+        tmp_path / "robot-demo",
+        "07-sensitivity",
+        "sensitivity",
+        [_run("k1e2-me5", 0, 1, rope_model=rm)],
+    )
+    text = paper_table(tmp_path, "flyknot paper")
+    assert (
+        "| stiffness | end mass | trials until the first knot (ours) | paper | from the robot"
+        in text
+    )
+    assert "| 100 | 5 | 2 (2), 1 of 1 seed tied | >10 | 1 (1), 1 of 1 seed tied |" in text

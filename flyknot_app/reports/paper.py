@@ -198,16 +198,28 @@ def _runs_section(
     return [*lines, ""]
 
 
-def _sensitivity_section(summary: ScenarioSummary) -> list[str]:
+def _sensitivity_section(
+    summary: ScenarioSummary, beside: dict[str, ScenarioSummary] | None = None
+) -> list[str]:
+    """Trials until the first knot by the learner's rope model; with ``beside`` (variants, by
+    label) theirs in a column each."""
     from flyknot_app.reports.report import PAPER_SENSITIVITY
 
+    beside = beside or {}
+    others = [_grouped(b) for b in beside.values()]
     lines = ["Trials until the first knot on rope 1, by the learner's rope model.", ""]
-    lines += ["| stiffness | end mass | trials until the first knot (ours) | paper |"]
-    lines += ["|---|---|---|---|"]
-    for runs in _grouped(summary).values():
+    lines += [
+        "| stiffness | end mass | trials until the first knot (ours) | paper |"
+        + "".join(f" {label} |" for label in beside)
+    ]
+    lines += ["|---|---|---|---|" + "---|" * len(beside)]
+    for base, runs in _grouped(summary).items():
         rm = runs[0].learner.rope_model
         paper = PAPER_SENSITIVITY.get((rm.stiffness, rm.end_mass), "-")
-        lines.append(f"| {rm.stiffness:g} | {rm.end_mass:g} | {trials_text(runs)} | {paper} |")
+        row = f"| {rm.stiffness:g} | {rm.end_mass:g} | {trials_text(runs)} | {paper} |"
+        for other in others:
+            row += f" {trials_text(other[base]) if base in other else '-'} |"
+        lines.append(row)
     return [*lines, ""]
 
 
@@ -329,7 +341,7 @@ def paper_table(out: str | Path, command: str, pictures: dict[str, str] | None =
         seeds |= {r.seed for r in summary.runs}
         if summary.kind == "sensitivity":
             sections += [f"## `{name}` ({summary.kind})", ""]
-            sections += _sensitivity_section(summary)
+            sections += _sensitivity_section(summary, beside)
         else:
             sections += _runs_section(name, summary, beside)
         if summary.kind == "transfer":
