@@ -73,6 +73,46 @@ Magnitude. Kawabata's KES-FB2 pure-bending tester measures the hysteresis width 
 of fabrics. A rope's M_0 = (HB / B) EI comes from its ``bend_hysteresis`` HB / B
 (``assets/ropes.toml``: 54 1/m for cotton, bracket 23-54 1/m from cotton-type fabrics, no
 published value for cords); ropes without it (latex, the chain) have no couple.
+
+Link friction (a chain; off by default). A link chain has no bending stiffness, but its links
+rub where they bear on each other: a joint that turns slides one link's wire over the next
+one's under the chain's tension T, and the friction force mu T acts at about the wire's radius
+r from the joint's axis, a couple mu T r against the turn. With a rope's
+``link_friction_radius`` r > 0 the couple of joint k is
+
+    M_0,k = M_0 + mu r T_k      (mu: the rope's ``friction``; ``RopeParams.link_friction_arm``)
+
+and everything above holds per joint (c_k = M_0,k / sqrt(|r_k|^2 + r_0^2); the end-of-step
+solve already treats the joints one by one, and a joint with M_0,k = 0 has c_k = 0). A
+segment spans about two links (a 5 mm chain's pitch is 18.5 mm); joints in series carry the
+same moment, so a segment's joint slips at the couple of one link joint, mu T r.
+
+The tension T_k is the one the simulation carries: the constraint forces MuJoCo solved at
+the previous step for the rope's edge-length equality (one row per edge; edge j's tension is
+-efc_force of its row, :func:`edge_tensions`), the mean of the two edges meeting at joint k,
+a compressed edge counted as 0; joint 1 takes the edge below's alone, edge 0 lying between
+the two held vertices whose hold equalities take part of its load (:func:`joint_tensions`).
+Not the quasi-static weight below, T_k = g (m_end + lambda (L - s_k)): that is the tension
+of a rope hanging still from its held end only, and wrong wherever the rope does anything
+else -- many times larger in a throw, zero in a slack chain in flight (links free), set by
+the capstan over a rod, by the knot in a knot, by the floor where it lies. The constraint
+forces are solved anyway; reading them costs one pass over the equality rows per step. At
+rest they are the weight below (rope 6 hanging still: edges 1..29 carry g (m_end + lambda l
+(n - j - 1/2)) within 1e-8 of it, relative), so the joints' means equal g (m_end + lambda (L
+- s_k)) exactly for k >= 2 and joint 1 carries half a segment's weight less (1.6 % on rope
+6). They are one step (1 ms) old, and noisy in contact; neither can add energy: for any
+M_0,k >= 0 the couples only oppose the joints' rates (the power above). Before any
+constraint was solved (no rows in ``data``, e.g. before the first ``mj_forward``) T = 0: the
+constant M_0 alone.
+
+r for the lab's chain (rope 6, "3/8 inch chain", 0.514 kg/m, 20 mm wide): not its US trade
+size, which names the wire (3/8" = 9.5 mm; a rule of thumb of anchor-chain makers puts a
+chain's weight at 10 d^2 lb/ft, d the wire in inches: 1.4 lb/ft = 2.1 kg/m at 3/8", four
+times rope 6's; the same rule gives rope 6 a 4.7 mm wire), but a 5 mm short-link chain: DIN
+766 5 x 18.5, 0.5 kg/m, outside width 17 mm (manufacturers' DIN 766 tables). r = 2.5 mm, mu
+r = 1.4e-3 m: M_0,k from 8.2e-3 N m at the top joint to 9.6e-4 N m at the last (T 5.8 to
+0.68 N hanging still). The lab's table leaves it at 0 (the chain modelled as before);
+``flyknot-tools rope-validate --set link_friction_radius=0.0025`` tries it.
 """
 
 from __future__ import annotations
@@ -80,10 +120,11 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 
+import mujoco
 import numpy as np
 from scipy.linalg import lapack
 
-from flyknot.errors import check_nonnegative, check_positive
+from flyknot.errors import ConfigError, check_nonnegative, check_positive
 from flyknot.geometry import skew
 
 __all__ = [
@@ -92,6 +133,9 @@ __all__ = [
     "BendFrictionParams",
     "RopeBendFriction",
     "bend_rates",
+    "edge_tensions",
+    "joint_moments",
+    "joint_tensions",
     "rope_bend_friction_forces",
 ]
 
@@ -167,6 +211,47 @@ def bend_rates(x: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     s2 = (g * a2 - c * a1) / det
     r = dw - s1[:, None] * ta - s2[:, None] * tb
     return r, e, inv_l2
+
+
+def joint_tensions(edge_tension: np.ndarray) -> np.ndarray:
+    """The tension T_k at each joint k = 1..n-1 from the edges' tensions (module docstring,
+    link friction): the mean of the two edges meeting there, compressions counted as 0; at
+    joint 1 the edge below's alone (edge 0 lies between the two held vertices, whose hold
+    equalities take part of its load).
+
+    Args:
+        edge_tension: Tension of each edge j = 0..n-1, shape (n,) [N] (negative: compressed).
+
+    Returns:
+        Shape (n - 1,) [N], >= 0.
+    """
+    t = np.maximum(np.asarray(edge_tension, dtype=float), 0.0)
+    above = t[:-1].copy()
+    above[0] = t[1]
+    return 0.5 * (above + t[1:])
+
+
+def edge_tensions(data, edge_equality: int, n: int) -> np.ndarray | None:
+    """The tension of each of the rope's n edges [N] from the constraint forces MuJoCo solved
+    last (``data.efc_force`` of the edge equality's rows, one per edge in edge order, tension
+    = -efc_force), shape (n,); None when ``data`` holds no such n rows (no constraint solved
+    yet, e.g. before the first ``mj_forward``)."""
+    rows = np.flatnonzero(
+        (data.efc_type == mujoco.mjtConstraint.mjCNSTR_EQUALITY) & (data.efc_id == edge_equality)
+    )
+    if len(rows) != n:
+        return None
+    return -data.efc_force[rows]
+
+
+def joint_moments(moment: float, arm: float, edge_tension: np.ndarray | None, n: int) -> np.ndarray:
+    """Each joint's frictional couple M_0 + arm T_k, shape (n - 1,) [N m] (module docstring,
+    link friction; ``arm`` = mu r [m], T_k by :func:`joint_tensions`; ``edge_tension`` None:
+    T = 0)."""
+    out = np.full(n - 1, float(moment))
+    if arm > 0 and edge_tension is not None:
+        out += arm * joint_tensions(edge_tension)
+    return out
 
 
 def _projectors(e: np.ndarray, inv_l2: np.ndarray) -> np.ndarray:
@@ -256,7 +341,8 @@ def rope_bend_friction_forces(
     Args:
         x: Vertex positions, held end first, shape (n + 1, 3) [m], n >= 2.
         v: Vertex velocities, shape (n + 1, 3) [m/s].
-        moment: Frictional couple M_0 [N m] (>= 0).
+        moment: Frictional couple M_0 [N m] (>= 0): one for every joint, or each joint's,
+            shape (n - 1,) (e.g. :func:`joint_moments`, with the links' friction).
         rate0: Regularisation rate r_0 of the sign [rad/s] (> 0).
         inv_mass: Inverse vertex masses 1 / m_v, shape (n + 1,) [1/kg] (0 for a held vertex);
             needed when ``dt > 0``.
@@ -268,6 +354,7 @@ def rope_bend_friction_forces(
         Forces on the vertices, shape (n + 1, 3) [N]; they sum to zero.
     """
     r, e, inv_l2 = bend_rates(x, v)
+    moment = np.broadcast_to(np.asarray(moment, dtype=float), (len(r),))
     coef = moment / np.sqrt(np.einsum("ij,ij->i", r, r) + rate0 * rate0)
     if dt > 0:
         if inv_mass is None:
@@ -299,6 +386,11 @@ def rope_bend_friction_forces(
     return f
 
 
+_NO_ROWS = (np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros(0))
+"""Empty constraint rows (efc_type, efc_id, efc_force) for the kernel when the links' friction
+is off: the same types as ``data``'s, so that the kernel is compiled once."""
+
+
 @functools.lru_cache(maxsize=1)
 def _warm_kernel() -> None:
     """Compile (or load from numba's cache) the kernel now, once per process: not at the first
@@ -306,13 +398,13 @@ def _warm_kernel() -> None:
     from flyknot_sim.bend_kernel import add_bend_friction, bend_friction_forces
 
     x = np.column_stack([np.arange(4.0), np.zeros(4), np.zeros(4)])
-    bend_friction_forces(x, np.zeros((4, 3)), 1e-3, RATE0, np.ones(4), 1e-3,
+    bend_friction_forces(x, np.zeros((4, 3)), np.full(2, 1e-3), RATE0, np.ones(4), 1e-3,
                          SPAN_REGULARISATION, IMPLICIT_ITERATIONS, _TINY)  # fmt: skip
     idx = np.arange(12).reshape(4, 3)
-    params = np.array([1e-3, RATE0, 1e-3, SPAN_REGULARISATION, _TINY])
+    params = np.array([1e-3, RATE0, 1e-3, SPAN_REGULARISATION, _TINY, 0.0])
     add_bend_friction(x.ravel(), np.zeros(12), np.zeros(12), idx, idx, np.zeros((4, 3)),
                       np.zeros((4, 3)), np.zeros((4, 3)), False, params, np.ones(4),
-                      IMPLICIT_ITERATIONS)  # fmt: skip
+                      IMPLICIT_ITERATIONS, *_NO_ROWS, 0)  # fmt: skip
 
 
 class RopeBendFriction:
@@ -327,25 +419,40 @@ class RopeBendFriction:
     what it added then; if something rewrote them, it adds on top of the new values.
 
     The vertex masses are the model's (``data.model``); the two held vertices count as
-    infinitely heavy (the hold equalities pin them).
+    infinitely heavy (the hold equalities pin them). With the links' friction (``link_arm``
+    > 0) each joint's couple is M_0 + link_arm T_k, T_k from the edge constraint forces of the
+    last step (module docstring, link friction).
     """
 
-    def __init__(self, rope, moment: float, rate0: float = RATE0):
+    def __init__(self, rope, moment: float, rate0: float = RATE0, link_arm: float | None = None):
         """Bind to ``rope`` (a :class:`flyknot_sim.rope_handle.BoundRope`) with M_0 = ``moment``
-        [N m] (0 = off) and regularisation rate ``rate0`` [rad/s]."""
+        [N m] (0 = off), regularisation rate ``rate0`` [rad/s] and the links' couple per newton
+        of tension ``link_arm`` = mu r [m] (None: the rope's own,
+        ``RopeParams.link_friction_arm``, 0 unless its ``link_friction_radius`` is set; 0 =
+        off)."""
         check_nonnegative("moment", moment)
         check_positive("rate0", rate0)
+        if link_arm is None:
+            link_arm = rope.params.link_friction_arm
+        check_nonnegative("link_arm", link_arm)
         self.rope = rope
         self.moment = float(moment)
         self.rate0 = float(rate0)
+        self.link_arm = float(link_arm)
         self._inv_mass: np.ndarray | None = None
         self._model_id: int | None = None
+        self._edge_eq: int = -1
         self._added: np.ndarray | None = None
         self._after: np.ndarray | None = None
         self._has_prev = False
         self._kernel_args: tuple | None = None
-        if self.moment > 0:
+        if self.on:
             _warm_kernel()
+
+    @property
+    def on(self) -> bool:
+        """The applier adds forces: M_0 > 0 or the links' friction is on."""
+        return self.moment > 0 or self.link_arm > 0
 
     def inv_mass(self, model) -> np.ndarray:
         """Inverse vertex masses for ``model``, held vertices 0 and 1 at 0 [1/kg] (cached)."""
@@ -353,8 +460,29 @@ class RopeBendFriction:
             inv = 1.0 / model.body_mass[self.rope.vert_body]
             inv[:2] = 0.0
             self._inv_mass = inv
+            self._edge_eq = self._edge_equality(model) if self.link_arm > 0 else -1
             self._model_id = id(model)
         return self._inv_mass
+
+    def _edge_equality(self, model) -> int:
+        """The id of the rope's edge equality in ``model``, checked to give one constraint row
+        per edge (no rigid edge)."""
+        eq = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_EQUALITY, self.rope.handle.edge_equality)
+        if eq < 0:
+            raise ConfigError("link_arm", "the rope has no edge equality to read tensions from")
+        f = self.rope.flex_id
+        adr, num = int(model.flex_edgeadr[f]), int(model.flex_edgenum[f])
+        if num != self.rope.n_segments or model.flexedge_rigid[adr : adr + num].any():
+            raise ConfigError("link_arm", "needs one edge-equality row per edge (no rigid edge)")
+        return eq
+
+    def moments(self, data) -> np.ndarray:
+        """Each joint's frictional couple M_0 + link_arm T_k for ``data``'s last solved
+        constraint forces, shape (n - 1,) [N m] (:func:`joint_moments`)."""
+        self.inv_mass(data.model)
+        n = self.rope.n_segments
+        tension = edge_tensions(data, self._edge_eq, n) if self.link_arm > 0 else None
+        return joint_moments(self.moment, self.link_arm, tension, n)
 
     def forces(self, data) -> np.ndarray:
         """The couples' forces for ``data``'s current state, shape (n + 1, 3) [N]: those of
@@ -368,7 +496,7 @@ class RopeBendFriction:
         return bend_friction_forces(
             np.ascontiguousarray(x, dtype=float),
             np.ascontiguousarray(v, dtype=float),
-            self.moment,
+            self.moments(data),
             self.rate0,
             self.inv_mass(model),
             float(model.opt.timestep),
@@ -379,24 +507,27 @@ class RopeBendFriction:
 
     def apply(self, data) -> None:
         """Add the couples' forces of ``data``'s current state to ``data.qfrc_applied``
-        (compiled: :func:`flyknot_sim.bend_kernel.add_bend_friction` gathers the state, solves
-        and scatters without a numpy temporary)."""
-        if self.moment <= 0:
+        (compiled: :func:`flyknot_sim.bend_kernel.add_bend_friction` gathers the state and the
+        joints' tensions, solves and scatters without a numpy temporary)."""
+        if not self.on:
             return
         r, model = self.rope, data.model
         if self._kernel_args is None or self._model_id != id(model):
             from flyknot_sim.bend_kernel import add_bend_friction  # numba: compiled on demand
 
             params = np.array(
-                [self.moment, self.rate0, float(model.opt.timestep), SPAN_REGULARISATION, _TINY]
-            )
+                [self.moment, self.rate0, float(model.opt.timestep), SPAN_REGULARISATION, _TINY,
+                 self.link_arm]
+            )  # fmt: skip
             self._added, self._after = np.zeros(r.vert_dof.shape), np.zeros(r.vert_dof.shape)
             self._has_prev = False
             inv_mass = self.inv_mass(model)
             self._kernel_args = (add_bend_friction, params, inv_mass)
         kernel, params, inv_mass = self._kernel_args
+        rows = (data.efc_type, data.efc_id, data.efc_force) if self.link_arm > 0 else _NO_ROWS
         kernel(
             data.qpos, data.qvel, data.qfrc_applied, r.vert_qpos, r.vert_dof, r.body_pos0,
             self._added, self._after, self._has_prev, params, inv_mass, IMPLICIT_ITERATIONS,
+            *rows, self._edge_eq,
         )  # fmt: skip
         self._has_prev = True

@@ -27,7 +27,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["add_bend_friction", "bend_friction_forces"]
+__all__ = ["add_bend_friction", "bend_friction_forces", "joint_moments"]
 
 _KB = 8  # half-bandwidth of the joint system (3 * 2 + 2)
 
@@ -118,7 +118,7 @@ def bend_friction_forces(x, v, moment, rate0, inv_mass, dt, span_reg, iterations
     Args:
         x: Vertex positions, (n + 1, 3) [m], n >= 2.
         v: Vertex velocities, (n + 1, 3) [m/s].
-        moment: M_0 [N m].
+        moment: M_0 of each joint k = 1..n-1, (n - 1,) [N m] (>= 0).
         rate0: r_0 [rad/s].
         inv_mass: 1 / vertex mass, (n + 1,) [1/kg] (0: held).
         dt: Step [s] (> 0).
@@ -164,7 +164,7 @@ def bend_friction_forces(x, v, moment, rate0, inv_mass, dt, span_reg, iterations
         _sqrt_projector(t[k], t[k + 1], g, root[k])
         for i in range(3):  # P_k dw_k = R_k (R_k dw_k)
             rdw[i] = root[k, i, 0] * dw[k, 0] + root[k, i, 1] * dw[k, 1] + root[k, i, 2] * dw[k, 2]
-        coef[k] = moment / np.sqrt(_mat_vec_norm2(root[k], rdw, 0) + rate0 * rate0)
+        coef[k] = moment[k] / np.sqrt(_mat_vec_norm2(root[k], rdw, 0) + rate0 * rate0)
     # the symmetric system (I + dt S A S) z = S dw, S_k = sqrt(c_k) R_k, R_k = P_k^(1/2).
     # G_{k,d} = R_k A_{k,k+d} R_{k+d}, A = J m^-1 J^T, does not change over the passes:
     # G_{k,d} = sum_b m^-1_{k+b+d} (R_k J_{b+d,k}) (R_{k+d} J_{b,k+d})^T and
@@ -212,8 +212,9 @@ def bend_friction_forces(x, v, moment, rate0, inv_mass, dt, span_reg, iterations
         z = _band_cholesky_solve(ab, z)
         if it + 1 < iterations:
             for k in range(nj):
-                py2 = _mat_vec_norm2(root[k], z, 3 * k) / coef[k]  # |P_k y_k|^2
-                coef[k] = moment / np.sqrt(py2 + rate0 * rate0)
+                if coef[k] > 0.0:  # a joint without a couple (M_0 = 0) stays without
+                    py2 = _mat_vec_norm2(root[k], z, 3 * k) / coef[k]  # |P_k y_k|^2
+                    coef[k] = moment[k] / np.sqrt(py2 + rate0 * rate0)
     couple = np.zeros((n, 3))
     for k in range(nj):
         for i in range(3):
@@ -240,15 +241,64 @@ def bend_friction_forces(x, v, moment, rate0, inv_mass, dt, span_reg, iterations
 
 
 @numba.njit(cache=True)
+def joint_moments(moment, arm, efc_type, efc_id, efc_force, eq_id, n, out):
+    """Each joint's frictional couple M_0 + arm T_k into ``out`` (n - 1,) [N m] and return it.
+
+    T_k is the tension at joint k (:func:`flyknot_sim.bend_friction.joint_tensions`) from the
+    rope's edge-equality rows in MuJoCo's constraint arrays (``efc_type`` / ``efc_id`` /
+    ``efc_force`` of ``data``, rows of type equality (0) and id ``eq_id``, one per edge, in
+    edge order; the tension of edge j is -efc_force). Found in another number than the n
+    edges (no constraint solved yet, e.g. before the first ``mj_forward``): T = 0, M_0 only.
+    """
+    nj = n - 1
+    for k in range(nj):
+        out[k] = moment
+    if arm <= 0.0:
+        return out
+    start, count = -1, 0
+    for i in range(efc_type.shape[0]):
+        if efc_type[i] == 0 and efc_id[i] == eq_id:
+            if start < 0:
+                start = i
+            count += 1
+        elif start >= 0 or efc_type[i] != 0:  # past the block, or past the equality rows
+            break
+    if count != n:
+        return out
+    for k in range(nj):
+        below = max(-efc_force[start + k + 1], 0.0)
+        above = below if k == 0 else max(-efc_force[start + k], 0.0)  # edge 0 is held
+        out[k] = moment + arm * 0.5 * (above + below)
+    return out
+
+
+@numba.njit(cache=True)
 def add_bend_friction(
-    qpos, qvel, qfrc, vert_qpos, vert_dof, pos0, added, after, has_prev, params, inv_mass, it
+    qpos,
+    qvel,
+    qfrc,
+    vert_qpos,
+    vert_dof,
+    pos0,
+    added,
+    after,
+    has_prev,
+    params,
+    inv_mass,
+    it,
+    efc_type,
+    efc_id,
+    efc_force,
+    eq_id,
 ):
     """Add the couples' forces of the current state to ``qfrc`` (``data.qfrc_applied``), in
     place, replacing this applier's previous contribution if ``qfrc`` still holds it.
 
     Gathers the vertices from ``qpos`` / ``qvel`` (indices ``vert_qpos`` / ``vert_dof``,
-    (n + 1, 3); positions offset by ``pos0``), computes :func:`bend_friction_forces` with
-    ``params`` = (moment, rate0, dt, span_reg, tiny) and ``it`` passes, and writes
+    (n + 1, 3); positions offset by ``pos0``), the joints' couples from :func:`joint_moments`
+    (``params`` = (moment, rate0, dt, span_reg, tiny, arm); the constraint rows ``efc_*`` of
+    the rope's edge equality ``eq_id``, unread when arm is 0), computes
+    :func:`bend_friction_forces` with ``it`` passes, and writes
     ``qfrc[dof] = (qfrc[dof] - added if qfrc[dof] == after else qfrc[dof]) + f``; ``added``
     and ``after`` (n + 1, 3) are updated to f and the new values. Returns True.
     """
@@ -260,7 +310,10 @@ def add_bend_friction(
             x[i, c] = qpos[vert_qpos[i, c]] + pos0[i, c]
             v[i, c] = qvel[vert_dof[i, c]]
     moment, rate0, dt, span_reg, tiny = params[0], params[1], params[2], params[3], params[4]
-    f = bend_friction_forces(x, v, moment, rate0, inv_mass, dt, span_reg, it, tiny)
+    moments = joint_moments(
+        moment, params[5], efc_type, efc_id, efc_force, eq_id, nv - 1, np.empty(nv - 2)
+    )
+    f = bend_friction_forces(x, v, moments, rate0, inv_mass, dt, span_reg, it, tiny)
     same = has_prev
     if same:
         for i in range(nv):

@@ -393,6 +393,13 @@ ROPE_FIELDS = (
         "stiffness B = EI, i.e. the curvature at which the two moments are equal; 0: purely "
         "elastic bending.", example=23.0, default=0.0, by_material=ByMaterial.VALUE,
     ),
+    RopeField(
+        "link_friction_radius", float, "m", NONNEGATIVE, "A link chain's wire radius r: the "
+        "links rub where they bear on each other, so each joint's frictional couple gains "
+        "friction * T * r, T the joint's tension (flyknot_sim.bend_friction); 0: none. The "
+        "lab's chain (rope 6) leaves it at 0; 0.0025 fits its 0.514 kg/m (a DIN 766 5 mm "
+        "short-link chain, 0.5 kg/m).", example=0.0025, default=0.0,
+    ),
 )  # fmt: skip
 """Every field of a rope, in the order of :class:`~flyknot_sim.rope_table.RopeParams`' fields
 (those with a default last)."""

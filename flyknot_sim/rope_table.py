@@ -136,6 +136,12 @@ class RopeParams:
         return self.bend_hysteresis * self.bending_stiffness
 
     @property
+    def link_friction_arm(self) -> float:
+        """The links' frictional couple per newton of tension, friction * r = mu r [m] (r the
+        ``link_friction_radius``; 0: no link friction, the default)."""
+        return self.friction * self.link_friction_radius
+
+    @property
     def torsional_stiffness(self) -> float:
         """GJ = G pi r^4 / 2 [N m^2] (G = E / 2 when ``shear_modulus`` is 0)."""
         g = self.shear_modulus if self.shear_modulus > 0 else self.bend_modulus / 2

@@ -20,11 +20,14 @@ from flyknot_sim.bend_friction import (
     BendFrictionParams,
     RopeBendFriction,
     bend_rates,
+    edge_tensions,
+    joint_moments,
+    joint_tensions,
     rope_bend_friction_forces,
 )
 from flyknot_sim.bend_kernel import bend_friction_forces
 from flyknot_sim.rope import add_rope, configure_options
-from flyknot_sim.rope_table import get_rope
+from flyknot_sim.rope_table import get_rope, load_rope_table
 
 N = 10
 L = 0.04
@@ -65,8 +68,9 @@ def test_compiled_kernel_equals_the_numpy_equations(jitter, vel, moment, dt):
     x, v = _bent(jitter), np.asarray(vel).reshape(N + 1, 3)
     ref = rope_bend_friction_forces(x, v, moment, RATE0, INV_MASS, dt)
     fast = bend_friction_forces(
-        x, v, moment, RATE0, INV_MASS, dt, SPAN_REGULARISATION, IMPLICIT_ITERATIONS, 1e-24
-    )
+        x, v, np.full(N - 1, moment), RATE0, INV_MASS, dt, SPAN_REGULARISATION,
+        IMPLICIT_ITERATIONS, 1e-24,
+    )  # fmt: skip
     # to 1e-6 of the largest force: fastmath and another pivoting order round differently, and
     # the fixed-point passes amplify that where a joint's rate is near r_0 (measured: 3.6e-8 in
     # 20,000 random draws); a wrong term is off by the force itself
@@ -171,10 +175,10 @@ def test_params():
         assert str(e.value) == f"moment: must be a finite number >= 0, got {shown}"
 
 
-def _hanging_rope():
-    """Rope 1 held at its top by a holder on stiff, damped, heavy slides (add_rope wants an
-    anchor moved by joints)."""
-    rope = get_rope(1)
+def _hanging_rope(rope=None):
+    """``rope`` (None: rope 1) held at its top by a holder on stiff, damped, heavy slides
+    (add_rope wants an anchor moved by joints)."""
+    rope = get_rope(1) if rope is None else rope
     spec = mujoco.MjSpec()
     holder = spec.worldbody.add_body(name="holder", pos=[0, 0, 1.5])
     for k, axis in enumerate(np.eye(3)):
@@ -272,3 +276,172 @@ def test_the_kernels_square_root_squares_to_the_projector(a, b, straight):
     # near straight, g - c ~ lambda = 1e-10 is known to ~1e-6 relative in either form (the
     # cancellation in 1 + lambda - t_a . t_b): P's in-plane entries then agree to ~5e-7
     np.testing.assert_allclose(root @ root, proj, atol=1e-5)
+
+
+# --- the links' friction: M_0,k = M_0 + mu r T_k ---------------------------------------------
+_couple = st.sampled_from([0.0, 1e-4, 2e-3, 0.02])
+moments = st.lists(_couple, min_size=N - 1, max_size=N - 1).map(np.array)
+
+
+@pytest.mark.parametrize("mode", MODES)
+@given(jitter=coords, vel=speeds, moment=moments)
+@settings(max_examples=60, deadline=None)
+def test_per_joint_couples_sum_to_zero_and_never_add_power(mode, jitter, vel, moment):
+    """Each joint its own M_0,k >= 0 (some 0, as at a slack joint): the forces still sum to
+    zero, their power is never positive, and a joint without a couple draws none."""
+    x, v = _bent(jitter), np.asarray(vel).reshape(N + 1, 3)
+    f = rope_bend_friction_forces(x, v, moment, **mode)
+    assert np.all(np.isfinite(f))
+    np.testing.assert_allclose(f.sum(axis=0), 0.0, atol=1e-12 * max(1.0, np.abs(f).max()))
+    assert np.sum(f * v) <= 1e-12
+    if not moment.any():
+        assert np.array_equal(f, np.zeros_like(f))
+
+
+@given(jitter=coords, vel=speeds, moment=moments, dt=st.sampled_from([1e-3, 2e-3]))
+@settings(max_examples=60, deadline=None)
+def test_compiled_kernel_equals_the_numpy_equations_per_joint(jitter, vel, moment, dt):
+    x, v = _bent(jitter), np.asarray(vel).reshape(N + 1, 3)
+    ref = rope_bend_friction_forces(x, v, moment, RATE0, INV_MASS, dt)
+    fast = bend_friction_forces(
+        x, v, moment, RATE0, INV_MASS, dt, SPAN_REGULARISATION, IMPLICIT_ITERATIONS, 1e-24
+    )
+    assert np.all(np.isfinite(fast))
+    np.testing.assert_allclose(fast, ref, rtol=0, atol=1e-6 * max(np.abs(ref).max(), 1e-12))
+
+
+def test_a_constant_couple_is_the_same_per_joint_bit_for_bit():
+    """M_0 for every joint as a number or as an array: the same forces, to the bit."""
+    rng = np.random.default_rng(5)
+    x, v = _bent(rng.uniform(-0.3, 0.3, 3 * (N + 1))), rng.uniform(-3, 3, (N + 1, 3))
+    for mode in MODES:
+        a = rope_bend_friction_forces(x, v, M0, **mode)
+        b = rope_bend_friction_forces(x, v, np.full(N - 1, M0), **mode)
+        assert np.array_equal(a, b)
+
+
+def test_joint_tensions_and_moments():
+    """T_k: the mean of the two edges at joint k, compressions as 0, joint 1 the edge below's
+    (edge 0 is held); M_0,k = M_0 + arm T_k; no tensions read: M_0."""
+    edges = np.array([-1.0, 6.0, 4.0, -2.0, 1.0])
+    np.testing.assert_array_equal(joint_tensions(edges), [6.0, 5.0, 2.0, 0.5])
+    np.testing.assert_allclose(joint_moments(0.1, 0.01, edges, 5), [0.16, 0.15, 0.12, 0.105],
+                               rtol=1e-15)  # fmt: skip
+    np.testing.assert_array_equal(joint_moments(0.1, 0.01, None, 5), np.full(4, 0.1))
+    np.testing.assert_array_equal(joint_moments(0.1, 0.0, edges, 5), np.full(4, 0.1))
+
+
+def test_every_rope_of_the_lab_is_without_link_friction():
+    """Off by default: the lab's ropes (the chain too) keep the couple they had."""
+    for rope in load_rope_table().values():
+        assert rope.link_friction_radius == 0.0 and rope.link_friction_arm == 0.0
+    assert replace(get_rope(6), link_friction_radius=0.0025).link_friction_arm == pytest.approx(
+        0.57 * 0.0025
+    )
+
+
+RADIUS = 0.0025
+"""The wire radius of a 5 mm short-link chain [m] (flyknot_sim/bend_friction.py)."""
+
+
+def _settled_chain(seconds=1.0):
+    """Rope 6 with the links' friction, hanging straight from its holder, stepped with its
+    frictional couples (and air drag) for ``seconds``: at rest."""
+    p = replace(get_rope(6), link_friction_radius=RADIUS)
+    model, data, bound = _hanging_rope(p)
+    # the holder's vertical slide where its spring carries the chain (else it bobs)
+    slide = model.joint("s2")
+    weight = -model.opt.gravity[2] * (p.mass + p.end_mass + 1e-3)
+    data.qpos[slide.qposadr[0]] = -weight / model.jnt_stiffness[slide.id]
+    mujoco.mj_kinematics(model, data)
+    bound.set_hanging(model, data)
+    friction = RopeBendFriction(bound, p.frictional_couple)
+    for _ in range(round(seconds / model.opt.timestep)):
+        data.qfrc_applied[:] = 0.0
+        friction.apply(data)
+        mujoco.mj_step(model, data)
+    return p, model, data, bound, friction
+
+
+def test_link_couple_of_a_hanging_chain_is_mu_t_r():
+    """Hanging still, every joint's couple is mu r T_k, T_k the weight below it:
+    g (m_end + lambda (L - s_k)), at joint 1 half a segment's weight less (it reads the edge
+    below; module docstring), from the constraint forces MuJoCo solves."""
+    p, model, data, bound, friction = _settled_chain()
+    assert np.abs(data.qvel[bound.vert_dof]).max() < 1e-6
+    assert friction.link_arm == p.friction * RADIUS and friction.moment == 0.0
+    k = np.arange(1, p.segments)
+    weight = 9.81 * (p.end_mass + p.density * (p.length - k * p.segment_length))
+    weight[0] -= 9.81 * p.density * p.segment_length / 2
+    m = friction.moments(data)
+    g = -model.opt.gravity[2]
+    np.testing.assert_allclose(m, p.friction * RADIUS * weight * g / 9.81, rtol=1e-6)
+    assert m[0] == pytest.approx(8.2e-3, abs=1e-4) and m[-1] == pytest.approx(9.6e-4, abs=1e-5)
+    # the edges' tensions are the weights below them (trapezoidal lumping, end weight)
+    edges = edge_tensions(data, friction._edge_eq, p.segments)
+    np.testing.assert_allclose(edges[1:], weight[0] - g * p.density * p.segment_length * (k - 1),
+                               rtol=1e-6)  # fmt: skip
+
+
+def test_the_applier_adds_the_link_couples_it_reads():
+    """The compiled applier reads the same tensions as :meth:`RopeBendFriction.moments`:
+    it adds exactly :meth:`RopeBendFriction.forces` of a swinging chain."""
+    _, model, data, bound, friction = _settled_chain(0.2)
+    bound.set_hanging(model, data, sway_angle=0.3, sway_rate=1.0)
+    mujoco.mj_forward(model, data)
+    dof = bound.vert_dof
+    data.qfrc_applied[:] = 0.0
+    friction._has_prev = False
+    friction.apply(data)
+    f = friction.forces(data)
+    assert np.abs(f).max() > 0
+    np.testing.assert_array_equal(data.qfrc_applied[dof], f)
+    moment = friction.moments(data)
+    assert moment.min() > 0 and moment.max() / moment.min() > 5  # top vs bottom of the chain
+    x = data.qpos[bound.vert_qpos] + bound.body_pos0
+    ref = rope_bend_friction_forces(x, data.qvel[dof], moment, RATE0, friction.inv_mass(model),
+                                    model.opt.timestep)  # fmt: skip
+    np.testing.assert_allclose(f, ref, rtol=0, atol=1e-6 * np.abs(ref).max())
+
+
+def test_before_any_solve_the_link_couple_reads_no_tension():
+    p = replace(get_rope(6), link_friction_radius=RADIUS)
+    model, _, bound = _hanging_rope(p)
+    data = mujoco.MjData(model)  # no constraint solved: no rows
+    friction = RopeBendFriction(bound, 1e-3)
+    assert edge_tensions(data, friction._edge_equality(model), p.segments) is None
+    np.testing.assert_array_equal(friction.moments(data), np.full(p.segments - 1, 1e-3))
+    friction.apply(data)  # the constant couple alone, no failure
+    assert np.all(np.isfinite(data.qfrc_applied))
+
+
+def test_without_link_friction_the_tensions_are_not_read():
+    """The field at 0 (every lab rope): the applier reads no constraint force (scrambling
+    them changes nothing, to the bit), and the chain without M_0 is off (adds nothing)."""
+    model, data, bound = _hanging_rope()
+    bound.set_hanging(model, data, sway_angle=0.3, sway_rate=1.0)
+    mujoco.mj_forward(model, data)
+    friction = RopeBendFriction(bound, M0)
+    assert friction.link_arm == 0.0
+    before = friction.forces(data)
+    data.qfrc_applied[:] = 0.0
+    friction.apply(data)
+    added = data.qfrc_applied.copy()
+    data.efc_force[:] = 1e3
+    assert np.array_equal(friction.forces(data), before)
+    data.qfrc_applied[:] = 0.0
+    friction._has_prev = False
+    friction.apply(data)
+    assert np.array_equal(data.qfrc_applied, added)
+    _, data6, bound6 = _hanging_rope(get_rope(6))
+    chain = RopeBendFriction(bound6, get_rope(6).frictional_couple)
+    assert not chain.on
+    data6.qfrc_applied[:] = 0.25
+    chain.apply(data6)
+    assert np.all(data6.qfrc_applied == 0.25)
+
+
+def test_link_arm_is_checked():
+    _, _, bound = _hanging_rope()
+    with pytest.raises(ConfigError, match="link_arm: must be a finite number >= 0"):
+        RopeBendFriction(bound, M0, link_arm=-1e-3)

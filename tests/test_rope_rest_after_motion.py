@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -117,6 +118,19 @@ def test_the_couple_holds_a_zigzag_only_in_cords():
     assert math.degrees(hold[1]) == pytest.approx(11.9, abs=0.1)
     assert math.degrees(hold[-1]) == pytest.approx(30.3, abs=0.1)
     assert np.all(np.diff(hold) > 0)
+
+
+def test_the_links_friction_holds_a_zigzag_in_the_chain():
+    """With the links' friction the chain's joints hold M_0,k = mu r T_k (the joint's tension
+    at rest): a zig-zag of about 4 mu r / l at every joint (9-10 deg at r = 2.5 mm)."""
+    p = replace(get_rope(6), link_friction_radius=0.0025)
+    hold = couple_hold_angles(p)
+    t = hanging_tensions(p)
+    joint = np.r_[t[0], (t[:-1] + t[1:]) / 2]  # joint 1 reads the edge below
+    arm, seg = p.friction * 0.0025, p.segment_length
+    assert hold == pytest.approx(4 * arm * joint / (t * seg), rel=1e-12)
+    assert math.degrees(hold[1:].min()) == pytest.approx(9.05, abs=0.05)
+    assert math.degrees(hold.max()) == pytest.approx(10.3, abs=0.05)
 
 
 def test_the_throw_is_the_flying_knot_motion_then_still():

@@ -61,13 +61,17 @@ def capstan(
     the capstan law T_pull / T_load = exp(mu theta) (Euler-Eytelwein), with the frictional
     couple's resistance to being bent on and off the rod (a rope over a sheave: each change of
     curvature 1/R costs a pull M_0 / R, R the radius of the centreline):
-    T_pull = (T_load + M_0 / R) exp(mu theta) + M_0 / R. ``load`` [kg]: the end's mass
+    T_pull = (T_load + M_0 / R) exp(mu theta) + M_0 / R; with the links' friction of a chain
+    (``link_friction_radius`` r, flyknot_sim.bend_friction) each bend costs mu r T / R more,
+    T_pull = ((T_load k + M_0 / R) exp(mu theta)) k + M_0 / R, k = 1 + mu r / R.
+    ``load`` [kg]: the end's mass
     (None: the rope's end weight, the tension of the lab's knots). Passes within 25 %
     (a polygon of 36.7 mm elements touches a 5 cm rod at a few points: MuJoCo issue #454
     reports capsule ropes under-delivering the capstan effect)."""
     p = rope.params if load is None else replace(rope.params, end_mass=load)
     mu, theta = p.friction, math.pi
     bend = p.frictional_couple / (rod_radius + p.radius)  # [N]
+    link = 1.0 + p.link_friction_arm / (rod_radius + p.radius)  # [-], 1 without
     centre = np.array([0.0, 0.0, 1.2])
     x = _draped(p, centre, rod_radius)
     home = x[0] - DOWN * p.clearance
@@ -90,7 +94,7 @@ def capstan(
         right = max(0.0, centre[2] - float(xs[load_side, 2].min()))
         t_pull = f_hold + p.density * G * left
         t_load = p.end_mass * G + p.density * G * right
-        ratios.append(t_pull / ((t_load + bend) * math.exp(mu * theta) + bend))
+        ratios.append(t_pull / ((t_load * link + bend) * math.exp(mu * theta) * link + bend))
 
     b.run(seconds, pull, 0.01, probe)
     measured = float(np.median(ratios)) if ratios else float("nan")
@@ -110,6 +114,7 @@ def capstan(
             "mu": mu,
             "load_kg": p.end_mass,
             "rod_radius_m": rod_radius,
+            **({"link_bend_factor": link} if link != 1.0 else {}),
         },
         f"pull {measured:.2f} x the capstan law (exp(mu pi) = {math.exp(mu * theta):.2f}, "
         f"load {p.end_mass * 1e3:g} g, bending {bend:.3f} N)",

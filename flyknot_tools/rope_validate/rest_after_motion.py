@@ -24,6 +24,7 @@ from flyknot.errors import check_positive
 from flyknot.geometry import min_rotation
 from flyknot.rest import RestCriterion
 from flyknot.verdict import UNKNOTTED, judge_centreline
+from flyknot_sim.bend_friction import joint_moments
 from flyknot_sim.rope_handle import hanging_vertices
 from flyknot_sim.rope_table import RopeParams
 from flyknot_tools.rope_study.harness import HOLDER_JOINTS, HandMotion, holder_targets
@@ -152,12 +153,16 @@ def couple_hold_angles(p: RopeParams) -> np.ndarray:
     (:func:`hanging_tensions`) the tension pushes each joint straight with the force T_k theta,
     and the elastic moment B theta / l does too; the joints' couples, alternating in sign,
     push back with at most 4 M_0 / l. Still where 4 (M_0 - B theta / l) / l >= T_k theta:
-    theta <= 4 M_0 / (T_k l + 4 B / l). Zero without a couple (the chain, the latex tube)."""
-    m0 = p.frictional_couple
-    if m0 <= 0:
+    theta <= 4 M_0 / (T_k l + 4 B / l). With the links' friction (``link_friction_radius``)
+    M_0 is each joint's M_0 + mu r T (:func:`flyknot_sim.bend_friction.joint_moments`, the
+    joint's tension at rest). Zero without a couple (the chain, the latex tube)."""
+    tension = hanging_tensions(p)
+    edges = np.r_[tension[0], tension]  # edge 0, held, is not read (joint_tensions)
+    m0 = joint_moments(p.frictional_couple, p.link_friction_arm, edges, p.segments)
+    if m0.max() <= 0:
         return np.zeros(p.segments - 1)
     seg = p.segment_length
-    return 4 * m0 / (hanging_tensions(p) * seg + 4 * p.bending_stiffness / seg)
+    return 4 * m0 / (tension * seg + 4 * p.bending_stiffness / seg)
 
 
 @dataclass(frozen=True)
