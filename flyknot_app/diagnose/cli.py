@@ -211,14 +211,22 @@ def _run_command(run_dir: Path, trial: int | None) -> tuple[int, np.ndarray, flo
     return trial, np.load(run_dir / "learning" / f"knots_{trial - 1:04d}.npy"), float(opts["T"])
 
 
-def _cmd_variation(args: argparse.Namespace) -> int:
-    from flyknot_app.cells import cell_spec, sim_lab_params
-    from flyknot_app.diagnose.variation_split import format_split, lab_play, split_variation
-
+def _variation_source(
+    args: argparse.Namespace,
+) -> tuple[str, dict, np.ndarray, float, dict, Path | None]:
+    """What ``diagnose variation`` plays: (its name, the lab's cell values, knots, T [s], the
+    source's fields of the result, the result's default file or None)."""
     if (args.run is None) == (args.floor is None):
         raise ConfigError("RUN_DIR", "give a run directory or --floor, not both or neither")
     if args.floor:
-        return _variation_of_floor(args)
+        doc = json.loads(Path(args.floor).read_text())
+        if "knots" not in doc or "T" not in doc:
+            raise ConfigError(
+                "--floor", f"{args.floor!r} is not a result of `flyknot diagnose floor`"
+            )
+        values = {"rope": doc["rope"], "seed": 0}
+        knots, T = np.asarray(doc["knots"]), doc["T"]
+        return "the floor's command", values, knots, T, {"floor": str(args.floor)}, None
     run_dir = Path(args.run)
     inputs = _run_inputs(run_dir)
     if inputs["cell"] != "sim":
@@ -229,30 +237,31 @@ def _cmd_variation(args: argparse.Namespace) -> int:
             ["sim"],
         )
     trial, knots, T = _run_command(run_dir, args.trial)
-    lab_params = sim_lab_params(cell_spec("sim", inputs["cell_values"]))
-    split = split_variation(lab_params, lab_play(knots, T), args.plays)
-    out = split.to_json() | {"run": str(run_dir), "trial": trial}
-    path = Path(args.out) if args.out else run_dir / "variation.json"
-    path.write_text(json.dumps(out, indent=2))
-    text = f"trial {trial}'s command, {args.plays} plays per setting:\n" + format_split(split)
-    print(json.dumps(out) if args.json else text + f"\nwritten to {path}")
-    return 0
+    fields = {"run": str(run_dir), "trial": trial}
+    return (
+        f"trial {trial}'s command",
+        inputs["cell_values"],
+        knots,
+        T,
+        fields,
+        run_dir / "variation.json",
+    )
 
 
-def _variation_of_floor(args: argparse.Namespace) -> int:
-    """``diagnose variation --floor F.json``: the floor's command on its rope."""
+def _cmd_variation(args: argparse.Namespace) -> int:
     from flyknot_app.cells import cell_spec, sim_lab_params
     from flyknot_app.diagnose.variation_split import format_split, lab_play, split_variation
 
-    doc = json.loads(Path(args.floor).read_text())
-    if "knots" not in doc or "T" not in doc:
-        raise ConfigError("--floor", f"{args.floor!r} is not a result of `flyknot diagnose floor`")
-    lab_params = sim_lab_params(cell_spec("sim", {"rope": doc["rope"], "seed": 0}))
-    split = split_variation(lab_params, lab_play(np.asarray(doc["knots"]), doc["T"]), args.plays)
-    out = split.to_json() | {"floor": str(args.floor)}
-    if args.out:
-        Path(args.out).write_text(json.dumps(out, indent=2))
-    text = f"the floor's command, {args.plays} plays per setting:\n" + format_split(split)
+    what, values, knots, T, fields, default = _variation_source(args)
+    lab_params = sim_lab_params(cell_spec("sim", values))
+    split = split_variation(lab_params, lab_play(knots, T), args.plays)
+    out = split.to_json() | fields
+    path = Path(args.out) if args.out else default
+    if path is not None:
+        path.write_text(json.dumps(out, indent=2))
+    text = f"{what}, {args.plays} plays per setting:\n" + format_split(split)
+    if path is not None and default is not None:
+        text += f"\nwritten to {path}"
     print(json.dumps(out) if args.json else text)
     return 0
 
