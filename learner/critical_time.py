@@ -6,9 +6,9 @@ what the motion capture gives, with two cues:
 1. **Self-approach**: the rope is the polyline fingertip -> marker 0 -> ... -> marker 10.
    Two of its segments that share no point come closer than ``threshold``: the rope's
    diameter plus 3 sigma of the markers' noise. (The polyline cuts corners between markers
-   0.1 m apart, so a chord margin seems natural; measured over 108 simulated demonstrations and
-   replays, a margin of 1-4 cm fires 0.2-0.4 s early on near misses of the thrown end, and no
-   margin is best: see ``docs/learning.md``.)
+   0.1 m apart, so a chord margin seems natural; over 86 simulated demonstrations and
+   replays a 1 cm margin moves the median error from 4 to 3 ms, and 2-4 cm fire up to
+   0.2-0.34 s early on near misses of the thrown end: ``docs/learning.md``, section 7.)
 2. **Tracking loss**: the first sample at which any marker is missing (NaN). Markers are lost
    when the rope covers itself, i.e. at or after the first contact.
 

@@ -36,6 +36,9 @@ the mean over pre-collision samples s, ``(1/S) sum_s ||M_s x - err_s||_Q^2``: ev
 the same weight and the total weight equals the critical objective's, so the control term keeps
 the same relative strength.
 
+More rope states (``points``, e.g. the launch objective's, :mod:`learner.objectives`) add
+``||M_s x - err_s||_Q^2`` each beside the critical term, weighted as it.
+
 Constraints ``l <= A x <= u``, row blocks in order:
     * ``base``: the 3 base rows' update is the same at all 8 knots (``base_update="constant"``:
       the base stays fixed within a trial but may shift between trials), or zero
@@ -315,6 +318,7 @@ def build_inverse_qp(
     follow: FollowThrough | None = None,
     limits: LimitRows | None = None,
     equal: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
+    points: Sequence[tuple[np.ndarray, np.ndarray]] = (),
     base_update: str = "constant",
     keep_rest: bool = True,
     trust_region: float | None = None,
@@ -334,6 +338,8 @@ def build_inverse_qp(
         limits: Limit rows, or None.
         equal: Equally weighted baseline: ``[(M_s (6N, 80), err_s (6N,)), ...]`` over
             pre-collision samples, used *instead of* ``M_crit``/``err_crit``.
+        points: More rope states fitted beside the critical term, each weighted as it:
+            ``[(M_s (6N, 80), err_s (6N,)), ...]``, adding ``||M_s dk - err_s||_Q^2`` each.
         base_update: ``"constant"`` (one base update for all knots) or ``"zero"``.
         keep_rest: Add :func:`rest_equality_rows` (keep zero joint velocity at t = 0 and T).
         trust_region: If given, the box ``-r <= dk_arm <= r`` on each of the 56 arm knot
@@ -358,6 +364,7 @@ def build_inverse_qp(
         if len(equal) == 0:
             raise ConfigError("equal", "must hold at least one (M, err) sample")
         terms = [(*_check_rows("equal", M, e), 1.0 / len(equal)) for M, e in equal]
+    terms += [(*_check_rows("points", M, e), 1.0) for M, e in points]
     H = np.zeros((N_VARS, N_VARS))
     g = np.zeros(N_VARS)
     const = 0.0

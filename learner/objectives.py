@@ -6,6 +6,9 @@
   the demonstration have markers (within ``fallback_s``).
 * ``"equal"`` (:class:`EqualWeights`, the paper's baseline): every pre-collision model step
   t_k <= t_c where both have markers, weighted alike: (1/S) sum_k ||M(t_k) dk - e_k||_Q^2.
+* ``"launch"`` (:class:`CriticalAndLaunch`): the critical point and a second one chosen from
+  the demonstration, the launch t_l (the pre-collision step where the hand moves fastest, the
+  flick that throws the loop): ||M(t_c) dk - e_c||_Q^2 + ||M(t_l) dk - e_l||_Q^2.
 
 An objective reads the record (:meth:`errors`) and hands the QP builder its terms
 (:meth:`qp_terms`); :func:`learner.update.ilc_update` does the rest the same way for every
@@ -172,7 +175,58 @@ class EqualWeights:
         return {"equal": [(M_at(k), e) for k, e in terms.samples]}
 
 
-OBJECTIVES = {o.name: o for o in (CriticalPoint(), EqualWeights())}
+def launch_step(target: DemoTarget) -> int:
+    """k_l = argmax_k ||v_hand(t_k)|| over the pre-collision steps t_k < t_c where the
+    demonstration has markers: the flick that throws the loop (model step index).
+
+    Raises:
+        RecordError: no pre-collision step before t_c has markers.
+    """
+    t = target.t[: len(target.x_pre)]
+    usable = np.all(np.isfinite(target.x_pre), axis=1) & (t < target.t_c - TIME_TOL)
+    if not np.any(usable):
+        raise RecordError("no pre-collision step before t_c has markers (launch objective)")
+    speed = np.linalg.norm(target.hand_at(t)[2], axis=1)  # (S,) [m/s]
+    return int(np.argmax(np.where(usable, speed, -np.inf)))
+
+
+@dataclass(frozen=True)
+class CriticalAndLaunch(CriticalPoint):
+    """The critical point and the launch, weighted alike (module docstring)."""
+
+    name: str = "launch"
+    description: str = (
+        "the rope state at t_c and at the launch (the hand's fastest pre-collision step)"
+    )
+
+    def errors(
+        self,
+        records: Sequence[TrialRecord],
+        base: np.ndarray,
+        target: DemoTarget,
+        k_c: int,
+        fit: MarkerFitParams,
+        fallback_s: float,
+    ) -> ErrorTerms:
+        """e at t_c as :class:`CriticalPoint`'s, and e_l at the launch step (first record).
+
+        Raises:
+            RecordError: the record lost tracking before the launch.
+        """
+        at_c = super().errors(records, base, target, k_c, fit, fallback_s)
+        k_l = launch_step(target)
+        x_l = critical_state_from_record(records[0], float(target.t[k_l]), base, fit)
+        return ErrorTerms(at_c.err, at_c.k_c, at_c.t_eff, ((k_l, x_l - target.x_pre[k_l]),))
+
+    def qp_terms(self, terms: ErrorTerms, M_at: Callable[[int], np.ndarray], M_c) -> dict:
+        """The critical-point term and the launch as one more point of the same weight."""
+        return {
+            **super().qp_terms(terms, M_at, M_c),
+            "points": [(M_at(k), e) for k, e in terms.samples],
+        }
+
+
+OBJECTIVES = {o.name: o for o in (CriticalPoint(), EqualWeights(), CriticalAndLaunch())}
 """Every objective, by the name the ``objective`` option gives."""
 
 
@@ -185,9 +239,11 @@ def objective_kind(name: object) -> CriticalPoint | EqualWeights:
 
 __all__ = [
     "OBJECTIVES",
+    "CriticalAndLaunch",
     "CriticalPoint",
     "EqualWeights",
     "ErrorTerms",
     "fallback_critical_point",
+    "launch_step",
     "objective_kind",
 ]

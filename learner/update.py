@@ -95,8 +95,8 @@ class UpdateSettings:
     """How :func:`ilc_update` forms and solves the inverse-model QP; fixed over a run.
 
     Attributes:
-        objective: ``"critical"`` (the paper's) or ``"equal"`` (every pre-collision sample
-            weighted equally).
+        objective: A name of :data:`learner.objectives.OBJECTIVES`: ``"critical"`` (the
+            paper's), ``"equal"`` (every pre-collision sample weighted equally), ``"launch"``.
         weights: QP weights (default: the paper's).
         limits: Joint limits on the updated command, or None for none (the cell's: set by
             the program, not an option a file gives).
@@ -185,7 +185,7 @@ class UpdateResult:
             record lost tracking before t_c, allowed for the equal objective only).
         timings: Wall times [s]: error, rollout, linearise, follow_through, limit_rows,
             qp_build, qp_solve (both summed over rounds), total.
-        objective: ``"critical"`` or ``"equal"``.
+        objective: A name of :data:`learner.objectives.OBJECTIVES`.
         backend: QP solver.
         n_error_samples: Error samples in the objective (1 for critical).
         limit_rounds: QP solves made (constraint-generation rounds).
@@ -434,7 +434,7 @@ def ilc_update(
 
     # 2-3. linearisation point and M (or the given Jacobian)
     steps = sorted({k_c, *(k for k, _ in samples)})
-    if jacobian is not None:
+    if jacobian is not None and steps == [k_c]:
         M_c = _given_jacobian(jacobian, s.objective)
         dX = [M_c]
     else:
@@ -452,7 +452,9 @@ def ilc_update(
         with _timed(timings, "linearise"):
             dX = linearise(ro, T, steps)
         M_c = dX[steps.index(k_c)]
-        if correct is not None:
+        if jacobian is not None:  # given at t_c; the model's at the objective's other steps
+            M_c = dX[steps.index(k_c)] = _given_jacobian(jacobian, s.objective)
+        elif correct is not None:
             M_c = _given_jacobian(correct(M_c, err), s.objective)
 
     # 4. follow-through

@@ -153,7 +153,8 @@ def test_faulting_initial_command_stops(robot, problem, monkeypatch):
 
 def test_params_validation():
     with pytest.raises(
-        ConfigError, match=r"objective: unknown value 'x' \(valid choices: critical, equal\)"
+        ConfigError,
+        match=r"objective: unknown value 'x' \(valid choices: critical, equal, launch\)",
     ):
         ILCParams(update=UpdateSettings(objective="x"))
     with pytest.raises(ConfigError, match="max_trials: must be an integer >= 0, got -1"):

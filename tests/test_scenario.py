@@ -90,7 +90,7 @@ def test_limit_runs_keeps_dependencies():
         ),
         (
             {"run": [{"name": "a", "objective": "best"}]},
-            "objective: unknown value 'best' (valid choices: critical, equal)",
+            "objective: unknown value 'best' (valid choices: critical, equal, launch)",
         ),
         (
             {"run": [{"name": "a", "max_trial": 3}]},

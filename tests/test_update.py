@@ -24,8 +24,15 @@ from learner.limit_rows import (
     limit_violation,
     subset_rows,
 )
+from learner.objectives import launch_step
 from learner.rope_model import RopeModelParams
-from learner.system_model import model_demonstration, model_record
+from learner.system_model import (
+    critical_step,
+    linearise,
+    model_demonstration,
+    model_record,
+    rollout_from_joints,
+)
 from learner.target import DemoTarget
 from learner.update import UpdateSettings, ilc_update
 
@@ -347,6 +354,50 @@ def test_equal_objective_uses_every_tracked_pre_collision_sample(robot, problem)
         ilc_update(lost, command, target, robot, PARAMS)
 
 
+# ----------------------------------------------------------------------------- launch objective
+
+
+def _state_error(command: BezierCommand, target: DemoTarget, k: int, robot) -> float:
+    """||x(t_k) - x_demo(t_k)||_Q^2 of the model's record of ``command`` at model step k."""
+    rec = model_record(command, robot, PARAMS)
+    err = critical_state_from_record(rec, float(target.t[k]), command.base_offset)
+    return float(np.sum(Q_DIAG * (err - target.x_pre[k]) ** 2))
+
+
+def test_launch_is_the_fastest_hand_step_before_t_c(problem):
+    _, _, target, _ = problem
+    k_l = launch_step(target)
+    t = target.t[: len(target.x_pre)]
+    speed = np.linalg.norm(target.hand_at(t)[2], axis=1)
+    assert t[k_l] < T_C
+    assert speed[k_l] == speed[t < T_C].max()
+    hidden = dataclasses.replace(target, x_pre=np.where(t[:, None] < T_C, np.nan, target.x_pre))
+    with pytest.raises(RecordError, match=r"^no pre-collision step before t_c has markers"):
+        launch_step(hidden)
+
+
+def test_launch_objective_fits_the_rope_state_at_t_c_and_at_the_launch(robot, problem):
+    command, record, target, _ = problem
+    settings = UpdateSettings(
+        weights=SMALL_CONTROL, objective="launch", limits=None, follow_through=False
+    )
+    res = ilc_update(record, command, target, robot, PARAMS, settings)
+    assert res.solved and res.objective == "launch" and res.n_error_samples == 1
+    k_l, k_c = launch_step(target), critical_step(T_C, target.dt, T)
+    new = BezierCommand(res.new_knots, T)
+    # Mismatch-free: both rope states come far nearer the demonstration's.
+    for k in (k_l, k_c):
+        assert _state_error(new, target, k, robot) < 0.2 * _state_error(command, target, k, robot)
+    # A Jacobian handed in replaces M(t_c) only: the model's own gives the same update.
+    ro = rollout_from_joints(
+        record.t_joint, record.q_meas, command.base_offset, robot, PARAMS, T, n_steps=k_c
+    )
+    given = ilc_update(
+        record, command, target, robot, PARAMS, settings, jacobian=linearise(ro, T, [k_c])[0]
+    )
+    np.testing.assert_allclose(given.dkappa, res.dkappa, rtol=1e-9, atol=1e-12)
+
+
 # ------------------------------------------------------------------------------------ target
 
 
@@ -405,7 +456,8 @@ def test_update_input_errors(robot, problem):
     with pytest.raises(ConfigError, match=r"^rope_params.dt: must equal the target's model step"):
         ilc_update(record, command, target, robot, RopeModelParams(dt=0.01))
     with pytest.raises(
-        ConfigError, match=r"^objective: unknown value 'mean' \(valid choices: critical, equal\)$"
+        ConfigError,
+        match=r"^objective: unknown value 'mean' \(valid choices: critical, equal, launch\)$",
     ):
         UpdateSettings(objective="mean")
     with pytest.raises(ConfigError, match=r"^margin: must be a number in \[0, 1\], got 1.5$"):
