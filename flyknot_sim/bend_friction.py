@@ -74,18 +74,20 @@ of fabrics. A rope's M_0 = (HB / B) EI comes from its ``bend_hysteresis`` HB / B
 (``assets/ropes.toml``: 54 1/m for cotton, bracket 23-54 1/m from cotton-type fabrics, no
 published value for cords); ropes without it (latex, the chain) have no couple.
 
-Link friction (a chain; off by default). A link chain has no bending stiffness, but its links
-rub where they bear on each other: a joint that turns slides one link's wire over the next
-one's under the chain's tension T, and the friction force mu T acts at about the wire's radius
-r from the joint's axis, a couple mu T r against the turn. With a rope's
+Link friction (a chain: the lab's rope 6; none unless a rope sets ``link_friction_radius``).
+A link chain has no bending stiffness, but its links rub where they bear on each other: a
+joint that turns slides one link's wire over the next one's under the chain's tension T, and
+the friction force mu T acts at about the wire's radius r from the joint's axis, a couple
+mu T r against the turn. With a rope's
 ``link_friction_radius`` r > 0 the couple of joint k is
 
     M_0,k = M_0 + mu r T_k      (mu: the rope's ``friction``; ``RopeParams.link_friction_arm``)
 
 and everything above holds per joint (c_k = M_0,k / sqrt(|r_k|^2 + r_0^2); the end-of-step
 solve already treats the joints one by one, and a joint with M_0,k = 0 has c_k = 0). A
-segment spans about two links (a 5 mm chain's pitch is 18.5 mm); joints in series carry the
-same moment, so a segment's joint slips at the couple of one link joint, mu T r.
+segment spans about two links (a 5 mm short-link chain's pitch is 21 mm, a segment 37 mm);
+joints in series carry the same moment, so a segment's joint slips at the couple of one link
+joint, mu T r.
 
 The tension T_k is the one the simulation carries: the constraint forces MuJoCo solved at
 the previous step for the rope's edge-length equality (one row per edge; edge j's tension is
@@ -109,10 +111,10 @@ r for the lab's chain (rope 6, "3/8 inch chain", 0.514 kg/m, 20 mm wide): not it
 size, which names the wire (3/8" = 9.5 mm; a rule of thumb of anchor-chain makers puts a
 chain's weight at 10 d^2 lb/ft, d the wire in inches: 1.4 lb/ft = 2.1 kg/m at 3/8", four
 times rope 6's; the same rule gives rope 6 a 4.7 mm wire), but a 5 mm short-link chain: DIN
-766 5 x 18.5, 0.5 kg/m, outside width 17 mm (manufacturers' DIN 766 tables). r = 2.5 mm, mu
-r = 1.4e-3 m: M_0,k from 8.2e-3 N m at the top joint to 9.6e-4 N m at the last (T 5.8 to
-0.68 N hanging still). The lab's table leaves it at 0 (the chain modelled as before);
-``flyknot-tools rope-validate --set link_friction_radius=0.0025`` tries it.
+5685A 5 x 21, outside width 20 mm, 0.50 kg/m (manufacturers' DIN 5685A tables; DIN 766 5 x
+18.5, 17 mm wide, is the near alternative). r = 2.5 mm (``assets/ropes.toml``), mu r =
+1.4e-3 m: M_0,k from 8.2e-3 N m at the top joint to 9.6e-4 N m at the last (T 5.8 to 0.68 N
+hanging still).
 """
 
 from __future__ import annotations

@@ -397,8 +397,8 @@ ROPE_FIELDS = (
         "link_friction_radius", float, "m", NONNEGATIVE, "A link chain's wire radius r: the "
         "links rub where they bear on each other, so each joint's frictional couple gains "
         "friction * T * r, T the joint's tension (flyknot_sim.bend_friction); 0: none. The "
-        "lab's chain (rope 6) leaves it at 0; 0.0025 fits its 0.514 kg/m (a DIN 766 5 mm "
-        "short-link chain, 0.5 kg/m).", example=0.0025, default=0.0,
+        "lab's chain (rope 6) takes 0.0025: its 20 mm and 0.514 kg/m are a DIN 5685A 5 mm "
+        "short-link chain's.", example=0.0025, default=0.0,
     ),
 )  # fmt: skip
 """Every field of a rope, in the order of :class:`~flyknot_sim.rope_table.RopeParams`' fields

@@ -331,13 +331,14 @@ def test_joint_tensions_and_moments():
     np.testing.assert_array_equal(joint_moments(0.1, 0.0, edges, 5), np.full(4, 0.1))
 
 
-def test_every_rope_of_the_lab_is_without_link_friction():
-    """Off by default: the lab's ropes (the chain too) keep the couple they had."""
-    for rope in load_rope_table().values():
-        assert rope.link_friction_radius == 0.0 and rope.link_friction_arm == 0.0
-    assert replace(get_rope(6), link_friction_radius=0.0025).link_friction_arm == pytest.approx(
-        0.57 * 0.0025
-    )
+def test_the_chain_alone_of_the_lab_has_link_friction():
+    """Rope 6's links rub at half their 5 mm wire (DIN 5685A); the cords and the tube have no
+    links, and a rope file that says nothing gives none."""
+    for rope_id, rope in load_rope_table().items():
+        want = 0.0025 if rope_id == 6 else 0.0
+        assert rope.link_friction_radius == want
+    assert get_rope(6).link_friction_arm == pytest.approx(0.57 * 0.0025)
+    assert replace(get_rope(6), link_friction_radius=0.0).link_friction_arm == 0.0
 
 
 RADIUS = 0.0025
@@ -416,8 +417,9 @@ def test_before_any_solve_the_link_couple_reads_no_tension():
 
 
 def test_without_link_friction_the_tensions_are_not_read():
-    """The field at 0 (every lab rope): the applier reads no constraint force (scrambling
-    them changes nothing, to the bit), and the chain without M_0 is off (adds nothing)."""
+    """The field at 0 (every lab rope but the chain): the applier reads no constraint force
+    (scrambling them changes nothing, to the bit), and a chain without M_0 or link friction is
+    off (adds nothing)."""
     model, data, bound = _hanging_rope()
     bound.set_hanging(model, data, sway_angle=0.3, sway_rate=1.0)
     mujoco.mj_forward(model, data)
@@ -433,8 +435,9 @@ def test_without_link_friction_the_tensions_are_not_read():
     friction._has_prev = False
     friction.apply(data)
     assert np.array_equal(data.qfrc_applied, added)
-    _, data6, bound6 = _hanging_rope(get_rope(6))
-    chain = RopeBendFriction(bound6, get_rope(6).frictional_couple)
+    bare = replace(get_rope(6), link_friction_radius=0.0)
+    _, data6, bound6 = _hanging_rope(bare)
+    chain = RopeBendFriction(bound6, bare.frictional_couple)
     assert not chain.on
     data6.qfrc_applied[:] = 0.25
     chain.apply(data6)
