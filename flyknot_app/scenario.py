@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import itertools
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -229,6 +229,7 @@ def _coerce_override(value: str) -> Any:
 
 
 PAPER_SETTINGS = (
+    "objective=critical",
     "gain=1",
     "step=gain",
     "jacobian=model",
@@ -239,8 +240,9 @@ PAPER_SETTINGS = (
     "path_frac=0.05",
     "follow_through_s=0.035",
 )
-"""The paper's learner settings as ``--set`` overrides (``flyknot run --paper-settings``):
-ILC gain 1 with the fixed-gain step, the rope model's own Jacobian, the follow-through term,
+"""The paper's learner settings (``flyknot run --paper-settings``, laid over a scenario's
+defaults and under each run's own fields): the critical-point objective, ILC gain 1 with the
+fixed-gain step, the rope model's own Jacobian, the follow-through term,
 control weight 0.5, rope model bending stiffness 1e5 and damping 50, the
 demonstration window from 5 % of the hand path to t_c + 35 ms (Suresh & Atkeson; the
 scenario files' own values and why they differ: README "Learner settings")."""
@@ -265,11 +267,31 @@ def option_path(key: str) -> list[str]:
     return parts
 
 
-def parse_overrides(pairs: list[str] | None, *, paper_settings: bool = False) -> dict[str, Any]:
-    """``["max_trials=2", "rope_model.stiffness=1e3"]`` -> a nested dict of run options; with
-    ``paper_settings``, :data:`PAPER_SETTINGS` first (a later pair wins)."""
+UNDER_RUNS = "defaults"
+"""The key of an overrides dict whose options lie over a scenario's defaults and under each
+run's own fields (:func:`parse_overrides`)."""
+
+
+def parse_overrides(
+    pairs: list[str] | None, *, paper_settings: bool = False, defaults: Sequence[str] = ()
+) -> dict[str, Any]:
+    """``["max_trials=2", "rope_model.stiffness=1e3"]`` -> a nested dict of run options (a
+    later pair wins) that lies over every run.
+
+    ``defaults`` (and with ``paper_settings``, :data:`PAPER_SETTINGS` before them) go under
+    the key :data:`UNDER_RUNS`: they replace the scenario's defaults but not what a run sets
+    itself (the equal run's objective, a sensitivity run's rope model)."""
+    out = _parse_pairs(pairs or [])
+    under = [*(PAPER_SETTINGS if paper_settings else ()), *defaults]
+    if under:
+        out[UNDER_RUNS] = _parse_pairs(under)
+    return out
+
+
+def _parse_pairs(pairs: Sequence[str]) -> dict[str, Any]:
+    """``key=value`` pairs -> a nested dict of run options (and ``max_runs``)."""
     out: dict[str, Any] = {}
-    for p in [*(PAPER_SETTINGS if paper_settings else ()), *(pairs or [])]:
+    for p in pairs:
         if "=" not in p:
             raise ConfigError("--set", f"expected key=value, got {p!r}")
         key, value = (part.strip() for part in p.split("=", 1))
@@ -350,6 +372,7 @@ def parse_scenario(
     defaults = {**cell_defaults, **dict(doc.get("defaults", {}))}
     overrides = dict(overrides or {})
     max_runs = overrides.pop("max_runs", None)
+    under = overrides.pop(UNDER_RUNS, {})
     raw_runs: list[dict[str, Any]] = []
     if "grid" in doc:
         grid = dict(doc["grid"])
@@ -365,7 +388,7 @@ def parse_scenario(
         raw_runs.append(dict(entry))
     runs = []
     for i, entry in enumerate(raw_runs):
-        merged = merge_options({"name": f"run{i}"}, defaults, entry, overrides)
+        merged = merge_options({"name": f"run{i}"}, defaults, under, entry, overrides)
         runs.append(_make_run(merged, f"run[{i}]", ropes, kind, options))
     scen = Scenario(
         name=str(doc.get("name", name)),

@@ -94,7 +94,7 @@ def test_one_scenario_over_two_seeds_then_resumed(egl, tmp_path, capsys):
     text = (tmp_path / "results.md").read_text()
     assert text == (out / "results.md").read_text()
     assert (
-        "| rope1 | 1 | fast-paced | critical |" in text and "(2 seeds)" in text
+        "| rope1 | 1 | fast-paced | launch |" in text and "(2 seeds)" in text
     ) or "seeds tied" in text
     assert main(argv) == 2  # the runs are there: --resume or another --out
     assert "use --resume" in capsys.readouterr().err
@@ -114,8 +114,8 @@ def test_every_variant_stands_beside_under_its_label(tmp_path):
     text = paper_table(tmp_path, "flyknot paper")
     head = (
         "| from the robot demonstration (a command searched in this lab, not the paper's "
-        "protocol): trials | knots in repeats | the oracle learner (the lab's own Jacobian, a "
-        "measuring stick): trials | knots in repeats |"
+        "protocol): trials | knots in repeats | the oracle learner (the lab's own Jacobian on "
+        "the critical point, a measuring stick): trials | knots in repeats |"
     )
     assert head in text
     row = "| rope1 | 1 | robot | critical | 2.5 (2-3), 2 of 2 seeds tied | - | "
@@ -137,7 +137,7 @@ def test_a_variant_runs_with_its_options_into_its_directory(tmp_path, monkeypatc
     argv = ["paper", "--out", str(tmp_path), "--variant", "robot-demo", "--seeds", "0"]
     assert main([*argv, "--scenarios", "03-ropes", "05-demos", "--set", "max_trials=3"]) == 0
     assert seen["where"] == tmp_path / "robot-demo"
-    assert seen["overrides"] == {"demo": "robot", "max_trials": 3}
+    assert seen["overrides"] == {"max_trials": 3, "defaults": {"demo": "robot"}}
     assert seen["scenarios"] == ["03-ropes"]  # 05-demos names its own demonstrations
 
 

@@ -328,8 +328,27 @@ def test_paper_settings_set_the_papers_learner(tmp_path, monkeypatch):
     argv = ["run", "learn-rope1", "--paper-settings", "--set", "gain=0.7"]
     assert cli.main([*argv, "--out", str(tmp_path / "r")]) == 0
     assert seen["overrides"]["gain"] == 0.7  # a later --set wins
-    assert seen["overrides"]["rope_model"] == {"stiffness": 1e5, "damping": 50}
+    under = seen["overrides"]["defaults"]
+    assert under["rope_model"] == {"stiffness": 1e5, "damping": 50}
+    assert under["objective"] == "critical"
     assert seen["scen"].runs[0].follow_through_s == 0.035
+    assert seen["scen"].runs[0].learner.gain == 0.7
+
+
+def test_paper_settings_lie_under_each_runs_own_fields():
+    """The paper's settings replace a scenario's defaults, not what its runs compare: the
+    equal run keeps its objective, each sensitivity run its rope model; a --set wins over all."""
+    objectives = load_scenario("02-objectives", parse_overrides(None, paper_settings=True))
+    assert [r.learner.update.objective for r in objectives.runs] == ["critical", "equal", "launch"]
+    sens = load_scenario("07-sensitivity", parse_overrides(None, paper_settings=True))
+    models = [(r.learner.rope_model.stiffness, r.learner.rope_model.end_mass) for r in sens.runs]
+    assert models == [(1e5, 5.0), (1e4, 5.0), (1e3, 5.0), (1e2, 5.0), (1e5, 0.05), (1e5, 0.005)]
+    assert {r.learner.rope_model.damping for r in sens.runs} == {50.0}
+    assert {r.learner.update.jacobian for r in sens.runs} == {"model"}
+    top = parse_overrides(["objective=equal"], paper_settings=True)
+    assert {r.learner.update.objective for r in load_scenario("02-objectives", top).runs} == {
+        "equal"
+    }
 
 
 @pytest.mark.parametrize("name", sorted(p.stem for p in SCENARIOS_DIR.glob("*.toml")))

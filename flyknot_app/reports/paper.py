@@ -41,7 +41,8 @@ class Variant:
 
     Attributes:
         name: ``flyknot paper --variant NAME`` and the directory under ``OUT``.
-        overrides: ``--set`` pairs applied before the user's.
+        overrides: ``--set`` pairs laid over the scenarios' defaults, under each run's own
+            fields and the user's ``--set``.
         label: The column heads' prefix in the table.
         skips: Scenarios the variant does not apply to (run without it or not at all).
     """
@@ -65,8 +66,8 @@ VARIANTS: dict[str, Variant] = {
         ),
         Variant(
             "oracle",
-            ("jacobian=oracle",),
-            "the oracle learner (the lab's own Jacobian, a measuring stick)",
+            ("jacobian=oracle", "objective=critical"),
+            "the oracle learner (the lab's own Jacobian on the critical point, a measuring stick)",
             skips=("01-tracking", "02-objectives", "07-sensitivity"),  # no update / no model
         ),
     )
@@ -430,7 +431,7 @@ def _cmd_paper(args: argparse.Namespace) -> int:
     seeds = parse_seeds(args.seeds)
     name = "paper-settings" if args.paper_settings else args.variant
     variant = None if name is None else variant_kind(name)
-    overrides = parse_overrides([*(variant.overrides if variant else ()), *(args.set or [])])
+    overrides = parse_overrides(args.set, defaults=variant.overrides if variant else ())
     out = Path(args.out)
     where = out / variant.name if variant else out
     scenarios = [n for n in args.scenarios if variant is None or n not in variant.skips]

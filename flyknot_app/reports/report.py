@@ -18,6 +18,7 @@ from flyknot.verdict import KNOT
 from flyknot_app.anatomy.report import report_section
 from flyknot_app.judging import report_section as verdict_section
 from flyknot_app.reports.run_summary import RunSummary, ScenarioSummary
+from flyknot_app.scenario import UNDER_RUNS
 
 # The paper's results (Suresh & Atkeson), quoted per scenario kind.
 PAPER = {
@@ -258,8 +259,12 @@ def settings_lines(out_dir: Path) -> list[str]:
     if not path.is_file():
         return []
     manifest = json.loads(path.read_text())
-    over = manifest.get("overrides") or {}
+    over = dict(manifest.get("overrides") or {})
+    under = over.pop(UNDER_RUNS, {})
     text = ", ".join(f"`{k}={json.dumps(v)}`" for k, v in sorted(over.items())) or "none"
+    if under:
+        pairs = ", ".join(f"`{k}={json.dumps(v)}`" for k, v in sorted(under.items()))
+        text += f"; under each run's own fields: {pairs}"
     runs = manifest.get("runs") or []
     runs = list(runs.values()) if isinstance(runs, dict) else runs
     cells = sorted({str(r.get("cell", "sim")) for r in runs if isinstance(r, dict)}) or ["sim"]
