@@ -262,6 +262,15 @@ def min_rotation(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.eye(3) + wx + wx @ wx / (1 + c)
 
 
+def turning_angles(x: np.ndarray) -> np.ndarray:
+    """The turning angle [rad] at each interior vertex 1..n-1 of a polyline x (n + 1, 3):
+    the angle between segment k - 1 and segment k, in [0, pi]; shape (n - 1,)."""
+    e = np.diff(np.asarray(x, dtype=float), axis=0)
+    cross = np.linalg.norm(np.cross(e[:-1], e[1:]), axis=1)
+    dot = np.einsum("ij,ij->i", e[:-1], e[1:])
+    return np.arctan2(cross, dot)
+
+
 __all__ = [
     "as_mat3",
     "as_vec3",
@@ -275,4 +284,5 @@ __all__ = [
     "skew",
     "so3_exp",
     "so3_log",
+    "turning_angles",
 ]

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from flyknot.errors import CommandError, ConfigError
+from flyknot.geometry import turning_angles
 from flyknot.record import JointCommand
 from flyknot_app.scenario import parse_rope_arg
 
@@ -167,6 +168,17 @@ def read_npz(path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray]:
             raise CommandError(f"command file {str(path)!r}: unreadable arrays ({e})") from None
 
 
+def rest_shape(record) -> dict[str, float]:
+    """The rope's shape at the end of a trial (the simulator's centreline, its last frame):
+    the median and largest turning angle between consecutive segments [deg], the joint at the
+    held end left out (its first segment lies between the two held vertices); {} without it."""
+    line = record.truth.get("centreline") if record.truth else None
+    if line is None or len(line) == 0:
+        return {}
+    turn = np.degrees(turning_angles(line[-1]))[1:]
+    return {"rest_median_turn_deg": float(np.median(turn)), "rest_max_turn_deg": float(turn.max())}
+
+
 def _cmd_trial(args: argparse.Namespace) -> int:
     from flyknot_sim.lab import LabParams, SimLab
 
@@ -190,6 +202,7 @@ def _cmd_trial(args: argparse.Namespace) -> int:
                 "knot": record.knot,
                 "verdict": None if record.verdict is None else record.verdict.to_json(),
                 "first_contact_time": record.first_contact_time,
+                **rest_shape(record),
                 "record": str(path),
             }
         )

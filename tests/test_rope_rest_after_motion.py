@@ -12,6 +12,7 @@ import pytest
 
 from flyknot.constants import ROPE_TABLE
 from flyknot.errors import ConfigError
+from flyknot.geometry import turning_angles
 from flyknot_sim.rope_table import get_rope
 from flyknot_tools.cli import main as tools_main
 from flyknot_tools.rope_validate.cases import CASES
@@ -25,7 +26,6 @@ from flyknot_tools.rope_validate.rest_after_motion import (
     rest_after_motion,
     shape_offset,
     turned_to_swing,
-    turning_angles,
 )
 from flyknot_tools.rope_validate.suite import CASE_NAMES, SUITES, model_with, picture_path
 

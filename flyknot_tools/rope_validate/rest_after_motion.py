@@ -2,7 +2,8 @@
 the rope's shape is compared with the shape it takes when lowered gently.
 
 The case (:func:`rest_after_motion`) and its measures, each a pure function of vertices:
-:func:`turning_angles` (the angle between consecutive segments), :func:`couple_hold_angles`
+:func:`flyknot.geometry.turning_angles` (the angle between consecutive segments),
+:func:`couple_hold_angles`
 (the largest zig-zag a rope's frictional bending couple holds still under the hanging
 tension), :func:`kinks` (the turning angles beyond the gently lowered shape and that hold) and
 :func:`shape_offset` (the distance to the gently lowered shape with the swing turned out). The
@@ -21,7 +22,7 @@ import mujoco
 import numpy as np
 
 from flyknot.errors import check_positive
-from flyknot.geometry import min_rotation
+from flyknot.geometry import min_rotation, turning_angles
 from flyknot.rest import RestCriterion
 from flyknot.verdict import UNKNOTTED, judge_centreline
 from flyknot_sim.bend_friction import joint_moments
@@ -43,7 +44,6 @@ __all__ = [
     "rest_after_motion",
     "shape_offset",
     "turned_to_swing",
-    "turning_angles",
 ]
 
 KINK_DEG = 5.0
@@ -128,15 +128,6 @@ class Throw:
 # ----------------------------------------------------------------------------------------
 # measures
 # ----------------------------------------------------------------------------------------
-def turning_angles(x: np.ndarray) -> np.ndarray:
-    """The turning angle [rad] at each interior vertex 1..n-1 of a polyline x (n + 1, 3):
-    the angle between segment k - 1 and segment k, in [0, pi]; shape (n - 1,)."""
-    e = np.diff(np.asarray(x, dtype=float), axis=0)
-    cross = np.linalg.norm(np.cross(e[:-1], e[1:]), axis=1)
-    dot = np.einsum("ij,ij->i", e[:-1], e[1:])
-    return np.arctan2(cross, dot)
-
-
 def hanging_tensions(p: RopeParams) -> np.ndarray:
     """Tension [N] of the rope hanging at rest in the segment below each interior vertex
     k = 1..n-1: the weight of the vertices below it, T_k = g (m_end + rho l (n - k - 1/2))
