@@ -32,6 +32,7 @@ handles that read and write a built rope's state are in :mod:`flyknot_sim.rope_h
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 
 import mujoco
@@ -232,6 +233,7 @@ def add_rope(
 
     vbodies = tuple(f"{flex_name}_{k}" for k in range(n + 1))
     end_geom = _add_masses(spec, params, settings, vbodies, prefix)
+    _add_lock_up(spec, params, vbodies, prefix)
     holds = (pos + c * ax, pos + (c + seg) * ax)
     sites, eqs = _add_holds(spec, body, holds, vbodies, prefix, settings)
     edge_eq = f"{prefix}_edges"
@@ -315,6 +317,31 @@ def _add_masses(
         rgba=[0.3, 0.3, 0.32, 1.0],
     )
     return end_geom
+
+
+def lock_chord(params: RopeParams) -> float:
+    """The shortest chord between vertices k - 1 and k + 1 [m] that the rope's lock-up angle
+    theta allows: two segments of length l turned by theta span c = 2 l cos(theta / 2)."""
+    return 2.0 * params.segment_length * math.cos(math.radians(params.lock_angle) / 2.0)
+
+
+def _add_lock_up(
+    spec: mujoco.MjSpec, params: RopeParams, vbodies: Sequence[str], prefix: str
+) -> None:
+    """A link chain's lock-up (``params.lock_angle`` > 0): at every interior vertex k a spatial
+    tendon from vertex k - 1 to k + 1 limited below at :func:`lock_chord`, so the solver holds
+    the turn between the two segments at or under the angle at which real links jam (a
+    one-sided constraint, active only at the limit)."""
+    if params.lock_angle <= 0.0:
+        return
+    for k, name in enumerate(vbodies):
+        spec.body(name).add_site(name=f"{prefix}_lock_site{k}", group=5)
+    for k in range(1, len(vbodies) - 1):
+        t = spec.add_tendon(name=f"{prefix}_lock{k}")
+        t.limited = mujoco.mjtLimited.mjLIMITED_TRUE
+        t.range = [lock_chord(params), 2.0 * params.segment_length + 1.0]
+        t.wrap_site(f"{prefix}_lock_site{k - 1}")
+        t.wrap_site(f"{prefix}_lock_site{k + 1}")
 
 
 def _add_holds(

@@ -400,6 +400,15 @@ ROPE_FIELDS = (
         "lab's chain (rope 6) takes 0.0025: its 20 mm and 0.514 kg/m are a DIN 5685A 5 mm "
         "short-link chain's.", example=0.0025, default=0.0,
     ),
+    RopeField(
+        "lock_angle", float, "deg",
+        Range(0.0, 180.0, low_in=True, why="at 180 a segment folds back onto the last"),
+        "A link chain's lock-up: the largest turning angle between two consecutive "
+        "segments, held by a limit on the chord of the two (flyknot_sim.rope); 0: none. For "
+        "the lab's 30 segments of rope 6, 140.7 (DIN 5685A 5 mm links, assets/ropes.toml).",
+        example=140.7,
+        default=0.0,
+    ),
 )  # fmt: skip
 """Every field of a rope, in the order of :class:`~flyknot_sim.rope_table.RopeParams`' fields
 (those with a default last)."""

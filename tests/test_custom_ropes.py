@@ -150,6 +150,16 @@ def test_paper_ropes_unchanged_and_named():
         ),
         (_one(end_weight=-1), "rope[0].end_weight: must be a finite number >= 0, got -1"),
         (_one(cd=0), "rope[0].cd: must be a finite number > 0, got 0"),
+        (
+            _one(lock_angle=-1),
+            "rope[0].lock_angle: must lie in [0, 180) deg (at 180 a segment folds back onto "
+            "the last), got -1",
+        ),
+        (
+            _one(lock_angle="steep"),
+            "rope[0].lock_angle: must lie in [0, 180) deg (at 180 a segment folds back onto "
+            "the last), got 'steep'",
+        ),
         (_one(segments=2.5), "rope[0].segments: must be an integer, got 2.5"),
         (
             _one(segments=200),

@@ -3,6 +3,7 @@ the lab's ropes, each shown to fail on a rope model that lacks the behaviour."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -174,7 +175,7 @@ def test_cli_runs_the_quick_suite_and_reports_json(capsys):
     assert all(r["rope"] == 6 and r["source"] and r["expected"] for r in rows)
     assert code == (0 if all(r["passed"] for r in rows if r["applies"]) else 1)
     quick = [name for name, _ in SUITES["quick"](_rope(6))]
-    assert sorted(set(quick)) == sorted([*fast, "knot_hold", "rest_after_motion"])
+    assert sorted(set(quick)) == sorted([*fast, "knot_hold", "rest_after_motion", "lock_up"])
     assert quick.count("knot_hold") == 2
 
 
@@ -198,3 +199,35 @@ def test_cli_bad_input_is_one_line_and_exit_2(capsys, tmp_path):
     assert err == (
         "flyknot-tools: error: rope[0].bend_hysteresis: must be a finite number >= 0, got 'soft'\n"
     )
+
+
+# ------------------------------------------------------------------------------------ lock-up
+
+
+def test_the_lock_chord_is_two_segments_turned_by_the_lock_angle():
+    from flyknot_sim.rope import lock_chord
+
+    p = get_rope(6)
+    assert p.lock_angle == 140.7
+    half = math.radians(p.lock_angle) / 2
+    assert lock_chord(p) == pytest.approx(2 * p.segment_length * math.cos(half), rel=1e-12)
+    straight = dataclasses.replace(p, lock_angle=0.0)
+    assert lock_chord(straight) == pytest.approx(2 * p.segment_length)
+
+
+def test_the_chain_never_turns_past_its_lock_up_and_would_without_it(monkeypatch):
+    """The flying-knot throw bends the chain's free end to 145 deg between two segments
+    without the chord limits; with them it stays within a degree of the links' 140.7."""
+    from flyknot_sim import rope as rope_module
+    from flyknot_tools.rope_validate.lock_up import LOCK_TOL_DEG, lock_up
+
+    held = lock_up(_rope(6))
+    assert held.applies and held.passed
+    worst = max(held.measured["max_turn_throw_deg"], held.measured["max_turn_wait_deg"])
+    assert 130.0 < worst <= 140.7 + LOCK_TOL_DEG
+    cord = lock_up(_rope(1))  # no links: reported only
+    assert not cord.applies and cord.measured["lock_angle_deg"] == 0.0
+    monkeypatch.setattr(rope_module, "_add_lock_up", lambda *a, **k: None)
+    free = lock_up(_rope(6))
+    assert free.applies and not free.passed
+    assert free.measured["max_turn_wait_deg"] > 140.7 + LOCK_TOL_DEG

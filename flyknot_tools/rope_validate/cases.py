@@ -24,6 +24,7 @@ from flyknot_tools.rope_study.crossings import resample_equal_chords
 from flyknot_tools.rope_validate.bench import Bench, RopeModel
 from flyknot_tools.rope_validate.common import DOWN, HOME, UP, CaseResult, G, hung, result
 from flyknot_tools.rope_validate.knots import Swing, knot_hold, static_hold
+from flyknot_tools.rope_validate.lock_up import lock_up
 from flyknot_tools.rope_validate.rest_after_motion import Throw, rest_after_motion
 
 __all__ = [
@@ -36,6 +37,7 @@ __all__ = [
     "catenary_sag",
     "drag_decay_theory",
     "knot_hold",
+    "lock_up",
     "loop_spring_back",
     "peirce_bending_length",
     "rest_after_motion",
@@ -440,5 +442,6 @@ CASES = {
     "swing_decay": swing_decay,
     "rest_shape": rest_shape,
     "rest_after_motion": rest_after_motion,
+    "lock_up": lock_up,
 }
 """The cases by name (each ``f(rope: RopeModel, ...) -> CaseResult``)."""

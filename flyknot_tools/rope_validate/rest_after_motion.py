@@ -39,6 +39,7 @@ __all__ = [
     "couple_hold_angles",
     "draw_rest_after_motion",
     "gently_lowered",
+    "hanging_at_home",
     "hanging_tensions",
     "kinks",
     "rest_after_motion",
@@ -233,7 +234,7 @@ class _Wait:
         return float(np.max(np.asarray(self.end_speed)[t >= t[-1] - seconds + 1e-9]))
 
 
-def _hanging(p: RopeParams) -> np.ndarray:
+def hanging_at_home(p: RopeParams) -> np.ndarray:
     """The rope hanging straight down from the holder at :data:`HOME`."""
     x0 = HOME + DOWN * p.clearance
     return hanging_vertices(x0, x0 + DOWN * p.segment_length, DOWN, p.segments)
@@ -244,7 +245,7 @@ def gently_lowered(rope: RopeModel, hold: np.ndarray, seconds: float) -> np.ndar
     targets ``hold`` (6,): the held segment where the hold puts it, the rest started straight
     down from it at rest, settled for ``seconds``."""
     p = rope.params
-    b = hung(rope, _hanging(p))
+    b = hung(rope, hanging_at_home(p))
     m, d = b.model, b.data
     for name, q in zip(HOLDER_JOINTS, hold, strict=True):
         d.qpos[m.joint(name).qposadr[0]] = q
@@ -298,7 +299,7 @@ def rest_after_motion(
     (:func:`draw_rest_after_motion`); None: none.
     """
     p = rope.params
-    b = hung(rope, _hanging(p))
+    b = hung(rope, hanging_at_home(p))
     path = throw.path(b.dt)
     b.run(throw.duration, path)
     wait = _Wait()

@@ -19,6 +19,7 @@ from flyknot_tools.rope_validate.cases import (
     cantilever,
     capstan,
     knot_hold,
+    lock_up,
     loop_spring_back,
     rest_after_motion,
     rest_shape,
@@ -61,6 +62,7 @@ def _full(
         ("capstan", lambda: capstan(m)),
         ("static_hold", lambda: static_hold(m, seconds=60.0)),
         ("rest_after_motion", lambda: rest_after_motion(m, picture=rest)),
+        ("lock_up", lambda: lock_up(m)),
     ]
     for t in FULL_TAILS:
         for s in FULL_SWINGS:
@@ -81,6 +83,7 @@ def _quick(
         ("knot_hold", lambda: knot_hold(m, 0.1, Swing(0.3, 0.5))),
         ("knot_hold", lambda: knot_hold(m, 0.1, Swing(0.15, 0.7))),
         ("rest_after_motion", lambda: rest_after_motion(m, picture=rest)),
+        ("lock_up", lambda: lock_up(m)),
     ]
 
 
@@ -100,6 +103,7 @@ CASE_NAMES = (
     "swing_decay",
     "rest_shape",
     "rest_after_motion",
+    "lock_up",
 )
 
 
