@@ -48,12 +48,21 @@ def test_bench_sim_json_shape(capsys):
     assert main(["bench", "sim", "--json", "--ropes", "6"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert list(out) == ["ropes"] and out["ropes"][0]["rope"] == 6
-    for lab in ("before", "elastic", "pyramidal", "numpy", "now"):
+    for lab in ("before", "elastic", "pyramidal", "numpy", "no_links", "now"):
         row = out["ropes"][0][lab]
         assert row["realtime_factor"] == pytest.approx(1 / row["wall_per_sim_s"])
         assert row["sim_s_per_trial"] > 0.8  # the swing itself lasts 0.8 s
     rope = out["ropes"][0]  # the same trial with either drag: the same simulated time
     assert rope["numpy"]["sim_s_per_trial"] == rope["now"]["sim_s_per_trial"]
+
+
+def test_bench_sim_times_the_chain_without_its_links_too():
+    from flyknot_app.bench.sim import _lab_variants
+
+    chain, _ = _lab_variants(6)
+    bare = chain["no_links"]["rope"]
+    assert (bare.id, bare.link_friction_radius, bare.lock_angle) == (6, 0.0, 0.0)
+    assert "no_links" not in _lab_variants(1)[0]  # a cord has no links
 
 
 def test_bench_rejects_unknown_rope(capsys):

@@ -21,8 +21,9 @@ def elastic_rope(rope_id: int):
     return load_rope_table(path)[rope_id], load_sim_settings(path)
 
 
-LABS = ("before", "elastic", "pyramidal", "numpy", "now")
-"""The labs ``flyknot bench sim`` times, in its order (:func:`_lab_variants`)."""
+LABS = ("before", "elastic", "pyramidal", "numpy", "no_links", "now")
+"""The labs ``flyknot bench sim`` times, in its order (:func:`_lab_variants`); ``no_links``
+only for a rope with links (a chain's link friction or lock-up)."""
 
 
 def _lab_variants(rope_id: int):
@@ -31,13 +32,14 @@ def _lab_variants(rope_id: int):
     ``pyramidal`` (the lab's defaults with MuJoCo's pyramidal friction cone instead of the
     elliptic one), ``numpy`` (the lab's defaults with the air drag and the self-contact scan
     computed by NumPy instead of the compiled kernels, :data:`flyknot_sim.aero.COMPILED` and
-    :data:`flyknot_sim.rope_handle.COMPILED`: the same trials) and ``now`` (the lab's
+    :data:`flyknot_sim.rope_handle.COMPILED`: the same trials), for a chain ``no_links``
+    (the lab's defaults without the links' friction and lock-up) and ``now`` (the lab's
     defaults)."""
     from dataclasses import replace
 
     from flyknot_sim.aero import AeroParams
     from flyknot_sim.lab import LabParams, VariationParams
-    from flyknot_sim.rope_table import load_sim_settings
+    from flyknot_sim.rope_table import get_rope, load_sim_settings
 
     rope, settings = elastic_rope(rope_id)
     before = {
@@ -56,7 +58,11 @@ def _lab_variants(rope_id: int):
         "numpy": {"rope": rope_id},
         "now": {"rope": rope_id},
     }
-    return {name: variants[name] for name in LABS}, LabParams
+    lab_rope = get_rope(rope_id)
+    if lab_rope.link_friction_radius > 0 or lab_rope.lock_angle > 0:
+        bare = replace(lab_rope, link_friction_radius=0.0, lock_angle=0.0)
+        variants["no_links"] = {"rope": bare}
+    return {name: variants[name] for name in LABS if name in variants}, LabParams
 
 
 def bench_sim(ropes: Sequence[int] | None = None, repeats: int = 1, progress: bool = True) -> dict:
@@ -214,13 +220,13 @@ def main(
                 f"{'sim s / trial':>14}"
             )
             for row in res["ropes"]:
-                for name in LABS:
+                for name in (n for n in LABS if n in row):
                     v = row[name]
                     print(
                         f"{row['rope']:>4} {name:>9} {v['wall_per_sim_s']:>15.3f} "
                         f"{v['realtime_factor']:>12.1f} {v['sim_s_per_trial']:>14.2f}"
                     )
-                for base in ("elastic", "pyramidal", "numpy"):
+                for base in (b for b in ("elastic", "pyramidal", "numpy", "no_links") if b in row):
                     ratio = row["now"]["wall_per_sim_s"] / row[base]["wall_per_sim_s"]
                     print(f"{row['rope']:>4} now / {base}, wall s per sim s: {ratio:.2f}")
         return 0
