@@ -59,7 +59,8 @@ def test_step_options_are_checked():
 def _damped_run(arm, target, start, monkeypatch, run_dir, trials, resume=False, cell=None):
     cell = cell or DisturbedCell(arm, target, bad=2)
     _spy(cell, monkeypatch)
-    params = ILCParams(max_trials=trials, rope_model=ROPE, step="damped", gain=1.0)
+    damping = DampingParams(start=1.0)  # the mechanics at round numbers, not the default
+    params = ILCParams(max_trials=trials, rope_model=ROPE, step="damped", gain=1.0, damping=damping)
     res = learn(cell, target, start, arm, params, run_dir=run_dir, resume=resume)
     return cell, res
 

@@ -19,6 +19,7 @@ from learner.ilc_params import PlateauParams
 from learner.ilc_step import Context, LoopState
 from learner.kinematics import RobotModel
 from learner.run_directory import RunDirectory, TrialSummary
+from learner.steps import DampingParams
 from learner.stops import STOP, STOPS, Ruling, StopRule, StopRules, stop_rule
 from tests.knot_curves import judged
 from tests.test_ilc import ROPE, ModelCell, model_problem
@@ -251,7 +252,7 @@ def test_the_registry_is_the_order_the_loop_asks():
     rules = StopRules(ILCParams())
     assert [r.name for r in rules.rules] == list(STOPS)
     assert rules.w_control() is None
-    assert StopRules(ILCParams(step="damped")).w_control() == 1.0
+    assert StopRules(ILCParams(step="damped")).w_control() == DampingParams().start
 
 
 class StopAtCost(StopRule):
