@@ -14,6 +14,7 @@ texts are ``ControllerErrorCodeMap`` / ``ControllerWarnCodeMap`` in
 from __future__ import annotations
 
 import math
+import os
 from typing import Any
 
 import numpy as np
@@ -39,7 +40,20 @@ CONNECTION_LOST_CODES = (-1, 3, 8)
 """SDK return codes meaning no reply: NOT_CONNECTED, ERR_TOUT (timeout), ERR_NOTTCP (send)."""
 
 
+SDK_LOG_DIR = os.path.join(os.path.expanduser("~"), ".UFACTORY", "log", "xarm", "sdk")
+"""Where the SDK logs (``xarm/core/utils/log.py``). Its import creates the directory after an
+``exists`` check, without ``exist_ok``: two processes importing it at once on a machine that
+has none (pytest's workers, two commands started together) race, and the loser raises
+``FileExistsError``."""
+
+
+def prepare_sdk_log_dir() -> None:
+    """Create the SDK's log directory before the SDK's import does, safely in parallel."""
+    os.makedirs(SDK_LOG_DIR, exist_ok=True)
+
+
 def _sdk():
+    prepare_sdk_log_dir()
     try:
         import xarm  # noqa: F401
         from xarm.wrapper import XArmAPI

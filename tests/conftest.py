@@ -7,11 +7,15 @@ import os
 import pytest
 from hypothesis import settings
 
+from flyknot_hw.xarm_sdk import prepare_sdk_log_dir
 from tests.system_needs import chromium_missing, compiler_missing, egl_missing, require
 
 # Ray takes this machine's network address for a local instance on Linux unless told it is
 # not a cluster node; the tests reach only loopback (tests/test_sweeps.py checks it).
 os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
+
+# The hardware tests import the xArm SDK while collecting, in every xdist worker at once.
+prepare_sdk_log_dir()
 
 settings.register_profile("flyknot", derandomize=True, deadline=None)
 settings.load_profile("flyknot")

@@ -542,3 +542,17 @@ def test_a_trial_without_its_recording_keeps_its_joints(make_fake, cells, tmp_pa
     assert rec.fault is None and np.all(np.isfinite(rec.q_meas)) and rec.knot == "trefoil"
     assert rec.t_marker.shape == (0,) and rec.markers.shape == (0, 11, 3)
     assert rec.metadata["mocap"]["error"].startswith("no recording: no finished recording")
+
+
+def test_parallel_first_imports_of_the_sdk_do_not_race(tmp_path):
+    """On a machine without the SDK's log directory, eight processes importing it at once all
+    succeed (the SDK alone creates it without exist_ok: a FileExistsError in the losers)."""
+    code = "from flyknot_hw.xarm_sdk import sdk_version; print(sdk_version())"
+    env = {**os.environ, "HOME": str(tmp_path)}
+    procs = [
+        subprocess.Popen([sys.executable, "-c", code], env=env, stderr=subprocess.PIPE, text=True)
+        for _ in range(8)
+    ]
+    errors = [p.communicate()[1] for p in procs if p.wait() != 0]
+    assert errors == []
+    assert (tmp_path / ".UFACTORY" / "log" / "xarm" / "sdk").is_dir()
