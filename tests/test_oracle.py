@@ -144,15 +144,15 @@ def test_oracle_predicts_the_lab_s_own_response():
 
 @pytest.mark.slow
 def test_an_oracle_run_updates_with_the_lab_s_jacobian(egl, tmp_path):
-    """`flyknot run quick --set jacobian=oracle`: the first update is the QP solved with the
-    oracle's Jacobian about the initial command, bit for bit (the oracle plays without
-    variation, so measuring it again gives the same matrix). Both sides run in fresh
-    processes, as a run does."""
+    """`flyknot run quick --set jacobian=oracle --set objective=critical`: the first update is
+    the QP solved with the oracle's Jacobian about the initial command, bit for bit (the
+    oracle plays without variation, so measuring it again gives the same matrix). Both sides
+    run in fresh processes, as a run does."""
     out = tmp_path / "run"
     proc = subprocess.run(
         [sys.executable, "-m", "flyknot_app", "run", "quick", "--set", "jacobian=oracle",
-         "--set", "max_trials=1", "--set", "step=gain", "--set", "gain=0.5",
-         "--set", "weights.w_control=5", "--out", str(out)],
+         "--set", "objective=critical", "--set", "max_trials=1", "--set", "step=gain",
+         "--set", "gain=0.5", "--set", "weights.w_control=5", "--out", str(out)],
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
