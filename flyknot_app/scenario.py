@@ -215,6 +215,13 @@ class Scenario:
 
 
 def _coerce_override(value: str) -> Any:
+    """A ``--set`` value as a scenario file would give it: a number, a boolean, none, a TOML
+    array or inline table (``confirm=[3,4]``), else the string itself."""
+    if value.startswith(("[", "{")):
+        try:
+            return tomllib.loads(f"v = {value}")["v"]
+        except tomllib.TOMLDecodeError:
+            return value
     for cast in (int, float):
         try:
             return cast(value)

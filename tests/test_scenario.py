@@ -292,6 +292,13 @@ def test_wilson_interval_known_values():
 def test_confirm_field_from_toml_and_command_line():
     scen = load_scenario("learn-rope1", parse_overrides(["confirm=19/20", "step=gain"]))
     assert scen.runs[0].learner.confirm == (19, 20)
+    scen = load_scenario("learn-rope1", parse_overrides(["confirm=[7, 8]"]))  # as the file
+    assert scen.runs[0].learner.confirm == (7, 8)
+    with pytest.raises(ConfigError) as e:  # not TOML: the string, named by the field
+        load_scenario("learn-rope1", parse_overrides(["confirm=[7,"]))
+    assert str(e.value) == "confirm: must be [k, n] (or k/n) with 1 <= k <= n, got '[7,'"
+    ov = parse_overrides(["rope_model={ stiffness = 3.0, damping = 1.0 }"])
+    assert load_scenario("quick", ov).runs[0].learner.rope_model.stiffness == 3.0
     from flyknot.options import from_mapping
     from flyknot_app.scenario import RunSpec
 
