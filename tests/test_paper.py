@@ -83,12 +83,12 @@ def test_bad_arguments_are_one_line(tmp_path, capsys, bad):
     assert capsys.readouterr().err.count("\n") == 1
 
 
-@pytest.mark.slow
 def _without_pictures(text: str) -> list[str]:
     """The table's lines: a knot's picture is linked from where each copy of the table lies."""
     return [line for line in text.splitlines() if "![" not in line]
 
 
+@pytest.mark.slow
 def test_one_scenario_over_two_seeds_then_resumed(egl, tmp_path, capsys):
     out = tmp_path / "p"
     argv = ["paper", "--seeds", "0-1", "--scenarios", "04-success-rate", "--out", str(out)]
