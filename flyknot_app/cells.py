@@ -142,7 +142,7 @@ class CellKind:
     open: Callable[[Any], Cell]
     description: str
     oracle: Callable[[Any, float], JacobianProvider] | None = None
-    """Measures the cell's own M(t_c) (``jacobian = "oracle"``), or None: it cannot."""
+    """Measures the cell's own M(t) (``jacobian = "oracle"``), or None: it cannot."""
 
     @property
     def fields(self) -> tuple[str, ...]:

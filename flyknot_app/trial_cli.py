@@ -69,7 +69,7 @@ def _npy_command(path: Path) -> JointCommand:
     """Joint targets (n, 7), or a run's knots (10, 8) with T from ``result.json`` beside."""
     q = read_npy(path)
     if q.shape == (10, 8):
-        return _bezier_command(path, q, _duration_beside(path))
+        return _bezier_command(path, q, duration_beside(path))
     try:
         return JointCommand(q)
     except CommandError as e:
@@ -95,7 +95,7 @@ def _bezier_command(path: Path, knots: np.ndarray, T: float) -> JointCommand:
         raise CommandError(f"command file {str(path)!r}: {e}") from None
 
 
-def _duration_beside(path: Path) -> float:
+def duration_beside(path: Path) -> float:
     """T [s] from the ``result.json`` beside a run's ``final_knots.npy``."""
     result = path.with_name("result.json")
     if not result.is_file():

@@ -299,7 +299,11 @@ def _add_demo_robot_rate_parser(dsub: argparse._SubParsersAction) -> None:
         help="from a tying robot command, search one that ties in most varied trials; save "
         "its nominal trial as a demo",
     )
-    rr_.add_argument("--start", required=True, help="start command (.npz with knots, T)")
+    rr_.add_argument(
+        "--start",
+        required=True,
+        help="start command (.npz with knots, T; or a run's final_knots.npy)",
+    )
     rr_.add_argument("--out", required=True, help="output file (.npz)")
     rr_.add_argument("--generations", type=int, default=24, help="CMA-ES generations (24)")
     rr_.add_argument("--popsize", type=int, default=8, help="candidates per generation (8)")

@@ -31,6 +31,7 @@ from learner.jacobians import (
 )
 from learner.kinematics import RobotModel
 from learner.limit_rows import sampled_violation
+from learner.objectives import objective_kind
 from learner.run_directory import TrialSummary
 from learner.stops import REPLAY, RETRY, STEP, StopRules, Trial
 from learner.target import DemoTarget
@@ -305,7 +306,11 @@ def assess(
             settings,
             extra_records=extra_records,
             jacobian=provided_jacobian(
-                params.update.jacobian, ctx.jacobian, command.knots, command.T
+                params.update.jacobian,
+                ctx.jacobian,
+                command.knots,
+                command.T,
+                objective_kind(settings.objective).fit_times(target),
             ),
             correct=correct,
         )

@@ -1,8 +1,9 @@
 """Where an update's Jacobian M(t_c) = dx(t_c)/dkappa comes from: a registry.
 
-The inverse-model QP (:mod:`learner.inverse_qp`) needs M(t_c) (66, 80): how the rope state
-at the critical point moves with the knots. Each entry of :data:`JACOBIANS` says where it
-comes from; a run names one with the update option ``jacobian``:
+The inverse-model QP (:mod:`learner.inverse_qp`) needs M(t) (66, 80) at each time t its
+objective fits (t_c, and the launch t_l for ``objective = "launch"``): how the rope state
+there moves with the knots. Each entry of :data:`JACOBIANS` says where it comes from; a run
+names one with the update option ``jacobian``:
 
 * ``"model"`` (the paper's): the learner's rope model linearised about the measured joints
   (:func:`learner.system_model.linearise`), computed inside :func:`learner.update.ilc_update`.
@@ -28,8 +29,9 @@ import numpy as np
 
 from flyknot.errors import ConfigError
 
-JacobianProvider = Callable[[np.ndarray, float], np.ndarray]
-"""``provider(knots (10, 8), T [s]) -> M(t_c) (66, 80)``: a Jacobian measured elsewhere."""
+JacobianProvider = Callable[[np.ndarray, float, tuple[float, ...]], dict[float, np.ndarray]]
+"""``provider(knots (10, 8), T [s], times (P,) [s]) -> {t: M(t) (66, 80)}``: Jacobians
+measured elsewhere, one per time."""
 
 
 @dataclass(frozen=True)
@@ -79,10 +81,15 @@ def jacobian_kind(name: object) -> JacobianKind:
 
 
 def provided_jacobian(
-    name: str, provider: JacobianProvider | None, knots: np.ndarray, T: float
-) -> np.ndarray | None:
-    """M(t_c) for ``knots`` from the source ``name``: None for the model (the update
-    linearises it), else the provider's measurement.
+    name: str,
+    provider: JacobianProvider | None,
+    knots: np.ndarray,
+    T: float,
+    times: tuple[float, ...],
+) -> dict[float, np.ndarray] | None:
+    """{t: M(t)} for ``knots`` at the objective's fitted ``times`` [s] from the source
+    ``name``: None for the model's sources (the update linearises it), else the provider's
+    measurement.
 
     Raises:
         ConfigError: The source needs a provider and the run has none.
@@ -94,7 +101,8 @@ def provided_jacobian(
         raise ConfigError(
             "jacobian", f"{name!r} needs a cell that can measure it ({kind.description})"
         )
-    return np.asarray(provider(np.asarray(knots, dtype=float), float(T)), dtype=float)
+    measured = provider(np.asarray(knots, dtype=float), float(T), tuple(times))
+    return {float(t): np.asarray(M, dtype=float) for t, M in measured.items()}
 
 
 class SecantCorrection:

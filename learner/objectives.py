@@ -126,6 +126,11 @@ class CriticalPoint:
         """The builder's critical-point term."""
         return {"M_crit": M_c, "err_crit": terms.err}
 
+    def fit_times(self, target: DemoTarget) -> tuple[float, ...]:
+        """The times [s] whose rope state the objective fits (a measured Jacobian is taken
+        there): (t_c,)."""
+        return (target.t_c,)
+
 
 @dataclass(frozen=True)
 class EqualWeights:
@@ -173,6 +178,12 @@ class EqualWeights:
     def qp_terms(self, terms: ErrorTerms, M_at: Callable[[int], np.ndarray], M_c) -> dict:
         """The builder's equally weighted terms, one per sample."""
         return {"equal": [(M_at(k), e) for k, e in terms.samples]}
+
+    def fit_times(self, target: DemoTarget) -> tuple[float, ...]:
+        """The pre-collision times [s] where the demonstration has markers (a trial fits
+        those of them where it has markers too)."""
+        usable = np.all(np.isfinite(target.x_pre), axis=1)
+        return tuple(float(t) for t in target.t[: len(target.x_pre)][usable])
 
 
 def launch_step(target: DemoTarget) -> int:
@@ -224,6 +235,10 @@ class CriticalAndLaunch(CriticalPoint):
             **super().qp_terms(terms, M_at, M_c),
             "points": [(M_at(k), e) for k, e in terms.samples],
         }
+
+    def fit_times(self, target: DemoTarget) -> tuple[float, ...]:
+        """(t_c, t_l) [s]: the critical point and the launch."""
+        return (target.t_c, float(target.t[launch_step(target)]))
 
 
 OBJECTIVES = {o.name: o for o in (CriticalPoint(), EqualWeights(), CriticalAndLaunch())}

@@ -283,6 +283,17 @@ def _check_inputs(
         )
 
 
+def _given_jacobians(
+    jacobian: Mapping[float, object], objective: str, dt: float, T: float
+) -> dict[int, np.ndarray]:
+    """Jacobians handed to :func:`ilc_update` as ``{t [s]: M(t)}``, by model step
+    k = floor(t / dt + 1/2), each checked by :func:`_given_jacobian`."""
+    if not isinstance(jacobian, Mapping):
+        kind = type(jacobian).__name__
+        raise ConfigError("jacobian", f"must map times [s] to (66, 80) arrays, got {kind}")
+    return {critical_step(t, dt, T): _given_jacobian(M, objective) for t, M in jacobian.items()}
+
+
 def _given_jacobian(jacobian: object, objective: str) -> np.ndarray:
     """A Jacobian handed to :func:`ilc_update`, checked: (66, 80), finite, an objective that
     takes one."""
@@ -376,7 +387,7 @@ def ilc_update(
     settings: UpdateSettings | None = None,
     *,
     extra_records: Sequence[TrialRecord] = (),
-    jacobian: np.ndarray | None = None,
+    jacobian: Mapping[float, np.ndarray] | None = None,
     correct: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> UpdateResult:
     """One ILC update: measured error -> linearised model -> inverse-model QP -> new knots.
@@ -401,11 +412,14 @@ def ilc_update(
         extra_records: Earlier plays of the same command: the critical-point error is the
             mean over ``record`` and those of them that kept tracking to t_c (the
             follow-through term uses ``record`` alone).
-        jacobian: M(t_c) = dx(t_c)/dkappa (66, 80) [m/unit, m/s/unit] to use in place of the
-            rope model's linearisation (:mod:`learner.jacobians`: a corrected model's, or an
-            oracle's taken in a simulated lab); critical objective only. None: the model's.
+        jacobian: ``{t [s]: M(t)}``, M(t) = dx(t)/dkappa (66, 80) [m/unit, m/s/unit] at
+            the objective's fitted times, used in place of the rope model's linearisation
+            there (:mod:`learner.jacobians`: an oracle's taken in a simulated lab); the
+            model's at any time it lacks (e.g. a fallback critical point). Objectives that
+            fit the critical point only. None: the model's everywhere.
         correct: ``correct(M_model (66, 80), err (66,)) -> M``, the model's M(t_c) corrected
-            (:class:`learner.jacobians.SecantCorrection`); critical objective only.
+            (:class:`learner.jacobians.SecantCorrection`) when ``jacobian`` does not give it;
+            objectives that fit the critical point only.
 
     Returns:
         The :class:`UpdateResult`.
@@ -434,9 +448,9 @@ def ilc_update(
 
     # 2-3. linearisation point and M (or the given Jacobian)
     steps = sorted({k_c, *(k for k, _ in samples)})
-    if jacobian is not None and steps == [k_c]:
-        M_c = _given_jacobian(jacobian, s.objective)
-        dX = [M_c]
+    given = {} if jacobian is None else _given_jacobians(jacobian, s.objective, demo_target.dt, T)
+    if all(k in given for k in steps):
+        dX = [given[k] for k in steps]
     else:
         with _timed(timings, "rollout"):
             ro = rollout_from_joints(
@@ -450,12 +464,10 @@ def ilc_update(
                 n_steps=max(1, steps[-1]),
             )
         with _timed(timings, "linearise"):
-            dX = linearise(ro, T, steps)
-        M_c = dX[steps.index(k_c)]
-        if jacobian is not None:  # given at t_c; the model's at the objective's other steps
-            M_c = dX[steps.index(k_c)] = _given_jacobian(jacobian, s.objective)
-        elif correct is not None:
-            M_c = _given_jacobian(correct(M_c, err), s.objective)
+            dX = [given.get(k, M) for k, M in zip(steps, linearise(ro, T, steps), strict=True)]
+    M_c = dX[steps.index(k_c)]
+    if correct is not None and k_c not in given:
+        M_c = _given_jacobian(correct(M_c, err), s.objective)
 
     # 4. follow-through
     follow = None

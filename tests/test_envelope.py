@@ -148,6 +148,27 @@ def test_arm_envelope_errors(tmp_path):
     assert str(e.value) == f"path: {str(bad)!r} needs arrays 'knots' and 'T'"
 
 
+def test_a_run_s_learned_command_is_a_command_file(tmp_path):
+    """A run's final_knots.npy with T from the result.json beside it (robot-rate --start)."""
+    from flyknot_tools.hand_demos.envelope import load_command_file
+
+    knots = np.arange(80.0).reshape(10, 8)
+    np.save(tmp_path / "final_knots.npy", knots)
+    with pytest.raises(ConfigError) as e:
+        load_command_file(tmp_path / "final_knots.npy", "--start")
+    assert str(e.value).startswith(
+        f"--start: command file {str(tmp_path / 'final_knots.npy')!r} holds Bezier knots "
+        "(10, 8): their duration T is read from result.json beside it, which is missing"
+    )
+    (tmp_path / "result.json").write_text('{"T": 1.044}')
+    got, T = load_command_file(tmp_path / "final_knots.npy", "--start")
+    assert T == 1.044 and np.array_equal(got, knots)
+    np.save(tmp_path / "final_knots.npy", np.zeros((7, 8)))
+    with pytest.raises(ConfigError) as e:
+        load_command_file(tmp_path / "final_knots.npy", "--start")
+    assert str(e.value).endswith("holds (7, 8), not Bezier knots (10, 8)")
+
+
 def test_hand_pace_is_the_slowest_shipped_hand_demonstration():
     from flyknot.constants import DEMOS_DIR
     from flyknot.demo import Demonstration

@@ -53,14 +53,34 @@ def test_oracle_of_a_linear_lab_is_exact_on_every_feasible_update(monkeypatch):
     A = rng.normal(size=(66, 80))
     oracle = LabJacobian.__new__(LabJacobian)
     oracle.params = FloorParams().oracle
-    oracle.plays = 0
-    monkeypatch.setattr(oracle, "state", lambda knots, T: A @ knots.ravel(), raising=False)
-    M = LabJacobian.__call__(oracle, rng.normal(size=(10, 8)), 1.0)
+    oracle.plays, oracle.t_c = 0, 0.8
+    monkeypatch.setattr(oracle, "state", lambda knots, T, times: A @ knots.ravel(), raising=False)
+    M = LabJacobian.__call__(oracle, rng.normal(size=(10, 8)), 1.0)[0.8]
     for _ in range(5):
         dk = feasible_update(rng)
         assert np.allclose(M @ dk.ravel(), A @ dk.ravel())
     # the columns of tied knots carry nothing of their own
     assert np.all(M[:, 1] == 0.0) and np.all(M[:, 7 * 8 + 1 : 7 * 8 + 8] == 0.0)
+
+
+def test_oracle_takes_every_fitted_time_from_the_same_plays(monkeypatch):
+    """x(kappa, t) = A_t vec(kappa) at two times: each M(t) is its own A_t, and the plays are
+    one nominal and two per knot group, as for t_c alone."""
+    rng = np.random.default_rng(4)
+    A = {0.5: rng.normal(size=(66, 80)), 0.8: rng.normal(size=(66, 80))}
+    oracle = LabJacobian.__new__(LabJacobian)
+    oracle.params, oracle.plays, oracle.t_c = FloorParams().oracle, 0, 0.8
+
+    def state(knots, T, times):
+        oracle.plays += 1
+        return np.concatenate([A[t] @ knots.ravel() for t in times])
+
+    monkeypatch.setattr(oracle, "state", state, raising=False)
+    M = LabJacobian.__call__(oracle, rng.normal(size=(10, 8)), 1.0, (0.8, 0.5))
+    assert list(M) == [0.8, 0.5] and oracle.plays == 1 + 2 * len(knot_groups())
+    for t in M:
+        dk = feasible_update(rng)
+        assert np.allclose(M[t] @ dk.ravel(), A[t] @ dk.ravel())
 
 
 def test_jacobian_registry_and_settings():
@@ -76,11 +96,17 @@ def test_jacobian_registry_and_settings():
     with pytest.raises(ConfigError) as e:
         UpdateSettings(jacobian="oracle", objective="equal")
     assert str(e.value) == "jacobian: 'oracle' is for the critical objective only"
-    assert provided_jacobian("model", None, np.zeros((10, 8)), 1.0) is None
+    assert provided_jacobian("model", None, np.zeros((10, 8)), 1.0, (0.5,)) is None
     with pytest.raises(ConfigError, match="needs a cell that can measure it"):
-        provided_jacobian("oracle", None, np.zeros((10, 8)), 1.0)
-    got = provided_jacobian("oracle", lambda k, T: np.full((66, 80), T), np.zeros((10, 8)), 2.0)
-    assert got.shape == (66, 80) and np.all(got == 2.0)
+        provided_jacobian("oracle", None, np.zeros((10, 8)), 1.0, (0.5,))
+    got = provided_jacobian(
+        "oracle",
+        lambda k, T, times: {t: np.full((66, 80), T + t) for t in times},
+        np.zeros((10, 8)),
+        2.0,
+        (0.5, 0.25),
+    )
+    assert list(got) == [0.5, 0.25] and np.all(got[0.5] == 2.5) and np.all(got[0.25] == 2.25)
 
 
 def test_oracle_refused_on_a_real_cell():
@@ -123,23 +149,27 @@ def test_floor_params_and_cost_parts():
 
 @pytest.mark.slow
 def test_oracle_predicts_the_lab_s_own_response():
-    """Finite-difference check of the oracle: M d against the lab's central difference along
-    a random feasible direction d (rope 1, the robot demonstration's initial command)."""
+    """Finite-difference check of the oracle: M(t) d against the lab's central difference
+    along a random feasible direction d at t_c and at the launch t_l (rope 1, the robot
+    demonstration's initial command)."""
     from flyknot_app.cells import SimCellSpec
     from flyknot_app.runner import prepare_target
+    from learner.objectives import objective_kind
     from learner.rope_model import RopeModelParams
 
     _, target = prepare_target("robot", RopeModelParams().dt, (0.25, 0.0))
     knots = np.load("assets/demos/seeds/robot_command.npz")["knots"]
     oracle = oracle_provider("sim", SimCellSpec(rope=1), target.t_c)
-    M = oracle(knots, target.T)
+    times = objective_kind("launch").fit_times(target)
+    M = oracle(knots, target.T, times)
     assert oracle.plays == 1 + 2 * len(knot_groups())
     d = 0.004 * feasible_update(np.random.default_rng(0))
-    xp, xm = oracle.state(knots + d, target.T), oracle.state(knots - d, target.T)
-    measured = (xp - xm) / 2
-    predicted = M @ d.ravel()
-    rel = np.linalg.norm(predicted[:33] - measured[:33]) / np.linalg.norm(measured[:33])
-    assert rel < 0.15, rel
+    xp, xm = oracle.state(knots + d, target.T, times), oracle.state(knots - d, target.T, times)
+    measured = ((xp - xm) / 2).reshape(len(times), 66)
+    for i, t in enumerate(times):
+        predicted = M[t] @ d.ravel()
+        rel = np.linalg.norm(predicted[:33] - measured[i, :33]) / np.linalg.norm(measured[i, :33])
+        assert rel < 0.15, (t, rel)
 
 
 @pytest.mark.slow

@@ -123,8 +123,8 @@ def test_every_variant_stands_beside_under_its_label(tmp_path):
     text = paper_table(tmp_path, "flyknot paper")
     head = (
         "| from the robot demonstration (a command searched in this lab, not the paper's "
-        "protocol): trials | knots in repeats | the oracle learner (the lab's own Jacobian on "
-        "the critical point, a measuring stick): trials | knots in repeats |"
+        "protocol): trials | knots in repeats | the oracle learner (the same objective with "
+        "the lab's own Jacobian, a measuring stick): trials | knots in repeats |"
     )
     assert head in text
     row = "| rope1 | 1 | robot | critical | 2.5 (2-3), 2 of 2 seeds tied | - | "

@@ -24,7 +24,7 @@ from learner.limit_rows import (
     limit_violation,
     subset_rows,
 )
-from learner.objectives import launch_step
+from learner.objectives import launch_step, objective_kind
 from learner.rope_model import RopeModelParams
 from learner.system_model import (
     critical_step,
@@ -388,14 +388,24 @@ def test_launch_objective_fits_the_rope_state_at_t_c_and_at_the_launch(robot, pr
     # Mismatch-free: both rope states come far nearer the demonstration's.
     for k in (k_l, k_c):
         assert _state_error(new, target, k, robot) < 0.2 * _state_error(command, target, k, robot)
-    # A Jacobian handed in replaces M(t_c) only: the model's own gives the same update.
+    # Jacobians handed in at the objective's fitted times: the model's own give the same
+    # update, whether both are given or t_c alone (the model's then at t_l).
     ro = rollout_from_joints(
         record.t_joint, record.q_meas, command.base_offset, robot, PARAMS, T, n_steps=k_c
     )
-    given = ilc_update(
-        record, command, target, robot, PARAMS, settings, jacobian=linearise(ro, T, [k_c])[0]
+    M_l, M_c = linearise(ro, T, [k_l, k_c])
+    t_c, t_l = objective_kind("launch").fit_times(target)
+    assert t_c == T_C and t_l == target.t[k_l]
+    for jacobian in ({t_c: M_c}, {t_c: M_c, t_l: M_l}):
+        given = ilc_update(record, command, target, robot, PARAMS, settings, jacobian=jacobian)
+        np.testing.assert_allclose(given.dkappa, res.dkappa, rtol=1e-9, atol=1e-12)
+    # ... and a different M(t_l) is the one the QP fits at t_l.
+    other = ilc_update(
+        record, command, target, robot, PARAMS, settings, jacobian={t_c: M_c, t_l: 2.0 * M_l}
     )
-    np.testing.assert_allclose(given.dkappa, res.dkappa, rtol=1e-9, atol=1e-12)
+    assert np.abs(other.dkappa - res.dkappa).max() > 1e-3
+    with pytest.raises(ConfigError, match=r"^jacobian: must map times \[s\] to \(66, 80\) arrays"):
+        ilc_update(record, command, target, robot, PARAMS, settings, jacobian=M_c)
 
 
 # ------------------------------------------------------------------------------------ target

@@ -1,4 +1,4 @@
-"""The oracle Jacobian: the simulated lab's own M(t_c) = dx(t_c)/dkappa, measured.
+"""The oracle Jacobian: the simulated lab's own M(t) = dx(t)/dkappa, measured.
 
 A measuring stick for the learner (``jacobian = "oracle"``, :mod:`learner.jacobians`): the
 same objective and QP as the paper's update, with the rope model's linearisation replaced by
@@ -8,10 +8,12 @@ For knots kappa and every free knot group g (the columns the QP's equality rows 
 
     M[:, g] = (x(kappa + h e_g) - x(kappa - h e_g)) / (2 h)        (66,) [m/rad, m/s/rad]
 
-x(kappa) (66,) is the critical state the learner measures (:func:`critical_state_from_record`:
-11 marker positions [m] and velocities [m/s] at t_c in the demonstration frame), played in a
-copy of the lab without trial-to-trial variation, capture noise or tracking loss, and cut
-``tail_s`` after t_c (the state at t_c does not depend on what the arm does later). A side
+x(kappa) (66,) is the rope state the learner measures (:func:`critical_state_from_record`:
+11 marker positions [m] and velocities [m/s] in the demonstration frame) at each time the
+objective fits (t_c, and t_l for the launch objective: every time from the same plays),
+played in a copy of the lab without trial-to-trial variation, capture noise or tracking
+loss, and cut ``tail_s`` after the last of them (the state then does not depend on what the
+arm does later). A side
 that faults (the step crosses a limit) falls back to the one-sided difference; a group with
 neither side gives a zero column. The free groups: per arm joint, knots {0, 1}, 2, 3, 4, 5,
 {6, 7} (the command starts and ends at rest: :func:`learner.inverse_qp.rest_equality_rows`),
@@ -41,12 +43,12 @@ ARM_GROUPS = ((0, 1), (2,), (3,), (4,), (5,), (6, 7))
 
 @dataclass(frozen=True)
 class OracleParams:
-    """How the oracle measures M(t_c).
+    """How the oracle measures M(t).
 
     Attributes:
         step: Finite-difference step h on each knot group [rad] (base rows: [m]).
-        tail_s: The command is played to t_c + tail_s [s] (the marker fit's window is
-            25 ms on each side of t_c).
+        tail_s: The command is played to the last fitted time + tail_s [s] (the marker
+            fit's window is 25 ms on each side of it).
     """
 
     step: float = 0.01
@@ -77,7 +79,7 @@ def central_difference(
 
 
 class LabJacobian:
-    """M(t_c) of a simulated lab by finite differences (module docstring).
+    """M(t) of a simulated lab by finite differences (module docstring).
 
     A :data:`learner.jacobians.JacobianProvider`: ``LabJacobian(...)(knots, T)``.
     """
@@ -100,43 +102,52 @@ class LabJacobian:
         self.plays = 0
         """Commands played so far."""
 
-    def play(self, knots: np.ndarray, T: float) -> TrialRecord:
-        """The record of ``knots`` played to t_c + ``tail_s`` without variation."""
+    def play(self, knots: np.ndarray, T: float, until: float | None = None) -> TrialRecord:
+        """The record of ``knots`` played to ``until`` (default t_c) + ``tail_s`` [s] without
+        variation."""
         from learner.bezier import BezierCommand
 
+        until = self.t_c if until is None else until
         command = BezierCommand(knots, T).joint_command()
-        n = min(command.n, int(np.ceil((self.t_c + self.params.tail_s) * COMMAND_RATE_HZ)) + 1)
+        n = min(command.n, int(np.ceil((until + self.params.tail_s) * COMMAND_RATE_HZ)) + 1)
         self.plays += 1
         return self.lab.run(JointCommand(np.asarray(command.q)[:n], command.rate_hz))
 
-    def state(self, knots: np.ndarray, T: float) -> np.ndarray | None:
-        """x(kappa) (66,) [m, m/s] at t_c, or None when the play faulted before it."""
+    def state(self, knots: np.ndarray, T: float, times: tuple[float, ...]) -> np.ndarray | None:
+        """x(kappa) at each of ``times`` stacked, (P * 66,) [m, m/s], from one play; None when
+        it faulted before the last of them."""
         from learner.critical_state import critical_state_from_record
 
-        record = self.play(knots, T)
+        record = self.play(knots, T, max(times))
         try:
-            return critical_state_from_record(record, self.t_c, knots[N_JOINTS:, 0])
+            return np.concatenate(
+                [critical_state_from_record(record, t, knots[N_JOINTS:, 0]) for t in times]
+            )
         except RecordError:
             return None
 
-    def __call__(self, knots: np.ndarray, T: float) -> np.ndarray:
-        """M(t_c) (66, 80) about ``knots`` (10, 8) for a command of duration ``T`` [s].
+    def __call__(
+        self, knots: np.ndarray, T: float, times: tuple[float, ...] | None = None
+    ) -> dict[float, np.ndarray]:
+        """{t: M(t) (66, 80)} about ``knots`` (10, 8) for a command of duration ``T`` [s] at
+        each of ``times`` [s] (default: t_c alone), all from the same plays.
 
         Raises:
-            RecordError: The command itself faults before t_c.
+            RecordError: The command itself faults before the last of ``times``.
         """
+        times = (self.t_c,) if times is None else tuple(float(t) for t in times)
         knots = np.asarray(knots, dtype=float)
-        x0 = self.state(knots, T)
+        x0 = self.state(knots, T, times)
         if x0 is None:
-            raise RecordError("the oracle's nominal play faulted before t_c")
+            raise RecordError("the oracle's nominal play faulted before the fitted times")
         h = self.params.step
-        M = np.zeros((STATE_DIM, N_ROWS * N_KNOTS))
+        M = np.zeros((len(times) * STATE_DIM, N_ROWS * N_KNOTS))
         for row, group in knot_groups():
             d = np.zeros((N_ROWS, N_KNOTS))
             d[row, list(group)] = h
-            xp, xm = self.state(knots + d, T), self.state(knots - d, T)
+            xp, xm = self.state(knots + d, T, times), self.state(knots - d, T, times)
             M[:, row * N_KNOTS + group[0]] = central_difference(x0, xp, xm, h)
-        return M
+        return {t: M[i * STATE_DIM : (i + 1) * STATE_DIM] for i, t in enumerate(times)}
 
 
 __all__ = ["ARM_GROUPS", "LabJacobian", "OracleParams", "central_difference", "knot_groups"]

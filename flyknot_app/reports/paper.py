@@ -66,8 +66,9 @@ VARIANTS: dict[str, Variant] = {
         ),
         Variant(
             "oracle",
-            ("jacobian=oracle", "objective=critical"),
-            "the oracle learner (the lab's own Jacobian on the critical point, a measuring stick)",
+            ("jacobian=oracle",),
+            "the oracle learner (the same objective with the lab's own Jacobian, a measuring "
+            "stick)",
             skips=("01-tracking", "02-objectives", "07-sensitivity"),  # no update / no model
         ),
     )

@@ -184,7 +184,8 @@ def time_scale_limit(
 
 
 def load_command_file(path: str | Path, field: str = "path") -> tuple[np.ndarray, float]:
-    """A Bezier command file: ``knots`` (10, 8) and duration ``T`` [s].
+    """A Bezier command file: ``knots`` (10, 8) and duration ``T`` [s] from an ``.npz``, or a
+    run's learned command (``final_knots.npy``, T from the ``result.json`` beside it).
 
     Raises:
         ConfigError: No such file or an array missing (named by ``field``).
@@ -192,6 +193,17 @@ def load_command_file(path: str | Path, field: str = "path") -> tuple[np.ndarray
     p = Path(path)
     if not p.is_file():
         raise ConfigError(field, f"no command file {str(p)!r}")
+    if p.suffix == ".npy":
+        from flyknot.errors import CommandError
+        from flyknot_app.trial_cli import duration_beside, read_npy
+
+        try:
+            knots = read_npy(p)
+            if knots.shape != (10, 8):
+                raise CommandError(f"{str(p)!r} holds {knots.shape}, not Bezier knots (10, 8)")
+            return np.array(knots, dtype=float), duration_beside(p)
+        except CommandError as e:
+            raise ConfigError(field, str(e)) from None
     with np.load(p) as z:
         if "knots" not in z.files or "T" not in z.files:
             raise ConfigError(field, f"{str(p)!r} needs arrays 'knots' and 'T'")
