@@ -255,6 +255,13 @@ def safe_step(
     return knots - 2 * alpha * dkappa
 
 
+def _fit_times(objective: str, target: DemoTarget) -> tuple[float, ...]:
+    """The times [s] whose rope state ``objective`` fits, where a measured Jacobian is taken;
+    none for an objective that takes no Jacobian."""
+    kind = objective_kind(objective)
+    return kind.fit_times(target) if kind.takes_jacobian else ()
+
+
 def assess(
     record: TrialRecord,
     command: BezierCommand,
@@ -310,7 +317,7 @@ def assess(
                 ctx.jacobian,
                 command.knots,
                 command.T,
-                objective_kind(settings.objective).fit_times(target),
+                _fit_times(settings.objective, target),
             ),
             correct=correct,
         )

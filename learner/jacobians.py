@@ -1,4 +1,4 @@
-"""Where an update's Jacobian M(t_c) = dx(t_c)/dkappa comes from: a registry.
+"""Where an update's Jacobian M(t) = dx(t)/dkappa comes from: a registry.
 
 The inverse-model QP (:mod:`learner.inverse_qp`) needs M(t) (66, 80) at each time t its
 objective fits (t_c, and the launch t_l for ``objective = "launch"``): how the rope state

@@ -179,12 +179,6 @@ class EqualWeights:
         """The builder's equally weighted terms, one per sample."""
         return {"equal": [(M_at(k), e) for k, e in terms.samples]}
 
-    def fit_times(self, target: DemoTarget) -> tuple[float, ...]:
-        """The pre-collision times [s] where the demonstration has markers (a trial fits
-        those of them where it has markers too)."""
-        usable = np.all(np.isfinite(target.x_pre), axis=1)
-        return tuple(float(t) for t in target.t[: len(target.x_pre)][usable])
-
 
 def launch_step(target: DemoTarget) -> int:
     """k_l = argmax_k ||v_hand(t_k)|| over the pre-collision steps t_k < t_c where the
