@@ -56,8 +56,12 @@ def _cmd_synthesize(args: argparse.Namespace) -> int:
         check_int("--throw-budget", args.throw_budget, 1)
         search = replace(search, budget=args.throw_budget)
     start = None
+    if args.mirror_start and args.start is None:
+        raise ConfigError("--mirror-start", "needs a start motion (--start)")
     if args.start is not None:
         start = _start_motion(args.start)
+        if args.mirror_start:
+            start = start.mirrored()
     if args.target_rate is not None:
         if not 0.0 < args.target_rate <= 1.0:
             raise ConfigError("--target-rate", f"must lie in (0, 1], got {args.target_rate!r}")
@@ -223,6 +227,12 @@ def _add_demo_synthesize_parser(dsub: argparse._SubParsersAction) -> None:
     )
     s.add_argument(
         "--start", default=None, help="start from this demonstration's hand motion (.npz)"
+    )
+    s.add_argument(
+        "--mirror-start",
+        action="store_true",
+        help="start from the mirror image of --start's motion (y -> -y, a -> -a: the opposite "
+        "twist, as Inverse is made from the reference)",
     )
     s.add_argument(
         "--throw-budget", type=int, default=None, help="most trials of the throw stage (900)"

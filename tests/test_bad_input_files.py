@@ -21,7 +21,21 @@ FORMATS = (
     "(accepted formats: .csv t,q1..q7 joint targets; .npy (n, 7) float radians; "
     ".npz Bezier knots and T)"
 )
-DEMOS = "(valid choices: fast, fast-paced, inverse, robot, slow, swipe)"
+SHIPPED = [
+    "fast",
+    "fast-paced",
+    "inverse",
+    "inverse-paced",
+    "robot",
+    "slow",
+    "slow-paced",
+    "swipe",
+    "swipe-paced",
+]
+DEMOS = (
+    "(valid choices: fast, fast-paced, inverse, inverse-paced, robot, slow, slow-paced, swipe, "
+    "swipe-paced)"
+)
 
 
 def _flyknot(*args: str) -> subprocess.CompletedProcess:
@@ -165,18 +179,11 @@ def test_every_damaged_demonstration_is_a_record_error_naming_the_file(damage, t
     assert str(e.value).startswith(f"{str(path)!r}{problem}"), str(e.value)
     with pytest.raises(ConfigError) as e:
         check_demo(str(path))
-    assert e.value.field == "demo" and e.value.choices == [
-        "fast",
-        "fast-paced",
-        "inverse",
-        "robot",
-        "slow",
-        "swipe",
-    ]
+    assert e.value.field == "demo" and e.value.choices == SHIPPED
 
 
 def test_shipped_demonstrations_pass_the_check():
-    for name in ("fast", "fast-paced", "inverse", "robot", "slow", "swipe"):
+    for name in SHIPPED:
         assert check_demo(name) == DEMOS_DIR / f"{name}.npz"
 
 

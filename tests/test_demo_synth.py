@@ -753,16 +753,43 @@ def test_cli_envelope_start_and_budgets_reach_the_search(tmp_path, capsys, monke
     assert capsys.readouterr().err == (
         "flyknot-tools: error: --target-rate: must lie in (0, 1], got 1.5\n"
     )
+    assert tools_cli.main([*args, "--mirror-start"]) == 2
+    assert capsys.readouterr().err == (
+        "flyknot-tools: error: --mirror-start: needs a start motion (--start)\n"
+    )
+    fast = str(DEMOS_DIR / "fast.npz")
+    assert tools_cli.main([*args, "--start", fast, "--mirror-start", "--quiet"]) == 2
+    mirrored = KnotMotion.from_dict(shipped).mirrored()
+    np.testing.assert_array_equal(seen["start"].x, mirrored.x)
+    assert not np.array_equal(mirrored.x, KnotMotion.from_dict(shipped).x)
 
 
-def test_the_person_paced_fast_is_described_and_within_its_pace():
-    """`fast-paced`: the Fast search under a pace cap, its peaks within the caps it records,
-    tying in its varied check, its command in the demonstrations' README."""
+PACED = {
+    "fast-paced": ("fast", "--variant fast --seed 0 --max-axis-rate 15 --max-speed 5.5"),
+    "slow-paced": (
+        "slow",
+        "--variant slow --seed 0 --start assets/demos/fast-paced.npz --max-axis-rate 15 "
+        "--max-speed 5.5",
+    ),
+    "swipe-paced": ("swipe", "--variant swipe --seed 0 --max-axis-rate 15 --max-speed 5.5"),
+    "inverse-paced": (
+        "inverse",
+        "--variant inverse --seed 0 --start assets/demos/fast-paced.npz --mirror-start "
+        "--max-axis-rate 15 --max-speed 5.5",
+    ),
+}
+
+
+@pytest.mark.parametrize("name", PACED)
+def test_the_person_paced_demonstrations_are_described_and_within_their_pace(name):
+    """The person-paced four: each its variant's search under a pace cap, its peaks within the
+    caps it records, tying in its varied check, its command in the demonstrations' README."""
     from scipy.spatial.transform import Rotation
 
-    demo = Demonstration.load(DEMOS_DIR / "fast-paced.npz")
+    variant, command = PACED[name]
+    demo = Demonstration.load(DEMOS_DIR / f"{name}.npz")
     m = demo.metadata
-    assert m["variant"] == "fast" and m["settle_outcome"] == "trefoil"
+    assert m["variant"] == variant and m["settle_outcome"] == "trefoil"
     assert m["pace"] == {"speed_limit": 5.5, "axis_rate_limit": 15.0}
     assert m["check"]["knots"] >= 16 and m["check"]["repeats"] == 20
     assert m["rope"] == rope_metadata(1)["rope"], "rope 1 changed: regenerate assets/demos"
@@ -771,5 +798,7 @@ def test_the_person_paced_fast_is_described_and_within_its_pace():
     z = Rotation.from_quat(demo.hand_quat, scalar_first=True).as_matrix()[:, :, 2]
     rate = np.arccos(np.clip(np.sum(z[1:] * z[:-1], axis=1), -1.0, 1.0)) / dt
     assert speed.max() <= 5.5 and rate.max() <= 15.0
+    lo, hi = get_variant(variant).duration
+    assert lo <= m["motion_duration"] <= hi
     readme = (DEMOS_DIR / "README.md").read_text()
-    assert "--variant fast --seed 0 --max-axis-rate 15 --max-speed 5.5" in readme
+    assert command in " ".join(readme.split())
