@@ -14,7 +14,9 @@ Handling of what a lab throws at the loop:
   ``tracking_retries`` times (the paper repeats such trials); repeats are recorded but do
   not count towards ``max_trials``.
 * A trial that faults gives no error to learn from: the next command goes halfway back to
-  the previous one (or, on the first trial, the run stops: the initial command is unusable).
+  the last one that measured an error (or, on the first trial, the run stops: the initial
+  command is unusable); under the damped step it is a failed step, taken again from the best
+  command with more damping (:mod:`learner.steps`).
 * A QP that fails leaves the command unchanged and the status is recorded.
 
 Everything is written to the run directory as it happens (see

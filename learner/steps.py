@@ -10,6 +10,10 @@ the damping lambda (:class:`learner.inverse_qp.InverseModelWeights` ``w_control`
     else:             lambda <- lambda * grow
                       kappa_{k+1} = kappa_best - dkappa(kappa_best; lambda)       (from the best)
 
+A trial that measured nothing after a best exists (the cell refused or faulted on its
+command, or the markers were lost before t_c) is a step that failed as a raised cost is:
+c_k = inf, the second line. (Before any best, the gain rule's halfway back or stop rules.)
+
 where dkappa(kappa; lambda) is the inverse-model QP's solution about trial kappa's record with
 w_control = lambda. A step that raised the measured cost is thus taken back, and the next one
 from the best command is shorter; steps that lower it grow. The rule sees only the measured
@@ -23,6 +27,7 @@ Adding a rule is one :class:`StepKind` and one line in :data:`STEPS`.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from flyknot.errors import ConfigError, check_positive
@@ -95,11 +100,15 @@ class Damping:
 
     def observe(self, cost: float | None, trial: int) -> bool | None:
         """Take trial ``trial``'s measured cost; return True when it is the new best (take the
-        full step from it), False when it is not (step again from the best, more damped),
-        None when it measured nothing (lambda unchanged)."""
+        full step from it), False when it is not (step again from the best, more damped; a
+        cost of +inf: a step that measured nothing), None when there is no cost to weigh
+        (lambda unchanged)."""
         if cost is None:
             return None
         p = self.params
+        if math.isinf(cost) and cost > 0:  # a step that measured nothing: never the best
+            self.lam *= p.grow
+            return False
         if self.best is None or cost < self.best[0]:
             self.best = (float(cost), int(trial))
             self.lam = max(self.lam / p.shrink, p.smallest)

@@ -40,6 +40,7 @@ the order.
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, is_dataclass, replace
@@ -403,9 +404,14 @@ class DampedStep(StopRule):
         return self.damping.lam if self.on else None
 
     def verdict(self, trial: Trial) -> Ruling | None:
-        """The damped step after a trial with a solved update."""
+        """The damped step after a trial with a solved update, or after one that measured
+        nothing once a best exists (a failed step: from the best, more damped)."""
         s = trial.summary
-        if not (self.on and trial.measured and s.update_solved):
+        if not self.on:
+            return None
+        if not trial.measured:
+            return self._failed(trial) if self.best is not None else None
+        if not s.update_solved:
             return None
         lam_used = self.damping.lam
         took = self.damping.observe(s.cost, s.trial)
@@ -427,6 +433,21 @@ class DampedStep(StopRule):
             def step_of(moves: Moves) -> UpdateResult | None:
                 return moves.update_about(best, lam)
 
+        return self._ruling(trial, base, action, step_of)
+
+    def _failed(self, trial: Trial) -> Ruling:
+        """A trial that measured nothing (a fault or lost tracking): its step failed, so the
+        next one is from the best command with lambda grown (cost +inf in :class:`Damping`)."""
+        self.damping.observe(math.inf, trial.summary.trial)
+        best, lam = self.best, self.damping.lam
+        why = "fault" if trial.summary.fault is not None else "tracking lost"
+        action = f"{why}: from the best command (trial {best.summary.trial + 1}), lambda {lam:.3g}"
+        return self._ruling(trial, best.knots, action, lambda moves: moves.update_about(best, lam))
+
+    def _ruling(self, trial: Trial, base: np.ndarray, action: str, step_of) -> Ruling:
+        """A step from ``base`` by ``step_of(moves)``'s update (``base`` itself when the QP
+        fails), ``action`` written on the trial's ledger line."""
+
         def move(moves: Moves) -> np.ndarray:
             step = step_of(moves)
             done = step is not None and step.solved
@@ -439,19 +460,29 @@ class DampedStep(StopRule):
 class GainStep(StopRule):
     """The paper's step, the last rule: kappa - gain dkappa (limit-safe) after a solved
     update, the same command after a failed QP; a fault or lost tracking halves the step back
-    toward the previous command, or stops the loop when there is none."""
+    toward the last command that measured an error, or stops the loop when there is none."""
 
     name = "gain"
     description = "kappa - gain dkappa (the paper's); a fault halfway back"
 
+    def __init__(self, params: ILCParams) -> None:
+        self.good: np.ndarray | None = None
+        """The command of the last trial that measured an error (where a fault steps back
+        toward: a run of faults halves the distance to it each time)."""
+
+    def observe(self, trial: Trial) -> None:
+        """Keep the command of a trial that measured an error."""
+        if trial.measured:
+            self.good = trial.knots
+
     def verdict(self, trial: Trial) -> Ruling | None:
         """Always rules (a step or a stop)."""
-        s, knots, prev = trial.summary, trial.knots, trial.prev_knots
+        s, knots, good = trial.summary, trial.knots, self.good
         if not trial.measured:
-            if prev is None:
+            if good is None:
                 why = "initial command faults" if s.fault else "tracking lost before t_c"
                 return Ruling(STOP, self.name, why)
-            return Ruling(STEP, self.name, move=lambda moves: prev + 0.5 * (knots - prev))
+            return Ruling(STEP, self.name, move=lambda moves: good + 0.5 * (knots - good))
         if s.update_solved:
 
             def move(moves: Moves) -> np.ndarray:

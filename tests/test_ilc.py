@@ -143,6 +143,42 @@ def test_fault_steps_halfway_back(robot, problem, monkeypatch):
     np.testing.assert_allclose(p[2], p[0] + 0.5 * (p[1] - p[0]), atol=1e-12)
 
 
+def test_faults_in_a_row_step_back_toward_the_last_measured_command(robot, problem, monkeypatch):
+    """The gain step: each fault halves the distance to the last command that measured an
+    error, so a run of faults converges on it (not on a midpoint of two faulted commands)."""
+    target, start = problem
+    cell, spy = _cell_for(robot, target, knot_cost=0.0, fault_on=(1, 2, 3))
+    monkeypatch.setattr(BezierCommand, "joint_command", spy)
+    res = learn(cell, target, start, robot, ILCParams(max_trials=5, rope_model=ROPE))
+    p = cell.played
+    for k in (2, 3, 4):
+        np.testing.assert_allclose(p[k], p[0] + 0.5 * (p[k - 1] - p[0]), atol=1e-12)
+    assert [s.action for s in res.trials[1:4]] == ["fault: step halfway back"] * 3
+
+
+def test_a_fault_under_the_damped_step_steps_from_the_best_more_damped(robot, problem, monkeypatch):
+    """The damped step: a trial that faulted is a failed step (cost +inf): lambda grows by
+    ``grow`` and the next command is the best command's update with that lambda."""
+    from learner.steps import DampingParams
+
+    target, start = problem
+    damping = DampingParams(start=1.0)
+    params = ILCParams(max_trials=4, rope_model=ROPE, step="damped", damping=damping)
+    cell, spy = _cell_for(robot, target, knot_cost=0.0, fault_on=(1, 2))
+    monkeypatch.setattr(BezierCommand, "joint_command", spy)
+    res = learn(cell, target, start, robot, params)
+    lam1 = damping.start / damping.shrink  # after trial 1, the first best
+    lam2, lam3 = lam1 * damping.grow, lam1 * damping.grow**2
+    assert [s.action for s in res.trials[1:3]] == [
+        f"fault: from the best command (trial 1), lambda {lam2:.3g}",
+        f"fault: from the best command (trial 1), lambda {lam3:.3g}",
+    ]
+    p = cell.played
+    steps = [np.linalg.norm(p[k] - p[0]) for k in (1, 2, 3)]
+    assert steps[0] > steps[1] > steps[2] > 0  # each more damped, all from the best
+    assert not np.allclose(p[2], p[0] + 0.5 * (p[1] - p[0]))
+
+
 def test_faulting_initial_command_stops(robot, problem, monkeypatch):
     target, start = problem
     cell, spy = _cell_for(robot, target, fault_on=(0,))

@@ -146,6 +146,11 @@ SCENARIOS = {
         ["repeat (tracking lost", "fault: step halfway back"],
     ),
     "initial fault": ({"max_trials": 3}, {"fault_on": {0}}, ["fault"]),
+    "damped and faults": (
+        {"max_trials": 6, "step": "damped"},
+        {"fault_on": {2, 3}},
+        ["update (damped", "fault: from the best command"],
+    ),
     "plateau": (
         {"max_trials": 8, "plateau": PlateauParams(patience=2, noise=0.5)},
         {"shifted": {2}},
@@ -199,6 +204,7 @@ def _ledger(run_dir):
     [
         ("retry and fault", 2),  # after a lost attempt with retries left
         ("retry and fault", 5),  # after a counted trial, before a lost attempt
+        ("damped and faults", 3),  # between two faults, lambda grown once
         ("confirm and average", 2),  # inside a confirmation, with a play being averaged
         ("safeguard and average", 2),  # after a group whose last play is the best trial
         ("safeguard and average", 4),  # then back to the best command
