@@ -257,6 +257,7 @@ class RobotModel:
         armature: Reflected rotor inertia per joint (n,) [kg m^2] (0 when not included).
         damping: Viscous joint damping (n,) [N m s/rad] (0 when not included).
         stiffness: Joint spring stiffness (n,) [N m/rad] (0 when not included).
+        q_spring: The springs' rest angles (n,) [rad].
         q_range: Joint ranges from the MJCF (n, 2) [rad] (the learner's limits are the
             paper's, see ``flyknot.constants``).
         native: Evaluate batches in compiled code (:mod:`learner.native`); off, or without a
@@ -271,6 +272,7 @@ class RobotModel:
     damping: np.ndarray
     stiffness: np.ndarray
     q_range: np.ndarray
+    q_spring: np.ndarray
     fk: ca.Function
     d_tip: ca.Function
     p_dot: ca.Function
@@ -358,6 +360,7 @@ class RobotModel:
             damping=ro(chain["damping"] if include_damping else zeros),
             stiffness=ro(chain["stiffness"] if include_stiffness else zeros),
             q_range=ro(chain["q_range"]),
+            q_spring=ro(chain["springref"]),
             **funs,
             native=native,
             _flat=flat,
@@ -472,6 +475,20 @@ class RobotModel:
         qd = self._batch("qd", qd, m)
         qdd = self._batch("qdd", qdd, m)
         return self._eval("tau", q, qd, qdd)[0]
+
+    def passive_torques(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray:
+        """The joints' own part of :meth:`torques` for a batch; the links' rigid-body torque is
+        the rest, the torque the simulated controller faults on.
+
+            tau_joint = armature * qdd + damping * qd + stiffness * (q - q_spring)   (m, n) [N m]
+
+        Linear in the state: its Jacobians are diag(stiffness), diag(damping) and
+        diag(armature).
+        """
+        q = self._batch("q", q)
+        m = q.shape[0]
+        qd, qdd = self._batch("qd", qd, m), self._batch("qdd", qdd, m)
+        return self.armature * qdd + self.damping * qd + self.stiffness * (q - self.q_spring)
 
     def torque_jacobians(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> TorqueJacobians:
         """Jacobians of the inverse dynamics for a batch.

@@ -7,9 +7,18 @@ Every joint limit of the updated command (position, velocity, acceleration, torq
 first order for torque. :func:`learner.inverse_qp.build_inverse_qp` turns rows into the QP's
 constraint blocks.
 
-The full grid has 4 x 7 rows per sample (~5600 for a 0.8 s command); most never come near their
+Torque is bounded twice: the learner's inverse dynamics (``tau``: the links, the rotors'
+inertia and the joints' damping, what a motor delivers and the hardware preflight checks) and
+the links' rigid-body part alone (``tau_links``: the torque the paper's limits apply to, which
+the simulated controller faults on; :meth:`learner.kinematics.RobotModel.passive_torques` is
+the difference). Neither bounds the other: the joints' damping adds to the links' torque or
+takes from it with the sign of the velocity (on a person-paced swipe the two differ by 8 N m
+at joint 3, against a 40 N m limit).
+
+The full grid has 5 x 7 rows per sample (~7000 for a 0.8 s command); most never come near their
 bound. :func:`generate_constraints` solves with the rows whose current value uses at least
-``margin`` of the range (:func:`initial_active_rows`), adds the rows the solution violates
+``margin`` of the range (:func:`initial_active_rows`; with a margin > 0, the ``tau_links``
+rows only once violated, :data:`LATE_KINDS`), adds the rows the solution violates
 (:func:`limit_violation`, beyond ``LIMIT_TOL`` of the half range) and solves again, at most
 ``max_rounds`` times, then once with every row. :func:`sampled_violation` checks a command's
 own limits on its samples, without linearisation.
@@ -35,7 +44,10 @@ if TYPE_CHECKING:
     from learner.inverse_qp import QPResult
     from learner.kinematics import RobotModel
 
-LIMIT_KINDS = ("pos", "vel", "acc", "tau")
+LIMIT_KINDS = ("pos", "vel", "acc", "tau", "tau_links")
+LATE_KINDS = ("tau_links",)
+"""Blocks that join a QP's active set only once its solution violates them, never from the
+margin: where they are not violated, the update is the one without them, bit for bit."""
 LIMIT_TOL = 1e-6  # a limit row counts as violated beyond this fraction of its half range
 
 
@@ -67,10 +79,16 @@ class _TorqueBlock:
     robot: RobotModel
     states: tuple[np.ndarray, np.ndarray, np.ndarray]  # q, qd, qdd, each (m, 7)
     S: tuple[np.ndarray, np.ndarray, np.ndarray]  # d q^(r) / d kappa, each (m, 7, 80)
+    links_only: bool = False  # the links' rigid-body torque: less the passive part's diagonals
 
     def rows(self, idx: np.ndarray) -> np.ndarray:
         samples, where = np.unique(idx // N_JOINTS, return_inverse=True)
         dq, dqd, dqdd = self.robot.torque_jacobians(*(x[samples] for x in self.states))
+        if self.links_only:
+            r = self.robot
+            dq, dqd, dqdd = (
+                d - np.diag(c) for d, c in ((dq, r.stiffness), (dqd, r.damping), (dqdd, r.armature))
+            )
         S0, S1, S2 = (x[samples] for x in self.S)
         J = (
             np.einsum("aij,ajc->aic", dq, S0)
@@ -81,7 +99,11 @@ class _TorqueBlock:
 
     def product(self, dk: np.ndarray) -> np.ndarray:
         v = [S @ dk for S in self.S]  # (m, 7) each
-        return self.robot.torque_jvp(*self.states, *v).ravel()
+        out = self.robot.torque_jvp(*self.states, *v)
+        if self.links_only:  # the passive part is linear: its derivative along v is itself
+            r = self.robot
+            out = out - (r.armature * v[2] + r.damping * v[1] + r.stiffness * v[0])
+        return out.ravel()
 
 
 @dataclass(frozen=True)
@@ -158,13 +180,14 @@ def limit_rows(
         q^(r)_j(t_a) = C_r[a] . kappa[j],   d q^(r)_j(t_a) / d kappa[j, :] = C_r[a]
         tau(t_a) = ID(q, qd, qdd)(t_a)
         d tau / d kappa = dID/dq S_0 + dID/dqd S_1 + dID/dqdd S_2,   S_r = d q^(r) / d kappa
+        tau_links(t_a) = tau(t_a) - P(q, qd, qdd)(t_a)   (P: ``RobotModel.passive_torques``)
 
     so a row bounds exactly what the simulated controller faults on and the hardware preflight
     refuses on. The torque rows' Jacobians are formed only for the rows a QP takes
     (:class:`LimitGrid`).
 
     Bounds: ``q_min <= q <= q_max``, ``|qd| <= qd_max``, ``|qdd| <= qdd_max``,
-    ``|tau| <= tau_max``.
+    ``|tau| <= tau_max``, ``|tau_links| <= tau_max``.
 
     Args:
         knots: Current knots (10, 8) (rows 0-6 [rad], rows 7-9 [m]).
@@ -172,7 +195,7 @@ def limit_rows(
         t_samples: Sample times (m,) [s]: the command's uniform grid from 0 within [0, T].
         robot_model: Inverse dynamics for the torque rows; None leaves torque out.
         limits: Bounds (default: the paper's).
-        kinds: Which blocks to build, a subset of ("pos", "vel", "acc", "tau").
+        kinds: Which blocks to build, a subset of :data:`LIMIT_KINDS`.
 
     Returns:
         The grid of rows: b (r,), lo, hi, blocks named by ``kinds``, the Jacobian on demand.
@@ -181,8 +204,9 @@ def limit_rows(
     kinds = list(kinds)
     for k in kinds:
         check_choice("kinds", k, LIMIT_KINDS)
-    if "tau" in kinds and robot_model is None:
-        raise ConfigError("robot_model", "is needed for torque limits (kind 'tau')")
+    for k in ("tau", "tau_links"):
+        if k in kinds and robot_model is None:
+            raise ConfigError("robot_model", f"is needed for torque limits (kind {k!r})")
     if not kinds:
         raise ConfigError("kinds", "must name at least one limit", LIMIT_KINDS)
     t = np.asarray(t_samples, dtype=float)
@@ -196,15 +220,19 @@ def limit_rows(
         "vel": (-limits.qd_max, limits.qd_max),
         "acc": (-limits.qdd_max, limits.qdd_max),
         "tau": (-limits.tau_max, limits.tau_max),
+        "tau_links": (-limits.tau_max, limits.tau_max),
     }
     parts, bs, los, his, blocks = [], [], [], [], {}
     start = 0
     for kind in kinds:
-        if kind == "tau":
+        if kind in ("tau", "tau_links"):
             states = (derivs[0], derivs[1], derivs[2])
+            links = kind == "tau_links"
             b = robot_model.torques(*states)  # type: ignore[union-attr]
+            if links:
+                b = b - robot_model.passive_torques(*states)  # type: ignore[union-attr]
             S = tuple(jacs[r].reshape(m, N_JOINTS, N_VARS) for r in (0, 1, 2))
-            parts.append(_TorqueBlock(robot_model, states, S))  # type: ignore[arg-type]
+            parts.append(_TorqueBlock(robot_model, states, S, links))  # type: ignore[arg-type]
         else:
             r = LIMIT_KINDS.index(kind)
             b = derivs[r]
@@ -283,8 +311,8 @@ def sampled_violation(
     """Largest violation of the limits by a command on its samples, relative to half ranges.
 
     max over samples, joints and kinds of max(lo - y, y - hi, 0) / ((hi - lo) / 2) for
-    y = q, qd, qdd as the controllers take them (:func:`learner.bezier.controller_basis`) and
-    tau = ID(q, qd, qdd).
+    y = q, qd, qdd as the controllers take them (:func:`learner.bezier.controller_basis`),
+    tau = ID(q, qd, qdd) and the links' part of it, tau - P(q, qd, qdd).
 
     Args:
         knots: Knots (10, 8).
@@ -299,11 +327,13 @@ def sampled_violation(
     joints = check_knots(knots)[:N_JOINTS].T
     q, qd, qdd = (controller_basis(t, T, r) @ joints for r in (0, 1, 2))
     worst = 0.0
+    tau = robot.torques(q, qd, qdd)
     for y, lo, hi in (
         (q, limits.q_min, limits.q_max),
         (qd, -limits.qd_max, limits.qd_max),
         (qdd, -limits.qdd_max, limits.qdd_max),
-        (robot.torques(q, qd, qdd), -limits.tau_max, limits.tau_max),
+        (tau, -limits.tau_max, limits.tau_max),
+        (tau - robot.passive_torques(q, qd, qdd), -limits.tau_max, limits.tau_max),
     ):
         over = np.maximum(lo - y, y - hi) / (0.5 * (hi - lo))
         worst = max(worst, float(over.max()))
@@ -346,6 +376,15 @@ class GeneratedSolve:
     violation: np.ndarray
 
 
+def _without_late(rows: LimitRows | LimitGrid, idx: np.ndarray) -> np.ndarray:
+    """``idx`` less the rows of the :data:`LATE_KINDS` blocks."""
+    for kind in LATE_KINDS:
+        if kind in rows.blocks:
+            a, z = rows.blocks[kind]
+            idx = idx[(idx < a) | (idx >= z)]
+    return idx
+
+
 def generate_constraints(
     rows: LimitRows | LimitGrid | None,
     solve: Callable[[LimitRows | None], QPResult],
@@ -369,6 +408,8 @@ def generate_constraints(
         The last solve, its rows, the number of solves and the rows' violations.
     """
     idx = None if rows is None else initial_active_rows(rows, margin)
+    if idx is not None and margin > 0:  # margin 0: every row from the start
+        idx = _without_late(rows, idx)
 
     def solve_rows(idx: np.ndarray | None) -> QPResult:
         lim = None if rows is None or idx is None or idx.size == 0 else subset_rows(rows, idx)
@@ -397,6 +438,7 @@ def generate_constraints(
 
 
 __all__ = [
+    "LATE_KINDS",
     "LIMIT_KINDS",
     "LIMIT_TOL",
     "GeneratedSolve",

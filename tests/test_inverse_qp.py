@@ -25,7 +25,7 @@ from learner.inverse_qp import (
     solve_qp,
 )
 from learner.kinematics import RobotModel
-from learner.limit_rows import LimitRows, limit_rows, subset_rows
+from learner.limit_rows import LIMIT_KINDS, LimitRows, limit_rows, subset_rows
 
 CHAIN7 = Path(__file__).parent / "data" / "chain7.xml"
 N_MARK = 11
@@ -119,7 +119,9 @@ def test_bad_inputs_raise_exact_messages():
     assert str(exc.value) == "lo: must be <= hi in every row"
     with pytest.raises(ConfigError) as exc:
         limit_rows(_knots(), T, T_SAMPLES[:5], None, kinds=("pos", "jerk"))
-    assert str(exc.value) == "kinds: unknown value 'jerk' (valid choices: pos, vel, acc, tau)"
+    assert str(exc.value) == (
+        "kinds: unknown value 'jerk' (valid choices: pos, vel, acc, tau, tau_links)"
+    )
     with pytest.raises(ConfigError) as exc:
         JointLimits(qd_max=np.zeros(7))
     assert str(exc.value) == "limits.qd_max: must be > 0; joint 1 is 0.0"
@@ -204,6 +206,15 @@ def test_limit_rows_values_and_jacobians(robot: RobotModel):
     a, z = rows.blocks["tau"]
     np.testing.assert_allclose(rows.b[a:z], robot.torques(q, qd, qdd).ravel(), atol=1e-12)
     np.testing.assert_allclose(rows.lo[a:z], -np.tile(JointLimits().tau_max, m))
+    # the links' part is the torque the simulated controller faults on (MuJoCo's RNE of the
+    # robot alone), and it differs from the learner's whole torque by the joints' damping
+    from flyknot_sim.faults import command_torques
+    from flyknot_sim.robot import load_robot_model
+
+    a, z = rows.blocks["tau_links"]
+    lab = command_torques(load_robot_model(), q, qd, qdd)
+    np.testing.assert_allclose(rows.b[a:z], lab.ravel(), atol=1e-9)
+    assert np.abs(rows.b[a:z] - rows.b[slice(*rows.blocks["tau"])]).max() > 0.1
     h = 1e-6
     J_fd = np.zeros_like(rows.J)
     for c in range(80):
@@ -212,7 +223,7 @@ def test_limit_rows_values_and_jacobians(robot: RobotModel):
         plus = limit_rows(knots + e.reshape(10, 8), T, t, robot).b
         minus = limit_rows(knots - e.reshape(10, 8), T, t, robot).b
         J_fd[:, c] = (plus - minus) / (2 * h)
-    for kind in ("pos", "vel", "acc", "tau"):
+    for kind in LIMIT_KINDS:
         a, z = rows.blocks[kind]
         scale = max(1.0, np.abs(rows.J[a:z]).max())
         assert np.abs(rows.J[a:z] - J_fd[a:z]).max() <= 1e-6 * scale, kind
@@ -224,7 +235,7 @@ def test_the_grid_forms_only_the_rows_asked_for(robot: RobotModel):
     order; J dkappa without the Jacobian equals the product with it."""
     knots = _knots(seed=5)
     t = T_SAMPLES[::10]
-    for kinds in (("pos", "vel", "acc", "tau"), ("tau", "pos")):
+    for kinds in (LIMIT_KINDS, ("tau", "pos"), ("tau_links", "vel", "tau")):
         grid = limit_rows(knots, T, t, robot, kinds=kinds)
         full = grid.J
         idx = np.sort(np.random.default_rng(1).choice(grid.n_rows, 40, replace=False))
@@ -342,12 +353,12 @@ def test_infeasible_qp_reports_status(backend: str):
 
 
 def test_realistic_size_agrees_across_backends(robot: RobotModel):
-    """N = 11 markers, 201 samples x 7 joints x 4 limits, 9 follow-through samples."""
+    """N = 11 markers, 201 samples x 7 joints x 5 limits, 9 follow-through samples."""
     M, err, follow = _problem(9)
     limits = limit_rows(_knots(), T, T_SAMPLES, robot)
     qp = build_inverse_qp(M_crit=M, err_crit=err * 10, follow=follow, limits=limits)
-    assert qp.m == 21 + 14 + 4 * 7 * T_SAMPLES.size
-    assert set(qp.blocks) == {"base", "rest", "pos", "vel", "acc", "tau"}
+    assert qp.m == 21 + 14 + len(LIMIT_KINDS) * 7 * T_SAMPLES.size
+    assert set(qp.blocks) == {"base", "rest", *LIMIT_KINDS}
     res = {name: require_solved(solve_qp(qp, name)) for name in BACKENDS}
     np.testing.assert_allclose(res["osqp"].dkappa, res["clarabel"].dkappa, atol=AGREE)
     for r in res.values():
@@ -394,3 +405,51 @@ def test_bad_trust_region_raises_exact_message(bad):
     with pytest.raises(ConfigError) as e:
         build_inverse_qp(M_crit=M, err_crit=err, trust_region=bad)
     assert str(e.value) == f"trust_region: must be a finite number > 0, got {bad!r}"
+
+
+def test_a_command_within_the_whole_torque_but_not_the_links_torque_is_refused(
+    robot: RobotModel,
+):
+    """The two torques part by the joints' damping and rotor inertia: limits that the whole
+    torque keeps but the links' part breaks are broken (the simulated controller faults)."""
+    from dataclasses import replace
+
+    from learner.limit_rows import sampled_violation
+
+    knots = _knots(amplitude=0.6, seed=0)
+    rows = limit_rows(knots, T, T_SAMPLES, robot)
+    whole = np.abs(rows.b[slice(*rows.blocks["tau"])]).reshape(-1, 7).max(axis=0)
+    links = np.abs(rows.b[slice(*rows.blocks["tau_links"])]).reshape(-1, 7).max(axis=0)
+    assert np.any(links > whole + 0.1)  # this command's links need more than the whole
+    limits = replace(JointLimits(), tau_max=whole + 1e-6)
+    assert sampled_violation(knots, T, T_SAMPLES, robot, limits) > 1e-3
+    limits = replace(JointLimits(), tau_max=np.maximum(whole, links) + 1e-6)
+    assert sampled_violation(knots, T, T_SAMPLES, robot, limits) == 0.0
+
+
+def test_links_torque_rows_join_only_once_violated(robot: RobotModel):
+    """With a margin > 0 the first solve holds no ``tau_links`` row, even one at its bound
+    (so an update they do not bind is the one without them); with margin 0 it holds all."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from learner.limit_rows import generate_constraints
+
+    knots = _knots(amplitude=0.6, seed=2)
+    rows = limit_rows(knots, T, T_SAMPLES[::5], robot)
+    a, z = rows.blocks["tau_links"]
+    peak = np.abs(rows.b[a:z]).reshape(-1, 7).max(axis=0)
+    near = replace(JointLimits(), tau_max=peak * 1.001)
+    rows = limit_rows(knots, T, T_SAMPLES[::5], robot, near)
+    seen = []
+
+    def solve(lim):
+        seen.append(lim.blocks)
+        return SimpleNamespace(solved=False)
+
+    generate_constraints(rows, solve, margin=0.9, max_rounds=3)
+    first = seen.pop()
+    assert first["tau_links"][1] == first["tau_links"][0]  # none of them
+    assert first["tau"][1] > first["tau"][0]  # the whole torque's near rows are there
+    generate_constraints(rows, solve, margin=0.0, max_rounds=3)
+    assert dict(seen.pop()) == dict(rows.blocks)  # every row of every block

@@ -18,6 +18,7 @@ from learner.critical_state import MarkerFitParams, critical_state_from_record
 from learner.inverse_qp import InverseModelWeights
 from learner.kinematics import RobotModel
 from learner.limit_rows import (
+    LIMIT_KINDS,
     LIMIT_TOL,
     initial_active_rows,
     limit_rows,
@@ -126,7 +127,7 @@ def test_default_update_with_follow_through_and_limits_reduces_the_error(robot, 
     command, record, target, _ = problem
     res = ilc_update(record, command, target, robot, PARAMS)
     assert res.solved
-    assert res.n_limit_rows_total == 201 * 7 * 4
+    assert res.n_limit_rows_total == 201 * 7 * len(LIMIT_KINDS)
     assert 0 < res.n_limit_rows < res.n_limit_rows_total
     assert res.limit_violation <= LIMIT_TOL and res.sampled_violation <= 1e-6
     after = _measured_cost(BezierCommand(res.new_knots, T), target, robot)
