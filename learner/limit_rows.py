@@ -426,7 +426,10 @@ def generate_constraints(
             new = np.setdiff1d(np.flatnonzero(viol > tol), idx)
             if new.size == 0:
                 break
-            idx = np.union1d(idx, new) if rounds < max_rounds else np.arange(rows.n_rows)
+            if rounds >= max_rounds:  # every row (a late one only once violated)
+                every = np.arange(rows.n_rows)
+                new = every if margin <= 0 else np.union1d(_without_late(rows, every), new)
+            idx = np.union1d(idx, new)
             res = solve_rows(idx)
             rounds += 1
             if not res.solved:

@@ -237,7 +237,8 @@ def test_constraint_generation_adds_violated_rows_and_matches_the_full_qp(robot,
     # Same optimum (same cost; the knots agree to the interior-point tolerance).
     assert gen.qp_objective == pytest.approx(full.qp_objective, rel=1e-6)
     np.testing.assert_allclose(gen.dkappa, full.dkappa, atol=5e-5)  # solver tolerance
-    # A single round that cannot fix everything falls back to every row.
+    # A single round that cannot fix everything falls back to every row (the links' torque
+    # rows, late rows, only where violated).
     one = ilc_update(
         record,
         command,
@@ -246,7 +247,9 @@ def test_constraint_generation_adds_violated_rows_and_matches_the_full_qp(robot,
         PARAMS,
         UpdateSettings(weights=weights, limits=lim, margin=1.0, max_rounds=1),
     )
-    assert one.limit_rounds == 2 and one.n_limit_rows == one.n_limit_rows_total
+    late = one.n_limit_rows_total // len(LIMIT_KINDS)  # one block: tau_links
+    assert one.limit_rounds >= 2
+    assert one.n_limit_rows_total - late <= one.n_limit_rows < one.n_limit_rows_total
     assert one.qp_objective == pytest.approx(full.qp_objective, rel=1e-6)
 
 
