@@ -224,13 +224,14 @@ def limit_rows(
     }
     parts, bs, los, his, blocks = [], [], [], [], {}
     start = 0
+    states = (derivs[0], derivs[1], derivs[2])
+    tau = None  # the whole torque, computed once for both torque blocks
     for kind in kinds:
         if kind in ("tau", "tau_links"):
-            states = (derivs[0], derivs[1], derivs[2])
             links = kind == "tau_links"
-            b = robot_model.torques(*states)  # type: ignore[union-attr]
-            if links:
-                b = b - robot_model.passive_torques(*states)  # type: ignore[union-attr]
+            if tau is None:
+                tau = robot_model.torques(*states)  # type: ignore[union-attr]
+            b = tau - robot_model.passive_torques(*states) if links else tau  # type: ignore[union-attr]
             S = tuple(jacs[r].reshape(m, N_JOINTS, N_VARS) for r in (0, 1, 2))
             parts.append(_TorqueBlock(robot_model, states, S, links))  # type: ignore[arg-type]
         else:

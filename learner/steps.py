@@ -106,7 +106,7 @@ class Damping:
         if cost is None:
             return None
         p = self.params
-        if math.isinf(cost) and cost > 0:  # a step that measured nothing: never the best
+        if cost == math.inf:  # a step that measured nothing: never the best
             self.lam *= p.grow
             return False
         if self.best is None or cost < self.best[0]:

@@ -444,7 +444,13 @@ class DampedStep(StopRule):
         action = f"{why}: from the best command (trial {best.summary.trial + 1}), lambda {lam:.3g}"
         return self._ruling(trial, best.knots, action, lambda moves: moves.update_about(best, lam))
 
-    def _ruling(self, trial: Trial, base: np.ndarray, action: str, step_of) -> Ruling:
+    def _ruling(
+        self,
+        trial: Trial,
+        base: np.ndarray,
+        action: str,
+        step_of: Callable[[Moves], UpdateResult | None],
+    ) -> Ruling:
         """A step from ``base`` by ``step_of(moves)``'s update (``base`` itself when the QP
         fails), ``action`` written on the trial's ledger line."""
 
