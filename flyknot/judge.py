@@ -14,7 +14,8 @@ and the gym envs ask a judge, never a cell's internals, and count ``verdict.succ
   Eleven markers ~0.1 m apart resolve a loose knot only: the real lab offers it to the
   operator as a suggestion.
 - :class:`OperatorJudge`: a person's answer, one of :data:`flyknot.verdict.OPERATOR_ANSWERS`
-  (``"knot"`` in the hanging rope, ``"wrapped"`` round the held end or tube, ``"none"``) or
+  (``"knot"`` in the hanging rope, ``"wrapped"`` round the held end or tube, ``"floor"`` a
+  knot lying on the floor, ``"none"``) or
   None (cannot tell), shown the markers' suggestion first.
 """
 

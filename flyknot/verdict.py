@@ -19,7 +19,9 @@ after the knotted-core idea of Millett, Dobay & Stasiak, Macromolecules 38 (2005
 is found by trimming the rope from the free end, then from the held end, while the trimmed
 arc still has the knot (:func:`knot_core`). If the knot needs the tube, or its core starts
 within ``clearance_m`` of the held end, the rope is looped round its held end or the tube:
-``wrapped_at_grip``, not a flying knot.
+``wrapped_at_grip``, not a flying knot. If the core rests on the floor (its lowest point
+within ``floor_clearance_m`` of it), the knot lies on the floor, not in a rope hanging down,
+and the floor may have helped tie it: ``on_floor``, not a flying knot either.
 
 Classes (:data:`CLASSES`):
 
@@ -31,6 +33,7 @@ Classes (:data:`CLASSES`):
                      held end thread a loop (a loop round the held end), or a rope that
                      lies round the tube (:func:`round_the_tube`)
 ``ambiguous``        no knot type has a supermajority of closures
+``on_floor``         a knot (any type) with a supermajority whose core rests on the floor
 ``other_knot``       another knot (figure-eight, ...) with a supermajority, clear of the grip
 ``unknot``           a supermajority of closures say unknot
 ===================  =====================================================================
@@ -40,6 +43,7 @@ Nothing ambiguous counts: :attr:`Verdict.success` is True for ``knot`` only.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -61,9 +65,10 @@ KNOT = "knot"
 WRAPPED_AT_GRIP = "wrapped_at_grip"
 AMBIGUOUS = "ambiguous"
 OTHER_KNOT = "other_knot"
+ON_FLOOR = "on_floor"
 UNKNOTTED = "unknot"
 
-CLASSES = (KNOT, WRAPPED_AT_GRIP, AMBIGUOUS, OTHER_KNOT, UNKNOTTED)
+CLASSES = (KNOT, WRAPPED_AT_GRIP, AMBIGUOUS, ON_FLOOR, OTHER_KNOT, UNKNOTTED)
 """Every verdict class; ``knot`` is the only success."""
 
 SOURCES = ("truth", "markers", "operator")
@@ -72,7 +77,7 @@ SOURCES = ("truth", "markers", "operator")
 JUDGE_NAME = "verdict"
 """How run summaries name this judge (``"judge"``): their counts are verdicts' classes."""
 
-OPERATOR_ANSWERS = {"knot": KNOT, "wrapped": WRAPPED_AT_GRIP, "none": UNKNOTTED}
+OPERATOR_ANSWERS = {"knot": KNOT, "wrapped": WRAPPED_AT_GRIP, "floor": ON_FLOOR, "none": UNKNOTTED}
 """What an operator of the real lab answers, and the class each answer gives."""
 
 
@@ -99,6 +104,14 @@ class JudgeParams:
             its centreline at the tube's radius (10 mm, ``assets/xarm7/xarm7.xml``) plus its
             own (3.5-12.5 mm for the paper's ropes): 14-23 mm; 0.05 m also takes a loose turn
             of about twice that.
+        floor_z_m: Height of the floor in the centreline's frame [m]: 0 in the lab frame,
+            whose origin lies on the floor (``flyknot.record``: the base's z is its height
+            above the floor); None: no floor (a bench rope hanging in free space).
+        floor_clearance_m: A knot whose core comes within this height of the floor rests
+            on it [m]. The thickest of the paper's ropes (rope 5, 25 mm) lies with its
+            centreline 12.5 mm up; 0.02 m leaves 7.5 mm for the contact's softness. A core
+            resting on the floor (measured: 4 mm up for rope 1's 9 mm) sits under it; a knot
+            in the hanging rope above a rope end lying on the floor sits centimetres higher.
     """
 
     n_directions: int = DEFAULT_DIRECTIONS
@@ -107,6 +120,8 @@ class JudgeParams:
     tube_length_m: float = 1.0
     core_directions: int = 15
     wrap_radius_m: float = 0.05
+    floor_z_m: float | None = 0.0
+    floor_clearance_m: float = 0.02
 
     def __post_init__(self) -> None:
         check_int("n_directions", self.n_directions, minimum=1)
@@ -116,6 +131,11 @@ class JudgeParams:
         check_positive("clearance_m", self.clearance_m)
         check_positive("tube_length_m", self.tube_length_m)
         check_positive("wrap_radius_m", self.wrap_radius_m)
+        check_positive("floor_clearance_m", self.floor_clearance_m)
+        if self.floor_z_m is not None and not math.isfinite(self.floor_z_m):
+            raise ConfigError(
+                "floor_z_m", f"must be a finite height or None, got {self.floor_z_m!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -196,8 +216,8 @@ class Verdict:
 
 
 def operator_verdict(answer: str) -> Verdict:
-    """The verdict of a person's answer: ``"knot"`` (in the hanging rope), ``"wrapped"`` or
-    ``"none"``; the error lists the valid answers."""
+    """The verdict of a person's answer: ``"knot"`` (in the hanging rope), ``"wrapped"``,
+    ``"floor"`` (a knot lying on the floor) or ``"none"``; the error lists the valid answers."""
     check_choice("answer", answer, tuple(OPERATOR_ANSWERS))
     klass = OPERATOR_ANSWERS[answer]
     return Verdict(klass=klass, knot=UNKNOT if klass == UNKNOTTED else TREFOIL, source="operator")
@@ -297,6 +317,14 @@ def round_the_tube(points: np.ndarray, tubed: np.ndarray, radius: float) -> bool
     return bool(np.any((along < 0.0) & (off < radius)))
 
 
+def rests_on_floor(core: np.ndarray, params: JudgeParams) -> bool:
+    """Whether a knot's core rests on the floor: ``min_k z_k - z_floor < floor_clearance_m``
+    over the core's vertices, shape (m, 3) [m]; never without a floor (``floor_z_m`` None)."""
+    if params.floor_z_m is None:
+        return False
+    return bool(np.min(core[:, 2]) - params.floor_z_m < params.floor_clearance_m)
+
+
 def _held_end_threaded(points: np.ndarray, params: JudgeParams) -> bool:
     """Whether a loop surrounds the held end: with the held end closed by free rays instead of
     the tube, the unknot loses its supermajority (only the held end's closure differs)."""
@@ -345,6 +373,8 @@ def judge_centreline(
         klass = WRAPPED_AT_GRIP
     elif not decisive:
         klass = AMBIGUOUS
+    elif rests_on_floor(p[core[0] : core[1] + 1], params):
+        klass = ON_FLOOR
     else:
         klass = KNOT if knot == TREFOIL else OTHER_KNOT
     return Verdict(klass, top, votes, core, from_held, source)

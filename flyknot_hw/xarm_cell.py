@@ -98,18 +98,20 @@ stops the joints itself: a stalled host cannot leave the arm moving)."""
 
 def console_ask(record: TrialRecord, suggestion: Verdict | None) -> str | None:
     """Ask the operator at the terminal what the rope holds: ``"knot"`` (an overhand knot in
-    the hanging rope), ``"wrapped"`` (looped round the held end or the tube), ``"none"``, or
-    None (cannot tell)."""
+    the hanging rope), ``"wrapped"`` (looped round the held end or the tube), ``"floor"`` (a
+    knot lying on the floor), ``"none"``, or None (cannot tell)."""
     hint = f" (the markers suggest: {suggestion.describe()})" if suggestion else ""
     answer = input(
-        f"Trial done{hint}. [k]not in the hanging rope / [w]rapped at the grip / [n]one / "
-        "[?] can't tell: "
+        f"Trial done{hint}. [k]not in the hanging rope / [w]rapped at the grip / "
+        "knot on the [f]loor / [n]one / [?] can't tell: "
     ).strip()
     return {
         "k": "knot",
         "knot": "knot",
         "w": "wrapped",
         "wrapped": "wrapped",
+        "f": "floor",
+        "floor": "floor",
         "n": "none",
         "none": "none",
     }.get(answer.lower())

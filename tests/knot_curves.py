@@ -1,7 +1,8 @@
 """Constructed rope centrelines with a known verdict, for the judge's tests.
 
-Every curve hangs from its held end (first point) along -z; the tube leaves the held end
-along ``TUBE_AXIS`` (out of the tube, the direction the rope leaves it).
+Every curve hangs from its held end (first point) along -z in the lab frame, its knot about
+``HANG_Z`` above the floor (z = 0); the tube leaves the held end along ``TUBE_AXIS`` (out of
+the tube, the direction the rope leaves it).
 """
 
 from __future__ import annotations
@@ -14,6 +15,11 @@ from flyknot.verdict import KNOT, UNKNOTTED, WRAPPED_AT_GRIP, Verdict
 
 TUBE_AXIS = np.array([0.0, 0.0, -1.0])
 """Out of the tube: the rope leaves the tube downward."""
+
+HANG_Z = 1.5
+"""[m] Height of a knot (or of a straight rope's held end) above the lab's floor: a rope
+hanging from a fingertip above 1.2 m (``flyknot.constants.Z_MIN_TIP``)."""
+_UP = np.array([0.0, 0.0, HANG_Z])
 
 
 def _segment(a: np.ndarray, b: np.ndarray, spacing: float) -> np.ndarray:
@@ -28,7 +34,8 @@ def _with_tails(knot: np.ndarray, above: float, tail: float, spacing: float) -> 
     top, bottom = knot[0], knot[-1]
     held = top + np.array([0.0, 0.0, above])
     free = bottom - np.array([0.0, 0.0, tail])
-    return np.vstack([_segment(held, top, spacing), knot, _segment(bottom, free, spacing), free])
+    rope = np.vstack([_segment(held, top, spacing), knot, _segment(bottom, free, spacing), free])
+    return rope + _UP
 
 
 def trefoil_arc(scale: float, n: int = 60) -> np.ndarray:
@@ -72,12 +79,12 @@ def loop_round_held_end(*, radius: float = 0.03, drop: float = 1.0, n: int = 40)
     loop = np.vstack([[0.0, 0.0, 0.0], [0.0, -radius, -0.01], loop[1:]])
     last = loop[-1]
     hang = _segment(last + np.array([0.0, 0.0, -0.03]), last - np.array([0.0, 0.0, drop]), 0.03)
-    return np.vstack([loop, hang, last - np.array([0.0, 0.0, drop])])
+    return np.vstack([loop, hang, last - np.array([0.0, 0.0, drop])]) + _UP
 
 
 def straight(length: float = 1.1, n: int = 31) -> np.ndarray:
     """A rope hanging straight down."""
-    return np.stack([np.zeros(n), np.zeros(n), -np.linspace(0.0, length, n)], 1)
+    return np.stack([np.zeros(n), np.zeros(n), HANG_Z - np.linspace(0.0, length, n)], 1)
 
 
 def transformed(points: np.ndarray, rotation: np.ndarray, shift: np.ndarray, scale: float):
@@ -104,4 +111,5 @@ def end_in_its_loop(*, above: float = 0.4) -> np.ndarray:
     """An overhand knot whose free end stops half way through the loop: whether it is knotted
     depends on which way the end is closed (no supermajority: ambiguous)."""
     arc = trefoil_arc(0.03, 80)[:70]
-    return np.vstack([_segment(arc[0] + np.array([0.0, 0.0, above]), arc[0], 0.03), arc])
+    rope = np.vstack([_segment(arc[0] + np.array([0.0, 0.0, above]), arc[0], 0.03), arc])
+    return rope + _UP

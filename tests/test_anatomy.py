@@ -8,6 +8,7 @@ Constructed records carry a truth centreline history written as a string, one ch
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -89,7 +90,7 @@ def record(
 
 def test_every_label_is_documented_and_coloured():
     assert set(an.DESCRIPTIONS) == set(an.COLOURS) == set(an.LABELS)
-    assert len(set(an.LABELS)) == len(an.LABELS) == 11
+    assert len(set(an.LABELS)) == len(an.LABELS) == 12
     for label in an.LABELS:
         assert f"``{label}``" in an.__doc__
 
@@ -146,6 +147,14 @@ def test_other_knot():
     for name in ("4_1", "other"):
         d = an.diagnose(record(None, knot=name))
         assert d.label == an.OTHER_KNOT and d.knot == name
+
+
+def test_a_knot_on_the_floor_is_its_own_failure():
+    rec = record("l" * 10 + "T" * 30, knot="trefoil")
+    on_floor = Verdict("on_floor", "trefoil", {"trefoil": 31}, (20, 30), 0.8)
+    d = an.diagnose(dataclasses.replace(rec, verdict=on_floor))
+    assert (d.label, d.knot) == (an.ON_FLOOR, "trefoil")
+    assert an.diagnose(rec).label == an.SUCCESS
 
 
 def test_markers_lost_before_t_c_keeps_the_outcome():

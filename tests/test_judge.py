@@ -21,9 +21,11 @@ DOWN = [0.0, 1.0, 0.0, 0.0]  # fingertip z axis (out of the tube) pointing down:
 
 
 def _hanging_knot() -> np.ndarray:
-    """Fingertip then 11 markers of a loose overhand knot 0.35 m below the fingertip."""
+    """Fingertip (1.6 m above the floor) then 11 markers of a loose overhand knot 0.35 m below
+    the fingertip."""
     arc = trefoil_arc(0.04, 9) + np.array([0.0, 0.0, -0.35])
-    return np.vstack([[0.0, 0.0, 0.0], [0.0, -0.12, -0.15], arc, arc[-1] + [0.0, 0.0, -0.15]])
+    line = np.vstack([[0.0, 0.0, 0.0], [0.0, -0.12, -0.15], arc, arc[-1] + [0.0, 0.0, -0.15]])
+    return line + np.array([0.0, 0.0, 1.6])
 
 
 def _record(line: np.ndarray, m: int = 5, **kw) -> TrialRecord:
@@ -60,9 +62,12 @@ def test_marker_judge_sees_a_knot_in_the_hanging_rope_and_a_straight_rope():
     v = MarkerJudge()(_record(_hanging_knot()))
     assert v.klass == "knot" and v.success and v.source == "markers"
     assert v.votes == {"trefoil": 31} and v.core_from_held_m > 0.3
-    straight = np.stack([np.zeros(12), np.zeros(12), -0.1 * np.arange(12)], 1)
+    straight = np.stack([np.zeros(12), np.zeros(12), 1.6 - 0.1 * np.arange(12)], 1)
     s = MarkerJudge()(_record(straight))
     assert s.klass == "unknot" and not s.success
+    # The same knot with the fingertip 0.4 m up: its core lies on the floor.
+    low = MarkerJudge()(_record(_hanging_knot() - np.array([0.0, 0.0, 1.2])))
+    assert low.klass == "on_floor" and not low.success
 
 
 def test_marker_judge_reads_the_tube_axis_from_the_fingertip():
@@ -88,28 +93,31 @@ def test_marker_judge_uses_the_last_fully_tracked_frame():
 
 def test_operator_is_shown_the_suggestion_and_answers():
     seen = []
-    answers = iter(["knot", "wrapped", "none", None])
+    answers = iter(["knot", "wrapped", "floor", "none", None])
 
     def ask(record, suggestion):
         seen.append(suggestion.klass)
         return next(answers)
 
     judge = OperatorJudge(ask)
-    got = [judge(_record(_hanging_knot())) for _ in range(4)]
+    got = [judge(_record(_hanging_knot())) for _ in range(5)]
     assert [None if v is None else v.klass for v in got] == [
         "knot",
         "wrapped_at_grip",
+        "on_floor",
         "unknot",
         None,
     ]
     assert got[0].success and not got[1].success and got[0].source == "operator"
-    assert seen == ["knot"] * 4
+    assert not got[2].success
+    assert seen == ["knot"] * 5
     assert OperatorJudge(lambda r, s: None, suggest=None)(_record(_hanging_knot())) is None
 
 
 def test_an_operator_answer_outside_the_choices_names_them():
     with pytest.raises(
-        ConfigError, match=r"^answer: unknown value 'yes' \(valid choices: knot, wrapped, none\)$"
+        ConfigError,
+        match=r"^answer: unknown value 'yes' \(valid choices: knot, wrapped, floor, none\)$",
     ):
         OperatorJudge(lambda r, s: "yes", suggest=None)(_record(_hanging_knot()))
 

@@ -142,10 +142,13 @@ def test_knot_core_lies_round_the_knot():
     name=st.sampled_from(DECISIVE),
 )
 def test_rigid_motions_leave_the_knot_and_its_vote_alone(rot, shift, scale, name):
-    curve = CASES[name][0]
+    # Only without a floor: a rigid motion can lower a knot onto the floor.
+    curve, free = CASES[name][0], JudgeParams(floor_z_m=None)
     r = so3_exp(np.array(rot))
     moved = transformed(curve, r, np.array(shift), 1.0)
-    v0, v1 = judge_centreline(curve, TUBE_AXIS), judge_centreline(moved, r @ TUBE_AXIS)
+    v0 = judge_centreline(curve, TUBE_AXIS, free)
+    v1 = judge_centreline(moved, r @ TUBE_AXIS, free)
+    assert v0.klass == CASES[name][1]
     assert (v1.klass, v1.knot) == (v0.klass, v0.knot)
     if v0.core is not None:  # the closure directions are fixed in space: a vertex or two
         assert np.abs(np.subtract(v1.core, v0.core)).max() <= 2
@@ -171,5 +174,40 @@ def test_bad_input_names_the_field():
         judge_centreline(straight(), np.zeros(3))
     with pytest.raises(RecordError, match=r"^points: need at least 4 points, got 2$"):
         judge_centreline(straight()[:2])
-    assert set(CLASSES) == {"knot", "wrapped_at_grip", "ambiguous", "other_knot", "unknot"}
+    with pytest.raises(
+        ConfigError, match=r"^floor_clearance_m: must be a finite number > 0, got 0.0$"
+    ):
+        JudgeParams(floor_clearance_m=0.0)
+    with pytest.raises(ConfigError, match=r"^floor_z_m: must be a finite height or None, got nan$"):
+        JudgeParams(floor_z_m=float("nan"))
+    assert set(CLASSES) == {
+        "knot",
+        "wrapped_at_grip",
+        "ambiguous",
+        "on_floor",
+        "other_knot",
+        "unknot",
+    }
     assert operator_verdict("wrapped").klass == "wrapped_at_grip"
+    assert operator_verdict("floor").klass == "on_floor"
+    assert not operator_verdict("floor").success
+
+
+@pytest.mark.parametrize(
+    ("core_lowest", "klass"),
+    [(0.0045, "on_floor"), (0.0195, "on_floor"), (0.0205, "knot"), (0.05, "knot")],
+)
+def test_a_knot_lying_on_the_floor_is_not_a_knot_in_the_hanging_rope(core_lowest, klass):
+    """The same tight knot lowered until its core's lowest point is ``core_lowest`` above the
+    floor, its tail (0.3 m) bent along the floor: within 2 cm it rests on the floor."""
+    rope = overhand(above=0.6, tail=0.0)
+    rope = rope - np.array([0.0, 0.0, rope[:, 2].min() - core_lowest])
+    tail = rope[-1] + np.outer(np.linspace(0.03, 0.3, 10), [1.0, 0.0, 0.0])
+    tail[:, 2] = min(core_lowest, 0.0045)  # a 9 mm rope lying on the floor
+    v = judge_centreline(np.vstack([rope, tail]), TUBE_AXIS)
+    assert (v.klass, v.knot) == (klass, "trefoil")
+    assert v.success is (klass == "knot")
+    lowest = np.vstack([rope, tail])[v.core[0] : v.core[1] + 1, 2].min()
+    assert lowest == pytest.approx(core_lowest, abs=1e-3)
+    # The same rope judged as a bench rope in free space (no floor) is a knot.
+    assert judge_centreline(np.vstack([rope, tail]), TUBE_AXIS, JudgeParams(floor_z_m=None)).success

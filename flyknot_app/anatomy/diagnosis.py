@@ -12,6 +12,7 @@ Every trial gets one label (:data:`LABELS`, in order of precedence; the first th
 ``wrapped_at_grip`` the rope is looped round its held end or the tube: a knot type that
                    needs the tube or sits within the judge's clearance of the held end
 ``ambiguous``      no knot type has a supermajority of the closure vote
+``on_floor``       a knot whose core rests on the floor, not in the hanging rope
 ``not_through``    it touched itself, but no trefoil appears after the contact: the free end
                    never went through the loop
 ``slipped_out``    a trefoil appears after the contact but never lasts ``PERSIST_S``: the end
@@ -84,6 +85,7 @@ from flyknot.errors import (
 from flyknot.knot import TREFOIL, UNKNOT
 from flyknot.record import TrialRecord
 from flyknot.verdict import AMBIGUOUS as AMBIGUOUS_CLASS
+from flyknot.verdict import ON_FLOOR as ON_FLOOR_CLASS
 from flyknot.verdict import OTHER_KNOT as OTHER_CLASS
 from flyknot.verdict import WRAPPED_AT_GRIP, JudgeParams, Verdict, judge_centreline
 from flyknot_app.anatomy.trials import TrialEvidence
@@ -95,6 +97,7 @@ MARKERS_LOST = "markers_lost"
 NO_CONTACT = "no_contact"
 WRAPPED = "wrapped_at_grip"
 AMBIGUOUS = "ambiguous"
+ON_FLOOR = "on_floor"
 NOT_THROUGH = "not_through"
 SLIPPED_OUT = "slipped_out"
 SHAKEN_LOOSE = "shaken_loose"
@@ -108,6 +111,7 @@ LABELS = (
     NO_CONTACT,
     WRAPPED,
     AMBIGUOUS,
+    ON_FLOOR,
     NOT_THROUGH,
     SLIPPED_OUT,
     SHAKEN_LOOSE,
@@ -123,6 +127,7 @@ DESCRIPTIONS = {
     NO_CONTACT: "the rope never touched itself",
     WRAPPED: "looped round the held end or tube",
     AMBIGUOUS: "no knot type has a supermajority",
+    ON_FLOOR: "a knot lying on the floor, not hanging",
     NOT_THROUGH: "touched, but the end never went through",
     SLIPPED_OUT: "end went through the loop, slipped out",
     SHAKEN_LOOSE: "knot tied, then shaken loose",
@@ -138,6 +143,7 @@ COLOURS = {
     NO_CONTACT: "#c7c7c7",
     WRAPPED: "#8c564b",
     AMBIGUOUS: "#e377c2",
+    ON_FLOOR: "#17becf",
     NOT_THROUGH: "#ff7f0e",
     SLIPPED_OUT: "#e6c229",
     SHAKEN_LOOSE: "#d62728",
@@ -161,7 +167,12 @@ learner's critical-point fit (``MarkerFitParams.max_extrapolation``)."""
 
 _TIME_TOL = 1e-9  # [s] float rounding of sample times
 
-_VERDICT_LABELS = {WRAPPED_AT_GRIP: WRAPPED, AMBIGUOUS_CLASS: AMBIGUOUS, OTHER_CLASS: OTHER_KNOT}
+_VERDICT_LABELS = {
+    WRAPPED_AT_GRIP: WRAPPED,
+    AMBIGUOUS_CLASS: AMBIGUOUS,
+    ON_FLOOR_CLASS: ON_FLOOR,
+    OTHER_CLASS: OTHER_KNOT,
+}
 """Verdict classes that are their own failure label."""
 
 
