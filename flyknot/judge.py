@@ -21,9 +21,10 @@ and the gym envs ask a judge, never a cell's internals, and count ``verdict.succ
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import dataclasses
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -67,6 +68,21 @@ def final_polyline(record: TrialRecord) -> tuple[np.ndarray, np.ndarray] | None:
     return line, tube_axis_of(record.fingertip_quat[j])
 
 
+ROPE_DIAMETER_KEY = "rope_diameter_m"
+"""The record metadata key of the rope's diameter [m] (the lab's records carry it)."""
+
+
+def judge_params_for(metadata: Mapping[str, Any], params: JudgeParams | None = None) -> JudgeParams:
+    """``params`` with the rope's radius from a record's metadata (``ROPE_DIAMETER_KEY``),
+    so that a knot touching the floor is told by the rope's own thickness; unchanged when
+    the metadata has no diameter (a record of the real lab: its operator decides)."""
+    params = JudgeParams() if params is None else params
+    diameter = metadata.get(ROPE_DIAMETER_KEY)
+    if not isinstance(diameter, (int, float)) or isinstance(diameter, bool):
+        return params
+    return dataclasses.replace(params, rope_radius_m=0.5 * float(diameter))
+
+
 @dataclass(frozen=True)
 class MarkerJudge:
     """The verdict on the final marker polyline (:func:`final_polyline`).
@@ -85,7 +101,8 @@ class MarkerJudge:
         if seen is None:
             return None
         line, axis = seen
-        return judge_centreline(line, axis, self.params, source="markers")
+        params = judge_params_for(record.metadata, self.params)
+        return judge_centreline(line, axis, params, source="markers")
 
 
 @dataclass(frozen=True)

@@ -20,8 +20,9 @@ is found by trimming the rope from the free end, then from the held end, while t
 arc still has the knot (:func:`knot_core`). If the knot needs the tube, or its core starts
 within ``clearance_m`` of the held end, the rope is looped round its held end or the tube:
 ``wrapped_at_grip``, not a flying knot. If the core rests on the floor (its lowest point
-within ``floor_clearance_m`` of it), the knot lies on the floor, not in a rope hanging down,
-and the floor may have helped tie it: ``on_floor``, not a flying knot either.
+within the rope's radius and ``floor_clearance_m`` of it), the knot lies on the floor, not in
+a rope hanging down, and the floor may have helped tie it: ``on_floor``, not a flying knot
+either.
 
 Classes (:data:`CLASSES`):
 
@@ -33,7 +34,7 @@ Classes (:data:`CLASSES`):
                      held end thread a loop (a loop round the held end), or a rope that
                      lies round the tube (:func:`round_the_tube`)
 ``ambiguous``        no knot type has a supermajority of closures
-``on_floor``         a knot (any type) with a supermajority whose core rests on the floor
+``on_floor``         a knot (any type) with a supermajority whose core touches the floor
 ``other_knot``       another knot (figure-eight, ...) with a supermajority, clear of the grip
 ``unknot``           a supermajority of closures say unknot
 ===================  =====================================================================
@@ -50,7 +51,14 @@ from typing import Any
 
 import numpy as np
 
-from flyknot.errors import ConfigError, RecordError, check_choice, check_int, check_positive
+from flyknot.errors import (
+    ConfigError,
+    RecordError,
+    check_choice,
+    check_int,
+    check_nonnegative,
+    check_positive,
+)
 from flyknot.geometry import quat_to_matrix
 from flyknot.knot import (
     DEFAULT_DIRECTIONS,
@@ -107,11 +115,13 @@ class JudgeParams:
         floor_z_m: Height of the floor in the centreline's frame [m]: 0 in the lab frame,
             whose origin lies on the floor (``flyknot.record``: the base's z is its height
             above the floor); None: no floor (a bench rope hanging in free space).
-        floor_clearance_m: A knot whose core comes within this height of the floor rests
-            on it [m]. The thickest of the paper's ropes (rope 5, 25 mm) lies with its
-            centreline 12.5 mm up; 0.02 m leaves 7.5 mm for the contact's softness. A core
-            resting on the floor (measured: 4 mm up for rope 1's 9 mm) sits under it; a knot
-            in the hanging rope above a rope end lying on the floor sits centimetres higher.
+        rope_radius_m: The rope's radius [m] (half its diameter; the lab's records carry
+            it as ``metadata["rope_diameter_m"]``: :func:`flyknot.judge.judge_params_for`).
+        floor_clearance_m: A knot whose core's centreline comes within ``rope_radius_m +
+            floor_clearance_m`` of the floor touches it [m]. A rope resting on the lab's floor
+            lies with its centreline at its radius or up to 0.5 mm below it (MuJoCo's soft
+            contact; measured: 4.0-4.5 mm for rope 1's 4.5 mm); 5 mm above that is clear of
+            the floor by a few millimetres more than a resting rope sinks into it.
     """
 
     n_directions: int = DEFAULT_DIRECTIONS
@@ -121,7 +131,8 @@ class JudgeParams:
     core_directions: int = 15
     wrap_radius_m: float = 0.05
     floor_z_m: float | None = 0.0
-    floor_clearance_m: float = 0.02
+    rope_radius_m: float = 0.0
+    floor_clearance_m: float = 0.005
 
     def __post_init__(self) -> None:
         check_int("n_directions", self.n_directions, minimum=1)
@@ -131,6 +142,7 @@ class JudgeParams:
         check_positive("clearance_m", self.clearance_m)
         check_positive("tube_length_m", self.tube_length_m)
         check_positive("wrap_radius_m", self.wrap_radius_m)
+        check_nonnegative("rope_radius_m", self.rope_radius_m)
         check_positive("floor_clearance_m", self.floor_clearance_m)
         if self.floor_z_m is not None and not math.isfinite(self.floor_z_m):
             raise ConfigError(
@@ -318,11 +330,13 @@ def round_the_tube(points: np.ndarray, tubed: np.ndarray, radius: float) -> bool
 
 
 def rests_on_floor(core: np.ndarray, params: JudgeParams) -> bool:
-    """Whether a knot's core rests on the floor: ``min_k z_k - z_floor < floor_clearance_m``
-    over the core's vertices, shape (m, 3) [m]; never without a floor (``floor_z_m`` None)."""
+    """Whether a knot's core touches the floor: ``min_k z_k - z_floor < r + floor_clearance_m``
+    over the core's centreline vertices, shape (m, 3) [m], ``r`` the rope's radius; never
+    without a floor (``floor_z_m`` None)."""
     if params.floor_z_m is None:
         return False
-    return bool(np.min(core[:, 2]) - params.floor_z_m < params.floor_clearance_m)
+    reach = params.rope_radius_m + params.floor_clearance_m
+    return bool(np.min(core[:, 2]) - params.floor_z_m < reach)
 
 
 def _held_end_threaded(points: np.ndarray, params: JudgeParams) -> bool:

@@ -29,6 +29,7 @@ from flyknot.verdict import KNOT, JudgeParams, Verdict, judge_centreline, tube_a
 from flyknot_app.anatomy.trials import (
     TrialFile,
     find_trials,
+    judge_params_of,
     load_record,
     load_replay,
     require_trials,
@@ -111,7 +112,7 @@ def rejudge(f: TrialFile, *, keep_stored: bool = False) -> Rejudged:
         ev = load_replay(f.path)
         old = ev.verdict
         frame = None if ev.centreline is None else final_frame(ev.centreline)
-        new = None if frame is None else judge_centreline(frame)
+        new = None if frame is None else judge_centreline(frame, None, judge_params_of(ev.metadata))
         new = old if keep_stored and old is not None else new
         return Rejudged(
             f.name, f.path, f.kind, None, ev.knot, None if old is None else old.klass, new
@@ -127,9 +128,10 @@ def rejudge(f: TrialFile, *, keep_stored: bool = False) -> Rejudged:
     if rec.fault is None:
         frame = final_frame(rec.truth["centreline"]) if "centreline" in rec.truth else None
         if frame is not None:
-            new = judge_centreline(frame, tube_axis_of(rec.fingertip_quat[-1]))
+            params = judge_params_of(rec.metadata)
+            new = judge_centreline(frame, tube_axis_of(rec.fingertip_quat[-1]), params)
         else:
-            new = MarkerJudge()(rec)
+            new = MarkerJudge(judge_params_of(rec.metadata))(rec)
     old = rec.verdict
     return Rejudged(
         f.name, f.path, f.kind, rec.fault, rec.knot, None if old is None else old.klass, new

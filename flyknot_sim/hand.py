@@ -349,7 +349,7 @@ class HandLab:
             knot, knot_any, settle_fraction = _judge(t, verts, judged, plan.motion_end)
             if monitor.observe(float(t[-1]), float("nan"), self._verdict):  # the cap reached
                 settle_meta = monitor.outcome.as_metadata(rule)
-            final = judge_centreline(verts[-1])
+            final = judge_centreline(verts[-1], params=p.judge_params)
             knot = final.knot
         return HandTrial(
             t=t,

@@ -17,6 +17,7 @@ import numpy as np
 
 from flyknot.errors import ConfigError, check_nonnegative, check_positive
 from flyknot.rest import SettleParams
+from flyknot.verdict import JudgeParams
 from flyknot_sim.aero import AeroParams
 from flyknot_sim.bend_friction import BendFrictionParams
 from flyknot_sim.rope_custom import resolve_rope
@@ -151,6 +152,11 @@ class HandParams:
     def rope_params(self) -> RopeParams:
         """The rope."""
         return resolve_rope(self.rope, self.ropes)
+
+    @property
+    def judge_params(self) -> JudgeParams:
+        """The judge of this rope: a knot touching the floor by the rope's own radius."""
+        return JudgeParams(rope_radius_m=0.5 * self.rope_params.diameter)
 
     def joint_inertia(self) -> np.ndarray:
         """Inertia seen by each joint, (m, m, m, I + I_a, I + I_a, I + I_a), shape (6,)

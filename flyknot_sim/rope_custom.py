@@ -16,6 +16,7 @@ from typing import Any
 
 from flyknot.constants import MARKER_SPACING, N_MARKERS, ROPE_TABLE
 from flyknot.errors import ConfigError
+from flyknot.judge import ROPE_DIAMETER_KEY
 from flyknot_sim.rope_fields import (
     DEFAULT_SEGMENTS,
     DEFAULT_TIMESTEP,
@@ -286,10 +287,15 @@ def resolve_rope(rope: int | str | RopeParams, ropes_file: str | Path | None = N
 
 
 def rope_record(params: RopeParams, ropes_file: str | Path | None = None) -> dict[str, Any]:
-    """What a record says about its rope: ``rope`` (the id: 1..7, or a custom rope's name)
-    and ``rope_name``; for a custom rope also ``rope_params`` (all its parameters) and
-    ``ropes_file``, so that the record describes the rope without the file."""
-    out: dict[str, Any] = {"rope": params.id, "rope_name": params.name}
+    """What a record says about its rope: ``rope`` (the id: 1..7, or a custom rope's name),
+    ``rope_name`` and ``rope_diameter_m`` (the judge's measure of a knot touching the floor,
+    :func:`flyknot.judge.judge_params_for`); for a custom rope also ``rope_params`` (all its
+    parameters) and ``ropes_file``, so that the record describes the rope without the file."""
+    out: dict[str, Any] = {
+        "rope": params.id,
+        "rope_name": params.name,
+        ROPE_DIAMETER_KEY: params.diameter,
+    }
     if params.custom:
         out["rope_params"] = params.to_dict()
         out["ropes_file"] = None if ropes_file is None else str(ropes_file)

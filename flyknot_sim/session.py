@@ -43,7 +43,7 @@ from flyknot.errors import CommandError
 from flyknot.progress import bar_disable
 from flyknot.record import JointCommand, TrialRecord
 from flyknot.rest import SettleMonitor
-from flyknot.verdict import judge_centreline, tube_axis_of, tube_knot
+from flyknot.verdict import JudgeParams, judge_centreline, tube_axis_of, tube_knot
 from flyknot_sim import faults as faults_mod
 from flyknot_sim import mocap
 from flyknot_sim.aero import DRAG_HOLD_S
@@ -428,7 +428,8 @@ class TrialSession:
         verdict = None
         settle_meta = None
         if fault is None:
-            verdict = judge_centreline(vert_hist[n_steps], tube_axis_of(tip_quat[-1]))
+            judge = JudgeParams(rope_radius_m=0.5 * p.rope_params.diameter)
+            verdict = judge_centreline(vert_hist[n_steps], tube_axis_of(tip_quat[-1]), judge)
             settle_meta = monitor.outcome.as_metadata(rule)
         truth = _truth(
             t_hist,

@@ -125,7 +125,11 @@ def test_paper_ropes_unchanged_and_named():
     assert resolve_rope("shoe lace") == get_rope(4)
     assert parse_rope_arg("4") == 4 and parse_rope_arg("my cord") == "my cord"
     assert LabParams(rope="shoe lace").rope == 4  # a paper rope's name becomes its id
-    assert rope_record(get_rope(4)) == {"rope": 4, "rope_name": "shoe lace"}
+    assert rope_record(get_rope(4)) == {
+        "rope": 4,
+        "rope_name": "shoe lace",
+        "rope_diameter_m": 0.007,
+    }
 
 
 @pytest.mark.parametrize(

@@ -13,8 +13,10 @@ from flyknot.judge import (
     OperatorJudge,
     final_polyline,
     get_judge,
+    judge_params_for,
 )
 from flyknot.record import TrialRecord
+from flyknot_app.anatomy.trials import judge_params_of
 from tests.knot_curves import trefoil_arc, verdict
 
 DOWN = [0.0, 1.0, 0.0, 0.0]  # fingertip z axis (out of the tube) pointing down: x by 180 deg
@@ -26,6 +28,14 @@ def _hanging_knot() -> np.ndarray:
     arc = trefoil_arc(0.04, 9) + np.array([0.0, 0.0, -0.35])
     line = np.vstack([[0.0, 0.0, 0.0], [0.0, -0.12, -0.15], arc, arc[-1] + [0.0, 0.0, -0.15]])
     return line + np.array([0.0, 0.0, 1.6])
+
+
+def _lowered(height: float) -> np.ndarray:
+    """:func:`_hanging_knot` with its tail's last marker turned level with the one before it,
+    lowered until the lowest marker is ``height`` [m] above the floor."""
+    line = _hanging_knot()
+    line[-1] = line[-2] + np.array([0.15, 0.0, 0.0])
+    return line - np.array([0.0, 0.0, line[1:, 2].min() - height])
 
 
 def _record(line: np.ndarray, m: int = 5, **kw) -> TrialRecord:
@@ -65,8 +75,8 @@ def test_marker_judge_sees_a_knot_in_the_hanging_rope_and_a_straight_rope():
     straight = np.stack([np.zeros(12), np.zeros(12), 1.6 - 0.1 * np.arange(12)], 1)
     s = MarkerJudge()(_record(straight))
     assert s.klass == "unknot" and not s.success
-    # The same knot with the fingertip 0.4 m up: its core lies on the floor.
-    low = MarkerJudge()(_record(_hanging_knot() - np.array([0.0, 0.0, 1.2])))
+    # The same knot lowered until its lowest marker is 3 mm up: its core lies on the floor.
+    low = MarkerJudge()(_record(_lowered(0.003)))
     assert low.klass == "on_floor" and not low.success
 
 
@@ -128,3 +138,22 @@ def test_unknown_judge_lists_the_valid_names():
         ConfigError, match=r"^judge: unknown knot judge 'eyes' \(valid choices: cell, markers\)$"
     ):
         get_judge("eyes")
+
+
+def test_the_floor_is_measured_by_the_records_rope():
+    assert judge_params_for({"rope_diameter_m": 0.012}).rope_radius_m == 0.006
+    assert judge_params_for({"rope": 2}).rope_radius_m == 0.0
+    # A knot whose core's lowest marker is 1.5 cm up: clear of the floor for a 9 mm rope,
+    # touching it for the 25 mm rope 5.
+    low = _lowered(0.015)
+    thin = MarkerJudge()(_record(low, metadata={"rope_diameter_m": 0.009}))
+    thick = MarkerJudge()(_record(low, metadata={"rope_diameter_m": 0.025}))
+    assert (thin.klass, thick.klass) == ("knot", "on_floor")
+
+
+def test_an_old_record_finds_its_ropes_diameter():
+    assert judge_params_of({"rope": 2}).rope_radius_m == pytest.approx(0.006)
+    assert judge_params_of({"rope": "shoe lace"}).rope_radius_m == pytest.approx(0.0035)
+    assert judge_params_of({"rope_params": {"diameter": 0.02}}).rope_radius_m == 0.01
+    assert judge_params_of({"rope": "my cord"}).rope_radius_m == 0.0  # its file unknown
+    assert judge_params_of({}).rope_radius_m == 0.0

@@ -195,19 +195,23 @@ def test_bad_input_names_the_field():
 
 @pytest.mark.parametrize(
     ("core_lowest", "klass"),
-    [(0.0045, "on_floor"), (0.0195, "on_floor"), (0.0205, "knot"), (0.05, "knot")],
+    [(0.0041, "on_floor"), (0.0094, "on_floor"), (0.0096, "knot"), (0.05, "knot")],
 )
-def test_a_knot_lying_on_the_floor_is_not_a_knot_in_the_hanging_rope(core_lowest, klass):
-    """The same tight knot lowered until its core's lowest point is ``core_lowest`` above the
-    floor, its tail (0.3 m) bent along the floor: within 2 cm it rests on the floor."""
+def test_a_knot_touching_the_floor_is_not_a_knot_in_the_hanging_rope(core_lowest, klass):
+    """The same tight knot in a 9 mm rope lowered until its core's lowest centreline point is
+    ``core_lowest`` above the floor, its tail (0.3 m) lying on the floor: within the rope's
+    radius and 5 mm more (9.5 mm) the knot touches the floor."""
     rope = overhand(above=0.6, tail=0.0)
     rope = rope - np.array([0.0, 0.0, rope[:, 2].min() - core_lowest])
     tail = rope[-1] + np.outer(np.linspace(0.03, 0.3, 10), [1.0, 0.0, 0.0])
-    tail[:, 2] = min(core_lowest, 0.0045)  # a 9 mm rope lying on the floor
-    v = judge_centreline(np.vstack([rope, tail]), TUBE_AXIS)
+    tail[:, 2] = min(core_lowest, 0.0045)  # lying on the floor
+    line = np.vstack([rope, tail])
+    nine_mm = JudgeParams(rope_radius_m=0.0045)
+    v = judge_centreline(line, TUBE_AXIS, nine_mm)
     assert (v.klass, v.knot) == (klass, "trefoil")
     assert v.success is (klass == "knot")
-    lowest = np.vstack([rope, tail])[v.core[0] : v.core[1] + 1, 2].min()
-    assert lowest == pytest.approx(core_lowest, abs=1e-3)
-    # The same rope judged as a bench rope in free space (no floor) is a knot.
-    assert judge_centreline(np.vstack([rope, tail]), TUBE_AXIS, JudgeParams(floor_z_m=None)).success
+    assert line[v.core[0] : v.core[1] + 1, 2].min() == pytest.approx(core_lowest, abs=1e-3)
+    # A rope twice as thick touches the floor from twice as high; no floor: a knot.
+    thick = judge_centreline(line, TUBE_AXIS, JudgeParams(rope_radius_m=0.009))
+    assert thick.klass == ("on_floor" if core_lowest < 0.014 else "knot")
+    assert judge_centreline(line, TUBE_AXIS, JudgeParams(floor_z_m=None)).success

@@ -88,7 +88,7 @@ from flyknot.verdict import AMBIGUOUS as AMBIGUOUS_CLASS
 from flyknot.verdict import ON_FLOOR as ON_FLOOR_CLASS
 from flyknot.verdict import OTHER_KNOT as OTHER_CLASS
 from flyknot.verdict import WRAPPED_AT_GRIP, JudgeParams, Verdict, judge_centreline
-from flyknot_app.anatomy.trials import TrialEvidence
+from flyknot_app.anatomy.trials import TrialEvidence, judge_params_of
 
 # --- labels ----------------------------------------------------------------------------------
 SUCCESS = "success"
@@ -416,7 +416,8 @@ def _end_verdict(ev: TrialEvidence, n_directions: int) -> Verdict | None:
     if ev.fault is None and ev.has_truth:
         for frame in ev.centreline[::-1]:
             if np.all(np.isfinite(frame)):
-                return judge_centreline(frame, params=JudgeParams(n_directions=n_directions))
+                params = judge_params_of(ev.metadata, JudgeParams(n_directions=n_directions))
+                return judge_centreline(frame, params=params)
     return None
 
 

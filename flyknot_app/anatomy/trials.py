@@ -25,8 +25,9 @@ import numpy as np
 
 from flyknot.constants import N_MARKERS, REPO_ROOT
 from flyknot.errors import ConfigError, FlyknotError, RecordError
+from flyknot.judge import ROPE_DIAMETER_KEY, judge_params_for
 from flyknot.record import TrialRecord
-from flyknot.verdict import Verdict
+from flyknot.verdict import JudgeParams, Verdict
 
 
 @dataclass(frozen=True)
@@ -183,6 +184,33 @@ def load_replay(path: str | Path) -> TrialEvidence:
         metadata=inner,
         verdict=verdict,
     )
+
+
+def judge_params_of(metadata: Mapping[str, Any], params: JudgeParams | None = None) -> JudgeParams:
+    """``params`` with the record's rope radius (:func:`flyknot.judge.judge_params_for`)."""
+    diameter = rope_diameter_of(metadata)
+    meta = {} if diameter is None else {ROPE_DIAMETER_KEY: diameter}
+    return judge_params_for(meta, params)
+
+
+def rope_diameter_of(metadata: Mapping[str, Any]) -> float | None:
+    """A record's rope diameter [m]: its ``rope_diameter_m``; for a record written before
+    records carried it, a custom rope's stored parameters, else the paper's rope of its id or
+    name; None when unknown (a custom rope's name without its file)."""
+    for value in (
+        metadata.get(ROPE_DIAMETER_KEY),
+        (metadata.get("rope_params") or {}).get("diameter"),
+    ):
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+    if metadata.get("rope") is None:
+        return None
+    from flyknot_sim.rope_custom import resolve_rope
+
+    try:
+        return resolve_rope(metadata["rope"]).diameter
+    except ConfigError:
+        return None
 
 
 def _check_directory(directory: str | Path) -> Path:
