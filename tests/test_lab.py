@@ -126,6 +126,25 @@ def test_record_round_trip_from_the_lab(tmp_path, record):
     assert back.metadata["rope"] == 1 and back.metadata["versions"]["mujoco"] == mujoco.__version__
 
 
+def test_the_labs_verdict_measures_the_floor_by_the_ropes_radius(monkeypatch):
+    import flyknot_sim.session as session
+
+    seen = []
+    judge = session.judge_centreline
+
+    def spy(points, axis, params):
+        seen.append(params)
+        return judge(points, axis, params)
+
+    monkeypatch.setattr(session, "judge_centreline", spy)
+    rec = SimLab(LabParams(rope=5, settle_s=0.1)).run(
+        swing_command(duration=0.3, amplitude=np.full(7, 0.1))
+    )
+    assert rec.fault is None
+    assert [p.rope_radius_m for p in seen] == [0.0125]
+    assert rec.metadata["rope_diameter_m"] == 0.025
+
+
 def test_unknown_rope_lists_choices():
     with pytest.raises(
         ConfigError, match=r"unknown rope id 9 \(valid choices: 1, 2, 3, 4, 5, 6, 7\)"
