@@ -333,7 +333,8 @@ def report_section(out_dir: str | Path) -> list[str]:
         f"{t['knots_new']} of {len(rows)} trials without a fault left an overhand knot in the "
         "hanging rope (`flyknot.verdict`: the held end continued along the tube, a "
         f"{p.supermajority:.2f} supermajority of {p.n_directions} closures, the knot's core at "
-        f"least {p.clearance_m:.2f} m from the held end). Classes: "
+        f"least {p.clearance_m:.2f} m from the held end and clear of the floor by "
+        f"{p.floor_clearance_m * 1000:.0f} mm over the rope's radius). Classes: "
         + ", ".join(f"{k} {v}" for k, v in sorted(t["classes_new"].items()))
         + ". Every knot, and one trial of each other class, as the rope hung at the end:",
         "",
@@ -346,11 +347,21 @@ def report_section(out_dir: str | Path) -> list[str]:
     except RenderError as e:  # no OpenGL here: the verdicts without their pictures
         lines += [f"| {r.name} | {r.new.describe()} | - |" for r in chosen]
         return [*lines, "", f"Pictures not drawn: {e}.", ""]
+    _remove_stale(out_dir / "verdicts", keep=files)
     for r, f in zip(chosen, files, strict=True):
         rel = f.relative_to(out_dir)
         lines.append(f"| {r.name} | {r.new.describe()} | [{rel.name}]({rel}) |")
     lines += [""] + [f"![{f.stem}]({f.relative_to(out_dir)})" for f in files] + [""]
     return lines
+
+
+def _remove_stale(folder: Path, keep: Sequence[Path]) -> None:
+    """Delete the pictures in ``folder`` that are not ``keep``: a run played again, or a
+    verdict judged again, leaves its old picture under an old class otherwise."""
+    kept = {Path(k).resolve() for k in keep}
+    for f in folder.glob("*.png"):
+        if f.resolve() not in kept:
+            f.unlink()
 
 
 def judge_command(

@@ -160,7 +160,12 @@ def test_the_report_shows_every_knot_and_one_trial_per_class(egl, run_dir):
     rec = TrialRecord.load(learning / "trial_0001_a0", with_truth=True)
     # A stored verdict (e.g. an operator's) is the one the report shows.
     dataclasses.replace(rec, verdict=verdict("knot")).save(learning / "trial_0001_a0")
+    # A picture of a verdict no longer given (the trial judged or played again) goes.
+    stale = run_dir / "verdicts" / "runs__rope1__learning__trial_0001_a0.on_floor.png"
+    stale.parent.mkdir(exist_ok=True)
+    stale.write_bytes(b"old")
     lines = report_section(run_dir)
+    assert not stale.exists()
     assert lines[0] == "## Verdicts"
     assert lines[2].startswith("2 of 3 trials without a fault left an overhand knot")
     rows = [x for x in lines if x.startswith("| runs/")]
