@@ -19,7 +19,7 @@ after the knotted-core idea of Millett, Dobay & Stasiak, Macromolecules 38 (2005
 is found by trimming the rope from the free end, then from the held end, while the trimmed
 arc still has the knot (:func:`knot_core`). If the knot needs the tube, or its core starts
 within ``clearance_m`` of the held end, the rope is looped round its held end or the tube:
-``wrapped_at_grip``, not a flying knot. If the core rests on the floor (its lowest point
+``wrapped_at_grip``, not a flying knot. If the core touches the floor (its lowest point
 within the rope's radius and ``floor_clearance_m`` of it), the knot lies on the floor, not in
 a rope hanging down, and the floor may have helped tie it: ``on_floor``, not a flying knot
 either.
@@ -119,9 +119,11 @@ class JudgeParams:
             it as ``metadata["rope_diameter_m"]``: :func:`flyknot.judge.judge_params_for`).
         floor_clearance_m: A knot whose core's centreline comes within ``rope_radius_m +
             floor_clearance_m`` of the floor touches it [m]. A rope resting on the lab's floor
-            lies with its centreline at its radius or up to 0.5 mm below it (MuJoCo's soft
-            contact; measured: 4.0-4.5 mm for rope 1's 4.5 mm); 5 mm above that is clear of
-            the floor by a few millimetres more than a resting rope sinks into it.
+            lies with its centreline at its radius or up to 1 mm below it (MuJoCo's soft
+            contact; measured over the lab's knots on the floor: -0.9 to 0 mm); 5 mm above
+            that is clear of the floor by several times what a resting rope sinks into it
+            (``docs/judge.md``: the knots of the paper's runs by height, and the clearance
+            across a bracket).
     """
 
     n_directions: int = DEFAULT_DIRECTIONS
@@ -329,7 +331,7 @@ def round_the_tube(points: np.ndarray, tubed: np.ndarray, radius: float) -> bool
     return bool(np.any((along < 0.0) & (off < radius)))
 
 
-def rests_on_floor(core: np.ndarray, params: JudgeParams) -> bool:
+def touches_floor(core: np.ndarray, params: JudgeParams) -> bool:
     """Whether a knot's core touches the floor: ``min_k z_k - z_floor < r + floor_clearance_m``
     over the core's centreline vertices, shape (m, 3) [m], ``r`` the rope's radius; never
     without a floor (``floor_z_m`` None)."""
@@ -387,7 +389,7 @@ def judge_centreline(
         klass = WRAPPED_AT_GRIP
     elif not decisive:
         klass = AMBIGUOUS
-    elif rests_on_floor(p[core[0] : core[1] + 1], params):
+    elif touches_floor(p[core[0] : core[1] + 1], params):
         klass = ON_FLOOR
     else:
         klass = KNOT if knot == TREFOIL else OTHER_KNOT

@@ -556,3 +556,24 @@ def test_parallel_first_imports_of_the_sdk_do_not_race(tmp_path):
     errors = [p.communicate()[1] for p in procs if p.wait() != 0]
     assert errors == []
     assert (tmp_path / ".UFACTORY" / "log" / "xarm" / "sdk").is_dir()
+
+
+@pytest.mark.parametrize(
+    ("typed", "answer"),
+    [
+        ("k", "knot"),
+        ("W", "wrapped"),
+        ("f", "floor"),
+        ("floor", "floor"),
+        ("n", "none"),
+        ("?", None),
+    ],
+)
+def test_the_operator_answers_at_the_console(monkeypatch, typed, answer):
+    from flyknot.verdict import operator_verdict
+    from flyknot_hw.xarm_cell import console_ask
+
+    monkeypatch.setattr("builtins.input", lambda prompt: typed)
+    assert console_ask(None, None) == answer
+    if answer is not None:  # every answer the console gives is one the judge takes
+        assert operator_verdict(answer).success is (answer == "knot")
