@@ -19,10 +19,9 @@ after the knotted-core idea of Millett, Dobay & Stasiak, Macromolecules 38 (2005
 is found by trimming the rope from the free end, then from the held end, while the trimmed
 arc still has the knot (:func:`knot_core`). If the knot needs the tube, or its core starts
 within ``clearance_m`` of the held end, the rope is looped round its held end or the tube:
-``wrapped_at_grip``, not a flying knot. If the core touches the floor (its lowest point
-within the rope's radius and ``floor_clearance_m`` of it), the knot lies on the floor, not in
-a rope hanging down, and the floor may have helped tie it: ``on_floor``, not a flying knot
-either.
+``wrapped_at_grip``, not a flying knot. If the rope lies on the floor and the core on the
+floor or on the rope lying there (:func:`on_the_floor`), the knot is not in a rope hanging
+down, and the floor may have helped tie it: ``on_floor``, not a flying knot either.
 
 Classes (:data:`CLASSES`):
 
@@ -34,7 +33,8 @@ Classes (:data:`CLASSES`):
                      held end thread a loop (a loop round the held end), or a rope that
                      lies round the tube (:func:`round_the_tube`)
 ``ambiguous``        no knot type has a supermajority of closures
-``on_floor``         a knot (any type) with a supermajority whose core touches the floor
+``on_floor``         a knot (any type) with a supermajority lying on the floor (on it or on
+                     the rope lying there)
 ``other_knot``       another knot (figure-eight, ...) with a supermajority, clear of the grip
 ``unknot``           a supermajority of closures say unknot
 ===================  =====================================================================
@@ -117,7 +117,7 @@ class JudgeParams:
             above the floor); None: no floor (a bench rope hanging in free space).
         rope_radius_m: The rope's radius [m] (half its diameter; the lab's records carry
             it as ``metadata["rope_diameter_m"]``: :func:`flyknot.judge.judge_params_for`).
-        floor_clearance_m: A knot whose core's centreline comes within ``rope_radius_m +
+        floor_clearance_m: A rope whose centreline comes within ``rope_radius_m +
             floor_clearance_m`` of the floor touches it [m]. A rope resting on the lab's floor
             lies with its centreline at its radius or up to 1 mm below it (MuJoCo's soft
             contact; measured over the lab's knots on the floor: -0.9 to 0 mm); 5 mm above
@@ -331,14 +331,23 @@ def round_the_tube(points: np.ndarray, tubed: np.ndarray, radius: float) -> bool
     return bool(np.any((along < 0.0) & (off < radius)))
 
 
-def touches_floor(core: np.ndarray, params: JudgeParams) -> bool:
-    """Whether a knot's core touches the floor: ``min_k z_k - z_floor < r + floor_clearance_m``
-    over the core's centreline vertices, shape (m, 3) [m], ``r`` the rope's radius; never
-    without a floor (``floor_z_m`` None)."""
+def on_the_floor(points: np.ndarray, core: tuple[int, int], params: JudgeParams) -> bool:
+    """Whether a knot lies on the floor: the rope touches the floor, ``min_k z_k - z_f < r +
+    c``, and the knot's core lies on it or on the rope lying there, ``min_{k in core} z_k -
+    z_f < 3 r + c`` (a strand on a strand on the floor has its centreline 3 r up), with ``r``
+    the rope's radius, ``c`` ``floor_clearance_m`` and ``z_f`` the floor's height; never
+    without a floor (``floor_z_m`` None).
+
+    Args:
+        points: Centreline, held end first, shape (n, 3) [m].
+        core: First and last vertex of the knot's core in ``points``.
+        params: The floor's height, the rope's radius and the clearance.
+    """
     if params.floor_z_m is None:
         return False
-    reach = params.rope_radius_m + params.floor_clearance_m
-    return bool(np.min(core[:, 2]) - params.floor_z_m < reach)
+    r, c = params.rope_radius_m, params.floor_clearance_m
+    height = points[:, 2] - params.floor_z_m
+    return bool(height.min() < r + c and height[core[0] : core[1] + 1].min() < 3 * r + c)
 
 
 def _held_end_threaded(points: np.ndarray, params: JudgeParams) -> bool:
@@ -389,7 +398,7 @@ def judge_centreline(
         klass = WRAPPED_AT_GRIP
     elif not decisive:
         klass = AMBIGUOUS
-    elif touches_floor(p[core[0] : core[1] + 1], params):
+    elif on_the_floor(p, core, params):
         klass = ON_FLOOR
     else:
         klass = KNOT if knot == TREFOIL else OTHER_KNOT
