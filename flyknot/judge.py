@@ -73,14 +73,20 @@ ROPE_DIAMETER_KEY = "rope_diameter_m"
 
 
 def judge_params_for(metadata: Mapping[str, Any], params: JudgeParams | None = None) -> JudgeParams:
-    """``params`` with the rope's radius from a record's metadata (``ROPE_DIAMETER_KEY``),
-    so that a knot touching the floor is told by the rope's own thickness; unchanged when
-    the metadata has no diameter (a record of the real lab: its operator decides)."""
-    params = JudgeParams() if params is None else params
+    """``params`` for the rope a record's metadata names by its diameter
+    (``ROPE_DIAMETER_KEY``, :func:`with_rope_diameter`); unchanged when the metadata has no
+    diameter (a record of the real lab: its operator decides)."""
     diameter = metadata.get(ROPE_DIAMETER_KEY)
     if not isinstance(diameter, (int, float)) or isinstance(diameter, bool):
-        return params
-    return dataclasses.replace(params, rope_radius_m=0.5 * float(diameter))
+        return JudgeParams() if params is None else params
+    return with_rope_diameter(float(diameter), params)
+
+
+def with_rope_diameter(diameter: float, params: JudgeParams | None = None) -> JudgeParams:
+    """``params`` with the radius ``r = d / 2`` of a rope of diameter ``d`` [m], by which the
+    judge tells a knot lying on the floor (:func:`flyknot.verdict.on_the_floor`)."""
+    params = JudgeParams() if params is None else params
+    return dataclasses.replace(params, rope_radius_m=0.5 * diameter)
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ from typing import Protocol
 import numpy as np
 
 from flyknot.errors import ConfigError, check_nonnegative, check_positive
+from flyknot.judge import with_rope_diameter
 from flyknot.rest import SettleParams
 from flyknot.verdict import JudgeParams
 from flyknot_sim.aero import AeroParams
@@ -155,8 +156,8 @@ class HandParams:
 
     @property
     def judge_params(self) -> JudgeParams:
-        """The judge of this rope: a knot touching the floor by the rope's own radius."""
-        return JudgeParams(rope_radius_m=0.5 * self.rope_params.diameter)
+        """The judge of this rope: a knot on the floor told by the rope's own radius."""
+        return with_rope_diameter(self.rope_params.diameter)
 
     def joint_inertia(self) -> np.ndarray:
         """Inertia seen by each joint, (m, m, m, I + I_a, I + I_a, I + I_a), shape (6,)

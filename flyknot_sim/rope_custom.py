@@ -288,7 +288,7 @@ def resolve_rope(rope: int | str | RopeParams, ropes_file: str | Path | None = N
 
 def rope_record(params: RopeParams, ropes_file: str | Path | None = None) -> dict[str, Any]:
     """What a record says about its rope: ``rope`` (the id: 1..7, or a custom rope's name),
-    ``rope_name`` and ``rope_diameter_m`` (the judge's measure of a knot touching the floor,
+    ``rope_name`` and ``rope_diameter_m`` (by which the judge tells a knot lying on the floor,
     :func:`flyknot.judge.judge_params_for`); for a custom rope also ``rope_params`` (all its
     parameters) and ``ropes_file``, so that the record describes the rope without the file."""
     out: dict[str, Any] = {

@@ -40,10 +40,11 @@ from tqdm import tqdm
 
 from flyknot import __version__
 from flyknot.errors import CommandError
+from flyknot.judge import with_rope_diameter
 from flyknot.progress import bar_disable
 from flyknot.record import JointCommand, TrialRecord
 from flyknot.rest import SettleMonitor
-from flyknot.verdict import JudgeParams, judge_centreline, tube_axis_of, tube_knot
+from flyknot.verdict import judge_centreline, tube_axis_of, tube_knot
 from flyknot_sim import faults as faults_mod
 from flyknot_sim import mocap
 from flyknot_sim.aero import DRAG_HOLD_S
@@ -428,7 +429,7 @@ class TrialSession:
         verdict = None
         settle_meta = None
         if fault is None:
-            judge = JudgeParams(rope_radius_m=0.5 * p.rope_params.diameter)
+            judge = with_rope_diameter(p.rope_params.diameter)
             verdict = judge_centreline(vert_hist[n_steps], tube_axis_of(tip_quat[-1]), judge)
             settle_meta = monitor.outcome.as_metadata(rule)
         truth = _truth(

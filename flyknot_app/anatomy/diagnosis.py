@@ -12,7 +12,7 @@ Every trial gets one label (:data:`LABELS`, in order of precedence; the first th
 ``wrapped_at_grip`` the rope is looped round its held end or the tube: a knot type that
                    needs the tube or sits within the judge's clearance of the held end
 ``ambiguous``      no knot type has a supermajority of the closure vote
-``on_floor``       a knot whose core touches the floor, not in the hanging rope
+``on_floor``       a knot lying on the floor, not in the hanging rope
 ``not_through``    it touched itself, but no trefoil appears after the contact: the free end
                    never went through the loop
 ``slipped_out``    a trefoil appears after the contact but never lasts ``PERSIST_S``: the end

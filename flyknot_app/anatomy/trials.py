@@ -25,7 +25,7 @@ import numpy as np
 
 from flyknot.constants import N_MARKERS, REPO_ROOT
 from flyknot.errors import ConfigError, FlyknotError, RecordError
-from flyknot.judge import ROPE_DIAMETER_KEY, judge_params_for
+from flyknot.judge import ROPE_DIAMETER_KEY, with_rope_diameter
 from flyknot.record import TrialRecord
 from flyknot.verdict import JudgeParams, Verdict
 
@@ -189,8 +189,9 @@ def load_replay(path: str | Path) -> TrialEvidence:
 def judge_params_of(metadata: Mapping[str, Any], params: JudgeParams | None = None) -> JudgeParams:
     """``params`` with the record's rope radius (:func:`flyknot.judge.judge_params_for`)."""
     diameter = rope_diameter_of(metadata)
-    meta = {} if diameter is None else {ROPE_DIAMETER_KEY: diameter}
-    return judge_params_for(meta, params)
+    if diameter is None:
+        return JudgeParams() if params is None else params
+    return with_rope_diameter(diameter, params)
 
 
 def rope_diameter_of(metadata: Mapping[str, Any]) -> float | None:
