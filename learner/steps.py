@@ -5,10 +5,17 @@ fixed gain alpha (``step = "gain"``). ``step = "damped"`` is Levenberg-Marquardt
 measured critical cost c_k = ||x_k(t_c) - x_demo(t_c)||_Q^2, with the QP's control weight as
 the damping lambda (:class:`learner.inverse_qp.InverseModelWeights` ``w_control``):
 
-    if c_k < c_best:  best <- k,  lambda <- max(lambda / shrink, smallest)
-                      kappa_{k+1} = kappa_k - dkappa(kappa_k; lambda_k)          (full step)
-    else:             lambda <- lambda * grow
-                      kappa_{k+1} = kappa_best - dkappa(kappa_best; lambda)       (from the best)
+    if c_k < c_best:                 best <- k,  lambda <- max(lambda / shrink, smallest)
+                                     kappa_{k+1} = kappa_k - dkappa(kappa_k; lambda_k)
+    elif c_k <= (1 + nu) c_best:     lambda unchanged (a rise within the noise)
+                                     kappa_{k+1} = kappa_k - dkappa(kappa_k; lambda_k)
+    else:                            lambda <- lambda * grow
+                                     kappa_{k+1} = kappa_best - dkappa(kappa_best; lambda)
+
+with nu the trial-to-trial noise of the critical cost (``damping.noise``, relative; 0: every
+rise is a failed step). One command's cost varies from play to play with the lab's variation,
+so the lowest cost measured is partly luck: without the band, every later trial near the noise
+floor reads as a rise, and lambda grows until the steps vanish.
 
 A trial that measured nothing after a best exists (the cell refused or faulted on its
 command, or the markers were lost before t_c) is a step that failed as a raised cost is:
@@ -30,7 +37,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from flyknot.errors import ConfigError, check_positive
+from flyknot.errors import ConfigError, check_nonnegative, check_positive
 
 
 @dataclass(frozen=True)
@@ -72,16 +79,23 @@ class DampingParams:
         shrink: lambda's divisor after a trial that lowered the best cost (> 1).
         grow: lambda's factor after one that did not (> 1).
         smallest: lambda's lower bound [1/rad^2].
+        noise: nu, the relative rise of the measured cost that still counts as the same cost
+            (the trial-to-trial noise floor, >= 0; 0: every rise is a failed step). One
+            command's critical cost over the lab's variation: 0.104 +- 0.016, a relative
+            standard deviation of 0.15 (the reachable floor's command on ``fast-paced``, 12
+            plays; docs/measuring-sticks.md), so 0.3 is two of them.
     """
 
     start: float = 0.25
     shrink: float = 2.0
     grow: float = 4.0
     smallest: float = 1e-3
+    noise: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("start", "smallest"):
             check_positive(f"damping.{name}", getattr(self, name))
+        check_nonnegative("damping.noise", self.noise)
         for name in ("shrink", "grow"):
             value = getattr(self, name)
             check_positive(f"damping.{name}", value)
@@ -99,10 +113,10 @@ class Damping:
         """(cost, trial) of the lowest measured cost so far."""
 
     def observe(self, cost: float | None, trial: int) -> bool | None:
-        """Take trial ``trial``'s measured cost; return True when it is the new best (take the
-        full step from it), False when it is not (step again from the best, more damped; a
-        cost of +inf: a step that measured nothing), None when there is no cost to weigh
-        (lambda unchanged)."""
+        """Take trial ``trial``'s measured cost; return True when the full step is taken from
+        it (a new best, lambda shrunk, or a rise within the noise band, lambda unchanged),
+        False when it is not (step again from the best, more damped; a cost of +inf: a step
+        that measured nothing), None when there is no cost to weigh (lambda unchanged)."""
         if cost is None:
             return None
         p = self.params
@@ -113,8 +127,14 @@ class Damping:
             self.best = (float(cost), int(trial))
             self.lam = max(self.lam / p.shrink, p.smallest)
             return True
+        if cost <= (1.0 + p.noise) * self.best[0]:
+            return True
         self.lam *= p.grow
         return False
+
+    def is_best(self, trial: int) -> bool:
+        """Whether trial ``trial`` holds the lowest measured cost."""
+        return self.best is not None and self.best[1] == int(trial)
 
 
 __all__ = ["STEPS", "Damping", "DampingParams", "StepKind", "step_kind"]

@@ -415,10 +415,16 @@ class DampedStep(StopRule):
             return None
         lam_used = self.damping.lam
         took = self.damping.observe(s.cost, s.trial)
-        if took:
+        if took and self.damping.is_best(s.trial):
             self.best = trial
         if took or self.best is None:
-            base, action = trial.knots, f"update (damped, lambda {lam_used:.3g})"
+            within = took and self.best is not trial
+            base = trial.knots
+            action = f"update (damped, lambda {lam_used:.3g}" + (
+                f"; within the noise of the best, trial {self.best.summary.trial + 1})"
+                if within
+                else ")"
+            )
 
             def step_of(moves: Moves) -> UpdateResult | None:
                 return trial.update

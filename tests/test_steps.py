@@ -41,6 +41,19 @@ def test_damping_memory():
     assert d.observe(0.4, 5) is True and d.lam == 0.3  # not below the smallest
 
 
+def test_damping_noise_band():
+    """A rise within nu of the best is the same cost: the full step from it, lambda kept, the
+    best unchanged; a rise beyond it steps back from the best, more damped."""
+    d = Damping(DampingParams(start=1.0, shrink=2.0, grow=4.0, noise=0.3))
+    assert d.observe(1.0, 0) is True and d.lam == 0.5 and d.is_best(0)
+    assert d.observe(1.3, 1) is True and d.lam == 0.5 and d.best == (1.0, 0)
+    assert not d.is_best(1)
+    assert d.observe(1.31, 2) is False and d.lam == 2.0 and d.best == (1.0, 0)
+    assert d.observe(0.9, 3) is True and d.lam == 1.0 and d.is_best(3)
+    plain = Damping(DampingParams(start=1.0, shrink=2.0, grow=4.0))
+    assert plain.observe(1.0, 0) is True and plain.observe(1.0001, 1) is False
+
+
 def test_step_options_are_checked():
     assert set(STEPS) == {"gain", "damped"}
     with pytest.raises(ConfigError) as e:
@@ -54,6 +67,9 @@ def test_step_options_are_checked():
     with pytest.raises(ConfigError) as e:
         DampingParams(grow=0.5)
     assert str(e.value) == "damping.grow: must be > 1, got 0.5"
+    with pytest.raises(ConfigError) as e:
+        DampingParams(noise=-0.1)
+    assert str(e.value) == "damping.noise: must be a finite number >= 0, got -0.1"
 
 
 def _damped_run(arm, target, start, monkeypatch, run_dir, trials, resume=False, cell=None):
