@@ -32,7 +32,9 @@ class SceneParams:
 
     Attributes:
         pedestal_height: Height of the robot's base above the floor [m]; high enough that
-            the 1.1 m rope hangs clear of the floor with the fingertip above 1.2 m.
+            the 1.1 m rope hangs clear of the floor with the fingertip above 1.2 m (the
+            paper gives z_min only). Its bracket up to 1.31 m, where the initial guess puts
+            the base above the demonstration's floor: docs/measuring-sticks.md.
         pedestal_half_width: Half the pedestal's side [m].
         floor_size: Half-extent of the floor plane [m].
     """

@@ -97,6 +97,26 @@ def test_damped_step_goes_back_to_the_best_with_more_damping(arm, setup, monkeyp
     np.testing.assert_allclose(cell.played[3], expect.new_knots, atol=1e-12)
 
 
+def test_damped_step_within_the_noise_steps_on(arm, setup, monkeypatch, tmp_path):
+    """The same disturbed trial 2 inside a wide noise band: the full step from its own update,
+    lambda kept, the best still trial 1's."""
+    target, start = setup
+    cell = DisturbedCell(arm, target, bad=2)
+    _spy(cell, monkeypatch)
+    damping = DampingParams(start=1.0, noise=100.0)
+    params = ILCParams(max_trials=4, rope_model=ROPE, step="damped", gain=1.0, damping=damping)
+    res = learn(cell, target, start, arm, params, run_dir=tmp_path / "run")
+    assert res.costs[2] > res.costs[1]
+    assert res.trials[2].action == (
+        "update (damped, lambda 0.25; within the noise of the best, trial 2)"
+    )
+    rd = RunDirectory(tmp_path / "run")
+    rec = TrialRecord.load(rd.record_stem(2, 0))
+    settings = UpdateSettings(weights=InverseModelWeights(w_control=0.25))
+    expect = ilc_update(rec, BezierCommand(cell.played[2], target.T), target, arm, ROPE, settings)
+    np.testing.assert_allclose(cell.played[3], expect.new_knots, atol=1e-12)
+
+
 def test_damped_run_resumed_is_the_uninterrupted_run(arm, setup, monkeypatch, tmp_path):
     target, start = setup
     whole, res = _damped_run(arm, target, start, monkeypatch, tmp_path / "whole", 5)
