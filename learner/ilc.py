@@ -49,6 +49,7 @@ from learner.ilc_step import (
     LoopState,
     Step,
     assess,
+    cost_at,
     critical_cost,
     decide,
 )
@@ -194,6 +195,10 @@ class WrittenTrial(Trial):
                 self._rd.record_stem(self._line.trial, self._line.attempt)
             )
         return self._record
+
+    def cost_at(self, t: float) -> float | None:
+        """The critical cost of the trial's record at ``t`` (:func:`learner.ilc_step.cost_at`)."""
+        return cost_at(self.record(), self.knots, self._ctx, t)
 
     def own_update(self) -> tuple[bool | None, np.ndarray | None]:
         """The update written after the trial; the last play of an averaging group wrote the

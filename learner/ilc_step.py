@@ -31,7 +31,7 @@ from learner.jacobians import (
 )
 from learner.kinematics import RobotModel
 from learner.limit_rows import sampled_violation
-from learner.objectives import objective_kind
+from learner.objectives import error_at, objective_kind
 from learner.run_directory import TrialSummary
 from learner.stops import REPLAY, RETRY, STEP, StopRules, Trial
 from learner.target import DemoTarget
@@ -161,6 +161,10 @@ class PlayedTrial(Trial):
         """What the trial measured."""
         return self._record
 
+    def cost_at(self, t: float) -> float | None:
+        """The critical cost of this play's record at ``t`` (:func:`cost_at`)."""
+        return cost_at(self._record, self.knots, self._ctx, t)
+
     def own_update(self) -> tuple[bool | None, np.ndarray | None]:
         """(solved, dkappa) of the update assessed from this play alone."""
         return self._own
@@ -228,6 +232,17 @@ def decide(
     elif ruling.kind == STEP:
         new = ruling.move(LoopMoves(state, ctx))
     return Step(trial.summary, trial.update, new, ruling.stop, ruling.kind != RETRY)
+
+
+def cost_at(record: TrialRecord, knots: np.ndarray, ctx: Context, t: float) -> float | None:
+    """||x(t) - x_demo(t)||_Q^2 of ``record`` (played with ``knots``) at ``t`` [s], None where
+    its markers were lost (:func:`learner.objectives.error_at`)."""
+    base = BezierCommand(knots, ctx.target.T).base_offset
+    try:
+        err = error_at(record, ctx.target, base, ctx.params.update.fit, t)
+    except RecordError:
+        return None
+    return critical_cost(err, ctx.params.update.weights)
 
 
 def safe_step(

@@ -64,6 +64,25 @@ def _mean_critical_error(
     return np.mean(errs, axis=0)
 
 
+def error_at(
+    record: TrialRecord, target: DemoTarget, base: np.ndarray, fit: MarkerFitParams, t: float
+) -> np.ndarray:
+    """x_meas(t) - x_demo(t) (66,) [m, m/s] at t = t_c or at a model step t_k < t_c.
+
+    Raises:
+        RecordError: the record lost tracking before t, or t is neither t_c nor a step
+            where the demonstration's markers exist.
+    """
+    if abs(t - target.t_c) < TIME_TOL:
+        x_demo = target.x_c
+    else:
+        k = int(np.argmin(np.abs(target.t[: len(target.x_pre)] - t)))
+        if abs(target.t[k] - t) > TIME_TOL or not np.all(np.isfinite(target.x_pre[k])):
+            raise RecordError(f"no demonstration state at t = {t:.3f} s")
+        x_demo = target.x_pre[k]
+    return critical_state_from_record(record, float(t), base, fit) - x_demo
+
+
 def fallback_critical_point(
     record: TrialRecord,
     target: DemoTarget,

@@ -37,6 +37,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from flyknot.errors import ConfigError, check_nonnegative, check_positive
 
 
@@ -84,6 +86,9 @@ class DampingParams:
             command's critical cost over the lab's variation: 0.104 +- 0.016, a relative
             standard deviation of 0.15 (the reachable floor's command on ``fast-paced``, 12
             plays; docs/measuring-sticks.md), so 0.3 is two of them.
+        common_time: Weigh two trials whose markers were lost before t_c at one time, the
+            earlier of their critical points t_eff (each cost refitted there from its
+            record), not each at its own.
     """
 
     start: float = 0.25
@@ -91,11 +96,15 @@ class DampingParams:
     grow: float = 4.0
     smallest: float = 1e-3
     noise: float = 0.0
+    common_time: bool = False
 
     def __post_init__(self) -> None:
         for name in ("start", "smallest"):
             check_positive(f"damping.{name}", getattr(self, name))
         check_nonnegative("damping.noise", self.noise)
+        if not isinstance(self.common_time, (bool, np.bool_)):
+            raise ConfigError("damping.common_time", f"must be a bool, got {self.common_time!r}")
+        object.__setattr__(self, "common_time", bool(self.common_time))
         for name in ("shrink", "grow"):
             value = getattr(self, name)
             check_positive(f"damping.{name}", value)
@@ -112,22 +121,32 @@ class Damping:
         self.best: tuple[float, int] | None = None
         """(cost, trial) of the lowest measured cost so far."""
 
-    def observe(self, cost: float | None, trial: int) -> bool | None:
+    def observe(
+        self,
+        cost: float | None,
+        trial: int,
+        against: float | None = None,
+        own: float | None = None,
+    ) -> bool | None:
         """Take trial ``trial``'s measured cost; return True when the full step is taken from
         it (a new best, lambda shrunk, or a rise within the noise band, lambda unchanged),
         False when it is not (step again from the best, more damped; a cost of +inf: a step
-        that measured nothing), None when there is no cost to weigh (lambda unchanged)."""
+        that measured nothing), None when there is no cost to weigh (lambda unchanged).
+        ``against``: the best trial's cost at the time ``cost`` was taken (the common time;
+        default its own); ``own``: the trial's cost at its own time, kept as the best's
+        (default ``cost``)."""
         if cost is None:
             return None
         p = self.params
         if cost == math.inf:  # a step that measured nothing: never the best
             self.lam *= p.grow
             return False
-        if self.best is None or cost < self.best[0]:
-            self.best = (float(cost), int(trial))
+        best = None if self.best is None else (self.best[0] if against is None else against)
+        if best is None or cost < best:
+            self.best = (float(cost if own is None else own), int(trial))
             self.lam = max(self.lam / p.shrink, p.smallest)
             return True
-        if cost <= (1.0 + p.noise) * self.best[0]:
+        if cost <= (1.0 + p.noise) * best:
             return True
         self.lam *= p.grow
         return False

@@ -129,6 +129,11 @@ class Trial(ABC):
         """What the trial measured."""
 
     @abstractmethod
+    def cost_at(self, t: float) -> float | None:
+        """The critical cost of its record at time ``t`` [s] (t_c or an earlier model step),
+        None where its markers were lost."""
+
+    @abstractmethod
     def own_update(self) -> tuple[bool | None, np.ndarray | None]:
         """(solved, dkappa) of the update computed from this trial alone (not from the
         mean of an averaging group); dkappa None when there is none."""
@@ -414,7 +419,7 @@ class DampedStep(StopRule):
         if not s.update_solved:
             return None
         lam_used = self.damping.lam
-        took = self.damping.observe(s.cost, s.trial)
+        took = self.damping.observe(*self._weighed(trial), own=s.cost)
         if took and self.damping.is_best(s.trial):
             self.best = trial
         if took or self.best is None:
@@ -440,6 +445,21 @@ class DampedStep(StopRule):
                 return moves.update_about(best, lam)
 
         return self._ruling(trial, base, action, step_of)
+
+    def _weighed(self, trial: Trial) -> tuple[float | None, int, float | None]:
+        """(cost, trial, the best's cost) as the rule weighs them: each at its own critical
+        point, or (``damping.common_time``) both at the earlier of the two when they differ
+        (a trial whose markers were lost before t_c is fitted earlier)."""
+        s, best = trial.summary, self.best
+        if not self.damping.params.common_time or best is None or s.cost is None:
+            return s.cost, s.trial, None
+        t_k, t_b = s.t_eff, best.summary.t_eff
+        if t_k is None or t_b is None or abs(t_k - t_b) < 1e-9:
+            return s.cost, s.trial, None
+        t = min(t_k, t_b)
+        cost = s.cost if t == t_k else trial.cost_at(t)
+        against = best.summary.cost if t == t_b else best.cost_at(t)
+        return cost, s.trial, against
 
     def _failed(self, trial: Trial) -> Ruling:
         """A trial that measured nothing (a fault or lost tracking): its step failed, so the

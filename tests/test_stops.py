@@ -296,6 +296,9 @@ def test_a_chain_without_a_last_rule_says_so():
         def record(self):
             raise AssertionError
 
+        def cost_at(self, t):
+            raise AssertionError
+
         def own_update(self):
             return None, None
 
