@@ -56,8 +56,9 @@ from learner.ilc_step import (
 from learner.jacobians import JacobianProvider
 from learner.kinematics import RobotModel
 from learner.run_directory import RunDirectory, TrialSummary, written_record
-from learner.stops import RETRY, Trial
+from learner.stops import RETRY
 from learner.target import DemoTarget
+from learner.trial_view import Trial
 
 __all__ = [
     "ILCParams",

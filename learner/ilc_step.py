@@ -33,8 +33,9 @@ from learner.kinematics import RobotModel
 from learner.limit_rows import sampled_violation
 from learner.objectives import error_at, objective_kind
 from learner.run_directory import TrialSummary
-from learner.stops import REPLAY, RETRY, STEP, StopRules, Trial
+from learner.stops import REPLAY, RETRY, STEP, StopRules
 from learner.target import DemoTarget
+from learner.trial_view import Trial
 from learner.update import UpdateResult, ilc_update
 
 UPDATE_FAILED = "update failed"

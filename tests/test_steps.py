@@ -8,14 +8,19 @@ import dataclasses
 import numpy as np
 import pytest
 
-from flyknot.errors import ConfigError
+from flyknot.errors import ConfigError, RecordError
 from flyknot.record import TrialRecord
 from learner.bezier import BezierCommand
+from learner.critical_state import MarkerFitParams, critical_state_from_record
 from learner.ilc import ILCParams, learn
 from learner.inverse_qp import InverseModelWeights
 from learner.kinematics import RobotModel
-from learner.run_directory import RunDirectory
+from learner.objectives import error_at
+from learner.run_directory import RunDirectory, TrialSummary
 from learner.steps import STEPS, Damping, DampingParams
+from learner.stops import DampedStep
+from learner.system_model import model_record
+from learner.trial_view import Trial
 from learner.update import UpdateSettings, ilc_update
 from tests.test_confirm import DisturbedCell, _spy
 from tests.test_ilc import ROPE, model_problem
@@ -52,6 +57,68 @@ def test_damping_noise_band():
     assert d.observe(0.9, 3) is True and d.lam == 1.0 and d.is_best(3)
     plain = Damping(DampingParams(start=1.0, shrink=2.0, grow=4.0))
     assert plain.observe(1.0, 0) is True and plain.observe(1.0001, 1) is False
+
+
+def test_damping_weighs_against_the_best_at_a_given_time():
+    d = Damping(DampingParams(start=1.0, shrink=2.0, grow=4.0))
+    assert d.observe(1.0, 0) is True
+    assert d.observe(0.9, 1, against=0.8, own=1.2) is False and d.best == (1.0, 0)
+    assert d.observe(0.7, 2, against=0.8, own=1.1) is True and d.best == (1.1, 2)
+
+
+class _Seen(Trial):
+    """A trial as the damped step sees it: a cost at its own t_eff and refitted ones."""
+
+    def __init__(self, k, cost, t_eff, refit):
+        line = TrialSummary(k, 0, None, "unknot", False, cost, True, "Solved", None, "", 0.0)
+        super().__init__(dataclasses.replace(line, t_eff=t_eff), np.zeros((10, 8)), None)
+        self.refit = refit
+
+    def record(self):
+        raise AssertionError
+
+    def cost_at(self, t):
+        return self.refit[t]
+
+    def own_update(self):
+        return True, None
+
+    def average_over(self, group):
+        return None
+
+
+@pytest.mark.parametrize("common_time", [False, True])
+def test_damped_step_at_a_common_time(common_time):
+    """Trial 2's markers were lost earlier (0.88 s) than the best's (0.90 s): at its own time
+    it costs more than the best did at 0.90 s, at 0.88 s less than the best there."""
+    damping = DampingParams(start=1.0, common_time=common_time)
+    rule = DampedStep(ILCParams(step="damped", damping=damping))
+    best = _Seen(0, 0.40, 0.90, {0.88: 0.48})
+    rule.verdict(best)
+    later = _Seen(1, 0.43, 0.88, {})
+    rule.verdict(later)
+    assert (rule.best is later) is common_time
+    assert later.summary.action == "" and rule.damping.best[0] == (0.43 if common_time else 0.40)
+
+
+def test_error_at_the_critical_point_and_before(arm, setup):
+    """error_at gives the critical point's error at t_c, a model step's before it, and names
+    a time that is neither."""
+    target, start = setup
+    command = BezierCommand(start, target.T)
+    rec = model_record(command, arm, ROPE)
+    base = command.base_offset
+    fit = MarkerFitParams()
+    at_c = error_at(rec, target, base, fit, target.t_c)
+    want = critical_state_from_record(rec, target.t_c, base, fit) - target.x_c
+    np.testing.assert_array_equal(at_c, want)
+    k = len(target.x_pre) - 3
+    before = error_at(rec, target, base, fit, float(target.t[k]))
+    np.testing.assert_array_equal(
+        before, critical_state_from_record(rec, float(target.t[k]), base, fit) - target.x_pre[k]
+    )
+    with pytest.raises(RecordError, match="no demonstration state at t = "):
+        error_at(rec, target, base, fit, float(target.t[k]) + 0.4 * target.dt)
 
 
 def test_step_options_are_checked():

@@ -21,6 +21,7 @@ from learner.kinematics import RobotModel
 from learner.run_directory import RunDirectory, TrialSummary
 from learner.steps import DampingParams
 from learner.stops import STOP, STOPS, Ruling, StopRule, StopRules, stop_rule
+from learner.trial_view import Trial
 from tests.knot_curves import judged
 from tests.test_ilc import ROPE, ModelCell, model_problem
 
@@ -292,7 +293,7 @@ def test_a_new_rule_is_one_class_and_one_registry_line(arm, setup, monkeypatch, 
 def test_a_chain_without_a_last_rule_says_so():
     rules = StopRules(ILCParams(), names=("success",))
 
-    class Line(stops.Trial):
+    class Line(Trial):
         def record(self):
             raise AssertionError
 
