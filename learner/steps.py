@@ -146,7 +146,7 @@ class Damping:
             self.best = (float(cost if own is None else own), int(trial))
             self.lam = max(self.lam / p.shrink, p.smallest)
             return True
-        if cost <= (1.0 + p.noise) * best:
+        if p.noise > 0 and cost <= (1.0 + p.noise) * best:
             return True
         self.lam *= p.grow
         return False

@@ -4,6 +4,7 @@ step on the measured cost."""
 from __future__ import annotations
 
 import dataclasses
+from functools import partial
 
 import numpy as np
 import pytest
@@ -56,7 +57,7 @@ def test_damping_noise_band():
     assert d.observe(1.31, 2) is False and d.lam == 2.0 and d.best == (1.0, 0)
     assert d.observe(0.9, 3) is True and d.lam == 1.0 and d.is_best(3)
     plain = Damping(DampingParams(start=1.0, shrink=2.0, grow=4.0))
-    assert plain.observe(1.0, 0) is True and plain.observe(1.0001, 1) is False
+    assert plain.observe(1.0, 0) is True and plain.observe(1.0, 1) is False  # as before
 
 
 def test_damping_weighs_against_the_best_at_a_given_time():
@@ -135,14 +136,19 @@ def test_step_options_are_checked():
         DampingParams(grow=0.5)
     assert str(e.value) == "damping.grow: must be > 1, got 0.5"
     with pytest.raises(ConfigError) as e:
+        DampingParams(common_time="yes")
+    assert str(e.value) == "damping.common_time: must be a bool, got 'yes'"
+    with pytest.raises(ConfigError) as e:
         DampingParams(noise=-0.1)
     assert str(e.value) == "damping.noise: must be a finite number >= 0, got -0.1"
 
 
-def _damped_run(arm, target, start, monkeypatch, run_dir, trials, resume=False, cell=None):
+def _damped_run(
+    arm, target, start, monkeypatch, run_dir, trials, resume=False, cell=None, noise=0.0
+):
     cell = cell or DisturbedCell(arm, target, bad=2)
     _spy(cell, monkeypatch)
-    damping = DampingParams(start=1.0)  # the mechanics at round numbers, not the default
+    damping = DampingParams(start=1.0, noise=noise)  # round numbers, not the default
     params = ILCParams(max_trials=trials, rope_model=ROPE, step="damped", gain=1.0, damping=damping)
     res = learn(cell, target, start, arm, params, run_dir=run_dir, resume=resume)
     return cell, res
@@ -184,13 +190,13 @@ def test_damped_step_within_the_noise_steps_on(arm, setup, monkeypatch, tmp_path
     np.testing.assert_allclose(cell.played[3], expect.new_knots, atol=1e-12)
 
 
-def test_damped_run_resumed_is_the_uninterrupted_run(arm, setup, monkeypatch, tmp_path):
+@pytest.mark.parametrize("noise", [0.0, 100.0])
+def test_damped_run_resumed_is_the_uninterrupted_run(arm, setup, monkeypatch, tmp_path, noise):
     target, start = setup
-    whole, res = _damped_run(arm, target, start, monkeypatch, tmp_path / "whole", 5)
-    part, _ = _damped_run(arm, target, start, monkeypatch, tmp_path / "part", 3)
-    part, again = _damped_run(
-        arm, target, start, monkeypatch, tmp_path / "part", 5, resume=True, cell=part
-    )
+    run = partial(_damped_run, arm, target, start, monkeypatch, noise=noise)
+    whole, res = run(tmp_path / "whole", 5)
+    part, _ = run(tmp_path / "part", 3)
+    part, again = run(tmp_path / "part", 5, resume=True, cell=part)
     assert [s.action for s in again.trials] == [s.action for s in res.trials]
     for a, b in zip(part.played, whole.played, strict=True):
         np.testing.assert_array_equal(a, b)
