@@ -75,6 +75,7 @@ def _cmd_synthesize(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         start=start,
         last_stage=args.last_stage,
+        first_stage=args.first_stage,
     )
     result.demo.save(out)
     summary = {"file": str(out), **result.summary()}
@@ -242,6 +243,11 @@ def _add_demo_synthesize_parser(dsub: argparse._SubParsersAction) -> None:
         "--last-stage",
         action="store_true",
         help="search the last stage alone from --start (a local search of a demonstration)",
+    )
+    s.add_argument(
+        "--first-stage",
+        action="store_true",
+        help="search the first stage alone (a wind-up variant's throw), saved under its name",
     )
     s.add_argument(
         "--envelope",

@@ -714,6 +714,31 @@ def test_the_last_stage_alone_is_a_local_search_from_the_start(monkeypatch):
     assert str(e.value) == "start: the last stage alone needs a start motion (--start)"
 
 
+def test_the_first_stage_alone_is_the_throw(monkeypatch):
+    """``first_stage``: only the variant's first stage runs, with its own step and budget and
+    the search's target rate; no wind-up is picked. Not with ``last_stage``."""
+    from flyknot.errors import SolverError
+    from flyknot_tools.hand_demos import synthesis
+
+    calls = []
+
+    def fake_search(stage, seed, cfg, *, start, stream, lab, bar):
+        calls.append((stage.name, cfg.sigma0, cfg.budget, cfg.target_rate, stream))
+        raise SolverError("demo search", "budget", "stopped by the test")
+
+    monkeypatch.setattr(synthesis, "search", fake_search)
+    monkeypatch.setattr(synthesis, "_pick_windup", lambda *a: pytest.fail("wind-up picked"))
+    config = synthesis.SynthConfig()
+    with pytest.raises(SolverError):
+        synthesis.synthesize_motion("swipe", 0, config, first_stage=True)
+    swipe = synthesis.get_variant("swipe")
+    s = config.search
+    assert calls == [("swipe/throw", swipe.throw_sigma, s.budget, s.target_rate, 0)]
+    with pytest.raises(ConfigError) as e:
+        synthesis.synthesize_motion("swipe", 0, config, first_stage=True, last_stage=True)
+    assert str(e.value) == ("first_stage: the first stage alone or the last stage alone, not both")
+
+
 def test_cli_envelope_start_and_budgets_reach_the_search(tmp_path, capsys, monkeypatch):
     from flyknot.errors import SolverError
     from flyknot_tools.hand_demos import synthesis
@@ -721,8 +746,9 @@ def test_cli_envelope_start_and_budgets_reach_the_search(tmp_path, capsys, monke
 
     seen = {}
 
-    def fake(variant, seed, config, *, check_repeats, progress, start, last_stage):
+    def fake(variant, seed, config, *, check_repeats, progress, start, last_stage, first_stage):
         seen.update(variant=variant, config=config, start=start, last_stage=last_stage)
+        seen.update(first_stage=first_stage)
         raise SolverError("demo search", "budget", "stopped by the test")
 
     monkeypatch.setattr(synthesis, "synthesize", fake)
@@ -730,7 +756,9 @@ def test_cli_envelope_start_and_budgets_reach_the_search(tmp_path, capsys, monke
     args += ["--envelope", "--max-speed", "2.0", "--start", str(DEMOS_DIR / "fast.npz")]
     args += ["--throw-budget", "7", "--target-rate", "0.95", "--confirm-abort", "--quiet"]
     assert tools_cli.main([*args, "--last-stage"]) == 2
-    assert seen["last_stage"] is True
+    assert seen["last_stage"] is True and seen["first_stage"] is False
+    assert tools_cli.main([*args, "--first-stage"]) == 2
+    assert seen["first_stage"] is True
     assert tools_cli.main(args) == 2
     assert seen["last_stage"] is False
     assert "stopped by the test" in capsys.readouterr().err

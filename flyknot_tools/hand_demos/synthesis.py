@@ -224,6 +224,7 @@ def synthesize_motion(
     on_stage: Callable[[str, SearchResult], None] | None = None,
     start: KnotMotion | None = None,
     last_stage: bool = False,
+    first_stage: bool = False,
 ) -> StagedResult:
     """Search a robust flying-knot motion of ``variant`` in stages (:meth:`Variant.stages`).
 
@@ -237,9 +238,11 @@ def synthesize_motion(
     ``last_stage``: run the last stage alone from ``start`` (a motion of the variant already,
     its wind-up kept), with the later stages' budget and step: a local search that can raise a
     demonstration's tie rate without squeezing it into the throw stage's window.
+    ``first_stage``: run the first stage alone, ending at the search's target rate (e.g. the
+    throw of a wind-up variant, found where its wind-up is not).
 
     Raises:
-        ConfigError: ``last_stage`` without ``start``.
+        ConfigError: ``last_stage`` without ``start``; both ``first_stage`` and ``last_stage``.
         SolverError: A stage found no motion whose nominal trial ties, or the total budget
             ran out.
     """
@@ -253,8 +256,12 @@ def synthesize_motion(
     tic = time.perf_counter()
     lab = HandLab(config.search.hand)
     stages = v.stages()
+    if first_stage and last_stage:
+        raise ConfigError("first_stage", "the first stage alone or the last stage alone, not both")
     if last_stage and start is None:
         raise ConfigError("start", "the last stage alone needs a start motion (--start)")
+    if first_stage:
+        stages = stages[:1]
     first = len(stages) - 1 if last_stage else 0
     motion = replace(v, duration=THROW_WINDOW).seed_motion() if start is None else start
     bar = tqdm(
@@ -350,15 +357,25 @@ def synthesize(
     progress: bool = False,
     start: KnotMotion | None = None,
     last_stage: bool = False,
+    first_stage: bool = False,
 ) -> SynthResult:
     """Search a motion (:func:`synthesize_motion`), record it as a demonstration
     (:func:`make_demonstration`) and check it with ``check_repeats`` varied replays
     (:func:`replay` with seed ``seed``; the count goes into the metadata as ``check``).
-    ``start``, ``last_stage``: as in :func:`synthesize_motion`."""
+    ``start``, ``last_stage``, ``first_stage``: as in :func:`synthesize_motion` (the first
+    stage alone is recorded under that stage's name, e.g. ``swipe/throw``)."""
     v = get_variant(variant) if isinstance(variant, str) else variant
     staged = synthesize_motion(
-        v, seed, config, progress=progress, start=start, last_stage=last_stage
+        v,
+        seed,
+        config,
+        progress=progress,
+        start=start,
+        last_stage=last_stage,
+        first_stage=first_stage,
     )
+    if first_stage:
+        v = v.stages()[0][1]
     hand = config.search.hand
     demo, _ = make_demonstration(
         staged.motion,
