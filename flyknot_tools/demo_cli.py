@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from pathlib import Path
 
 from flyknot.errors import ConfigError, SolverError, check_int
@@ -16,7 +17,7 @@ def _cmd_synthesize(args: argparse.Namespace) -> int:
 
     from flyknot_sim.hand_params import HandParams
     from flyknot_sim.rope_table import get_rope
-    from flyknot_tools.hand_demos.synthesis import SynthConfig, synthesize
+    from flyknot_tools.hand_demos.synthesis import SynthConfig, stage_keeper, synthesize
     from flyknot_tools.hand_demos.variants import get_variant
 
     variant = get_variant(args.variant)
@@ -76,6 +77,9 @@ def _cmd_synthesize(args: argparse.Namespace) -> int:
         start=start,
         last_stage=args.last_stage,
         first_stage=args.first_stage,
+        on_stage=stage_keeper(
+            args.seed, search.hand, out, lambda line: print(line, file=sys.stderr)
+        ),
     )
     result.demo.save(out)
     summary = {"file": str(out), **result.summary()}

@@ -739,6 +739,44 @@ def test_the_first_stage_alone_is_the_throw(monkeypatch):
     assert str(e.value) == ("first_stage: the first stage alone or the last stage alone, not both")
 
 
+def test_a_failed_later_stage_keeps_the_earlier_stages_best(tmp_path, monkeypatch):
+    """The wind-up stage ties nothing: the throw stage's best, whose nominal trial tied, is
+    recorded at ``OUT.throw.npz`` under the stage's name before the search raises; a stage
+    whose best did not tie, and the run's last stage, write nothing."""
+    from flyknot.errors import SolverError
+    from flyknot_tools.hand_demos import synthesis
+    from flyknot_tools.hand_demos.search import Candidate, SearchResult
+
+    motion = KnotMotion.from_dict(_shipped("fast").metadata["motion"])
+
+    def result(name, tied):
+        best = Candidate(motion, 5, 0.5, tied, 1.0)
+        return SearchResult(name, 0, best, 9, 3, 1, 1, (best,), np.zeros((0, 3)), 0.1, "target")
+
+    def fake_search(stage, seed, cfg, *, start, stream, lab, bar):
+        return result(stage.name, tied=stream == 0)
+
+    monkeypatch.setattr(synthesis, "search", fake_search)
+    monkeypatch.setattr(synthesis, "_pick_windup", lambda lab, m, *a: (m, 0))
+    out = tmp_path / "chain.npz"
+    lines = []
+    keep = synthesis.stage_keeper(0, HandParams(), out, lines.append)
+    with pytest.raises(SolverError) as e:
+        synthesis.synthesize_motion("swipe", 0, synthesis.SynthConfig(), on_stage=keep)
+    assert "stage swipe found no motion" in str(e.value)
+    kept = synthesis.stage_path(out, "throw")
+    assert kept == tmp_path / "chain.throw.npz"
+    demo = Demonstration.load(kept)
+    assert demo.metadata["variant"] == "swipe/throw"
+    assert demo.metadata["motion"] == motion.to_dict()
+    assert lines == [f"stage swipe/throw: its best motion (nominal trial ties) saved to {kept}"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["chain.throw.npz"]
+    kept.unlink()
+    keep("throw", synthesis.get_variant("swipe"), result("swipe/throw", tied=False), False)
+    keep("windup", synthesis.get_variant("swipe"), result("swipe", tied=True), True)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_cli_envelope_start_and_budgets_reach_the_search(tmp_path, capsys, monkeypatch):
     from flyknot.errors import SolverError
     from flyknot_tools.hand_demos import synthesis
@@ -746,9 +784,11 @@ def test_cli_envelope_start_and_budgets_reach_the_search(tmp_path, capsys, monke
 
     seen = {}
 
-    def fake(variant, seed, config, *, check_repeats, progress, start, last_stage, first_stage):
+    def fake(
+        variant, seed, config, *, check_repeats, progress, start, last_stage, first_stage, on_stage
+    ):
         seen.update(variant=variant, config=config, start=start, last_stage=last_stage)
-        seen.update(first_stage=first_stage)
+        seen.update(first_stage=first_stage, on_stage=on_stage)
         raise SolverError("demo search", "budget", "stopped by the test")
 
     monkeypatch.setattr(synthesis, "synthesize", fake)
@@ -759,6 +799,7 @@ def test_cli_envelope_start_and_budgets_reach_the_search(tmp_path, capsys, monke
     assert seen["last_stage"] is True and seen["first_stage"] is False
     assert tools_cli.main([*args, "--first-stage"]) == 2
     assert seen["first_stage"] is True
+    assert callable(seen["on_stage"])  # the CLI keeps every intermediate stage's best
     assert tools_cli.main(args) == 2
     assert seen["last_stage"] is False
     assert "stopped by the test" in capsys.readouterr().err

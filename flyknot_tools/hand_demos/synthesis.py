@@ -13,6 +13,7 @@ import math
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -221,7 +222,7 @@ def synthesize_motion(
     config: SynthConfig = SynthConfig(),
     *,
     progress: bool = False,
-    on_stage: Callable[[str, SearchResult], None] | None = None,
+    on_stage: Callable[[str, Variant, SearchResult, bool], None] | None = None,
     start: KnotMotion | None = None,
     last_stage: bool = False,
     first_stage: bool = False,
@@ -233,8 +234,10 @@ def synthesize_motion(
     ``seed``; a wind-up stage starts from the best of :meth:`KnotMotion.with_windup` over
     ``config.windup_speeds``. Intermediate stages end at
     ``config.stage_target``, the last at ``config.search.target_rate``. ``on_stage`` is
-    called with each finished stage's kind and result. ``start`` replaces the variant's seed
-    motion as the first stage's start (e.g. a demonstration found under looser pace limits).
+    called with each finished stage's kind, variant, result and whether it is the run's last
+    (before a stage that tied nothing raises: :func:`stage_keeper` saves what it found).
+    ``start`` replaces the variant's seed motion as the first stage's start (e.g. a
+    demonstration found under looser pace limits).
     ``last_stage``: run the last stage alone from ``start`` (a motion of the variant already,
     its wind-up kept), with the later stages' budget and step: a local search that can raise a
     demonstration's tie rate without squeezing it into the throw stage's window.
@@ -292,7 +295,7 @@ def synthesize_motion(
             used += res.trials
             done.append((kind, res))
             if on_stage is not None:
-                on_stage(kind, res)
+                on_stage(kind, stage, res, last)
             if res.best is None or not res.best.nominal_tied:
                 raise SolverError(
                     "demo search",
@@ -304,6 +307,39 @@ def synthesize_motion(
     finally:
         bar.close()
     return StagedResult(v.name, seed, motion, tuple(done), used, time.perf_counter() - tic)
+
+
+def stage_path(out: Path, kind: str) -> Path:
+    """Where :func:`stage_keeper` saves an intermediate stage's best: ``OUT.<kind>.npz``."""
+    return out.with_name(f"{out.stem}.{kind}{out.suffix}")
+
+
+def stage_keeper(
+    seed: int,
+    hand: HandParams,
+    out: Path,
+    notify: Callable[[str], None] = lambda line: None,
+) -> Callable[[str, Variant, SearchResult, bool], None]:
+    """An ``on_stage`` for :func:`synthesize_motion` that records the best motion of every
+    intermediate stage whose nominal trial ties as a demonstration at
+    :func:`stage_path` (under the stage's name, e.g. ``swipe/throw``; no check replays), so
+    that a later stage that fails does not lose it. ``notify`` gets one line per file."""
+
+    def keep(kind: str, stage: Variant, res: SearchResult, last: bool) -> None:
+        if last or res.best is None or not res.best.nominal_tied:
+            return
+        demo, _ = make_demonstration(
+            res.best.motion,
+            variant=stage.name,
+            seed=seed,
+            hand=hand,
+            extra={"search": res.to_dict(timing=False), **pace_metadata(stage)},
+        )
+        path = stage_path(out, kind)
+        demo.save(path)
+        notify(f"stage {stage.name}: its best motion (nominal trial ties) saved to {path}")
+
+    return keep
 
 
 @dataclass(frozen=True)
@@ -358,12 +394,13 @@ def synthesize(
     start: KnotMotion | None = None,
     last_stage: bool = False,
     first_stage: bool = False,
+    on_stage: Callable[[str, Variant, SearchResult, bool], None] | None = None,
 ) -> SynthResult:
     """Search a motion (:func:`synthesize_motion`), record it as a demonstration
     (:func:`make_demonstration`) and check it with ``check_repeats`` varied replays
     (:func:`replay` with seed ``seed``; the count goes into the metadata as ``check``).
-    ``start``, ``last_stage``, ``first_stage``: as in :func:`synthesize_motion` (the first
-    stage alone is recorded under that stage's name, e.g. ``swipe/throw``)."""
+    ``start``, ``last_stage``, ``first_stage``, ``on_stage``: as in :func:`synthesize_motion`
+    (the first stage alone is recorded under that stage's name, e.g. ``swipe/throw``)."""
     v = get_variant(variant) if isinstance(variant, str) else variant
     staged = synthesize_motion(
         v,
@@ -373,6 +410,7 @@ def synthesize(
         start=start,
         last_stage=last_stage,
         first_stage=first_stage,
+        on_stage=on_stage,
     )
     if first_stage:
         v = v.stages()[0][1]
