@@ -8,7 +8,13 @@ import re
 import pytest
 
 from flyknot_app.cli import main
-from flyknot_app.reports.paper import paper_table, repeats_text, transfer_cell, trials_text
+from flyknot_app.reports.paper import (
+    VARIANTS,
+    paper_table,
+    repeats_text,
+    transfer_cell,
+    trials_text,
+)
 from flyknot_app.reports.run_summary import RunSummary, ScenarioSummary
 
 
@@ -155,7 +161,7 @@ def test_an_unknown_variant_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err == (
         "flyknot: error: --variant: unknown variant 'nope' (valid choices: paper-settings, "
-        "robot-demo, oracle)\n"
+        "robot-demo, oracle, follow-through)\n"
     )
 
 
@@ -222,3 +228,29 @@ def test_a_variant_stands_beside_the_sensitivity_table(tmp_path):
         in text
     )
     assert "| 100 | 5 | 2 (2), 1 of 1 seed tied | >10 | 1 (1), 1 of 1 seed tied |" in text
+
+
+@pytest.mark.parametrize("variant", sorted(VARIANTS))
+def test_every_variant_loads_on_every_scenario_it_runs(variant):
+    """Each variant's options lie over every paper scenario it does not skip; the
+    follow-through variant's runs learn with the follow-through term at a tenth of each of its
+    weights and the damped step's noise band and common time, and keep the rest."""
+    from flyknot_app.reports.paper import FOLLOW_WEIGHTS, PAPER_SCENARIOS
+    from flyknot_app.scenario import load_scenario, parse_overrides
+    from learner.inverse_qp import InverseModelWeights
+
+    v = VARIANTS[variant]
+    for name in PAPER_SCENARIOS:
+        if name in v.skips:
+            continue
+        scen = load_scenario(name, parse_overrides([], defaults=v.overrides))
+        if variant != "follow-through":
+            continue
+        paper = InverseModelWeights()
+        for run in scen.runs:
+            u = run.learner.update
+            assert u.follow_through and run.learner.damping.common_time
+            assert run.learner.damping.noise == 0.3
+            for w in FOLLOW_WEIGHTS:
+                assert getattr(u.weights, w) == pytest.approx(0.1 * getattr(paper, w))
+            assert u.weights.w_crit_pos == paper.w_crit_pos  # the rest kept

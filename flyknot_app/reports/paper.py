@@ -26,12 +26,27 @@ from typing import TYPE_CHECKING
 from flyknot.constants import SCENARIOS_DIR
 from flyknot.errors import ConfigError
 from flyknot_app.scenario import PAPER_SETTINGS
+from learner.inverse_qp import InverseModelWeights
 
 if TYPE_CHECKING:
     from flyknot_app.reports.run_summary import RunSummary, ScenarioSummary
 
 PAPER_SCENARIOS = tuple(sorted(p.stem for p in SCENARIOS_DIR.glob("0*.toml")))
 """The paper's experiments, one scenario file each."""
+
+
+FOLLOW_WEIGHTS = ("w_pc", "w_vc", "w_rc", "w_pft", "w_vft", "w_rft")
+"""The follow-through term's weights of ``learner.inverse_qp.InverseModelWeights``."""
+
+FOLLOW_TENTH = (
+    "follow_through=true",
+    "damping.noise=0.3",
+    "damping.common_time=true",
+    *(f"weights.{w}={0.1 * getattr(InverseModelWeights(), w):g}" for w in FOLLOW_WEIGHTS),
+)
+"""The learner options of the ``follow-through`` variant: the follow-through term with each of
+its weights (the paper's, ``learner.inverse_qp.InverseModelWeights``) at a tenth, the damped
+step's noise band and common time (``docs/measuring-sticks.md``)."""
 
 
 @dataclass(frozen=True)
@@ -70,6 +85,13 @@ VARIANTS: dict[str, Variant] = {
             "the oracle learner (the same objective with the lab's own Jacobian, a measuring "
             "stick)",
             skips=("01-tracking", "02-objectives", "07-sensitivity"),  # no update / no model
+        ),
+        Variant(
+            "follow-through",
+            FOLLOW_TENTH,
+            "with the follow-through term at a tenth of the paper's weights, the noise band "
+            "and the common time (learner options)",
+            skips=("01-tracking",),  # no update
         ),
     )
 }
