@@ -301,6 +301,47 @@ def run_baseline(
     return result
 
 
+def search_seeds(
+    name: str,
+    seeds: Sequence[int],
+    params: BaselineParams = BaselineParams(),
+    *,
+    rope: int | str = 1,
+    demo: str = "fast-paced",
+    settle_s: float | None = None,
+    progress: bool = False,
+) -> tuple[list[BaselineResult], dict[str, Any]]:
+    """:func:`run_baseline` ``name`` once per lab seed from ``demo``'s initial command on
+    ``rope``; the results and the settings :func:`write_results` records (the env's)."""
+    from tqdm import tqdm
+
+    from flyknot.progress import bar_disable
+    from flyknot_app.scenario import check_demo
+
+    if name not in BASELINES:
+        raise ConfigError("baseline", f"unknown baseline {name!r}", BASELINES)
+    check_demo(demo)  # before the initial guess is computed
+    settings: dict[str, Any] = {"demo": demo}
+    if name == "ppo":
+        from flyknot_app.gym.tick_env import FlyknotTickEnv
+
+        require_rl()  # before the initial guess is computed
+        env = FlyknotTickEnv(rope=rope, demo=demo, settle_s=settle_s)
+        settings |= {
+            "env": "flyknot/FlyingKnotTick-v0",
+            "action_scale": env.action_scale,
+            "smoothing_s": env.smoothing_s,
+            "ppo": asdict(PPOParams()),
+        }
+    else:
+        from flyknot_app.gym.env import FlyknotEnv
+
+        n = params.budget + params.repeats + 1
+        env = FlyknotEnv(rope=rope, demo=demo, max_trials=n, settle_s=settle_s)
+    bar = tqdm(seeds, desc=name, unit="seed", disable=bar_disable(progress))
+    return [run_baseline(name, env, params, seed) for seed in bar], settings
+
+
 def write_results(
     out: str | Path,
     results: Sequence[BaselineResult],

@@ -141,46 +141,21 @@ def _cmd_explain(args: argparse.Namespace) -> int:
 
 
 def _cmd_baseline(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
-    from flyknot.progress import bar_disable
-    from flyknot_app.baselines import (
-        BaselineParams,
-        PPOParams,
-        require_rl,
-        run_baseline,
-        write_results,
-    )
-    from flyknot_app.scenario import check_demo
+    from flyknot_app.baselines import BaselineParams, search_seeds, write_results
 
     params = BaselineParams(
         budget=args.budget, sigma=args.sigma, scale=args.scale, repeats=args.repeats
     )
     seeds = parse_seeds(args.seeds)
-    check_demo(args.demo)  # before the initial guess is computed
-    settings = {"demo": args.demo}
-    if args.name == "ppo":
-        from dataclasses import asdict
-
-        from flyknot_app.gym.tick_env import FlyknotTickEnv
-
-        require_rl()  # before the initial guess is computed
-        env = FlyknotTickEnv(rope=args.rope, demo=args.demo, settle_s=args.settle)
-        settings = {
-            **settings,
-            "env": "flyknot/FlyingKnotTick-v0",
-            "action_scale": env.action_scale,
-            "smoothing_s": env.smoothing_s,
-            "ppo": asdict(PPOParams()),
-        }
-    else:
-        from flyknot_app.gym.env import FlyknotEnv
-
-        n = params.budget + params.repeats + 1
-        env = FlyknotEnv(rope=args.rope, demo=args.demo, max_trials=n, settle_s=args.settle)
-    results = []
-    for seed in tqdm(seeds, desc=args.name, unit="seed", disable=bar_disable(not args.quiet)):
-        results.append(run_baseline(args.name, env, params, seed))
+    results, settings = search_seeds(
+        args.name,
+        seeds,
+        params,
+        rope=args.rope,
+        demo=args.demo,
+        settle_s=args.settle,
+        progress=not args.quiet,
+    )
     out = Path(args.out or f"runs/baseline-{args.name}-rope{args.rope}")
     table = write_results(out, results, params, args.rope, settings)
     print(table.read_text(), end="")

@@ -254,3 +254,79 @@ def test_every_variant_loads_on_every_scenario_it_runs(variant):
             for w in FOLLOW_WEIGHTS:
                 assert getattr(u.weights, w) == pytest.approx(0.1 * getattr(paper, w))
             assert u.weights.w_crit_pos == paper.w_crit_pos  # the rest kept
+
+
+def test_all_runs_every_experiment_each_variants_parts_then_the_baselines(tmp_path, monkeypatch):
+    """``flyknot paper --all``: the paper scenarios, each variant's parts (their own ``--set``
+    pairs under the user's, the variant's options under both), then the baselines from
+    ``03-ropes``' demonstration with ILC's budget, then the table with every column; with
+    ``--resume`` the baselines written are kept and every run continues."""
+    import flyknot_app.baselines as baselines
+    import flyknot_app.reports.paper as paper
+    from flyknot_app.baselines import BaselineResult
+
+    runs, searches = [], []
+
+    def fake_run(where, seeds, *, workers, resume, overrides, scenarios, progress):
+        runs.append((where.relative_to(tmp_path).as_posix(), scenarios, overrides, resume))
+        for n in scenarios:
+            (where / n).mkdir(parents=True, exist_ok=True)
+            doc = ScenarioSummary(n, "learn", tuple(_run("rope1", s, 2, rope=1) for s in seeds))
+            (where / n / "summary.json").write_text(json.dumps(doc.to_json()))
+            (where / n / "manifest.json").write_text("{}")
+
+    def fake_search(name, seeds, params, *, demo, progress):
+        searches.append((name, list(seeds), params.budget, demo))
+        res = [BaselineResult(name, s, costs=[1.0] * 11, knots=[False] * 11) for s in seeds]
+        return res, {"demo": demo}
+
+    monkeypatch.setattr(paper, "run_paper", fake_run)
+    monkeypatch.setattr(baselines, "search_seeds", fake_search)
+    argv = ["paper", "--all", "--out", str(tmp_path), "--seeds", "0,1"]
+    assert main([*argv, "--set", "max_trials=3"]) == 0
+    mine = {"max_trials": 3}
+    robot = {"defaults": {"demo": "robot"}}
+    assert runs[0] == (".", list(paper.PAPER_SCENARIOS), mine, False)
+    assert runs[1:3] == [
+        ("robot-demo", ["02-objectives", "03-ropes", "07-sensitivity"], {**mine, **robot}, False),
+        ("robot-demo", ["01-tracking", "04-success-rate"], {"repeats": 8, **mine, **robot}, False),
+    ]
+    assert runs[3][:2] == ("oracle", ["03-ropes", "05-demos"])
+    name, scenarios, overrides, _ = runs[4]
+    assert (name, scenarios[0]) == ("follow-through", "02-objectives")
+    assert overrides["defaults"]["weights"]["w_pc"] == pytest.approx(10.0)
+    assert len(runs) == 5  # paper-settings is run by hand only
+    assert searches == [("cma", [0, 1], 10, "fast-paced"), ("random", [0, 1], 10, "fast-paced")]
+    text = (tmp_path / "results.md").read_text()
+    assert "by `flyknot paper --all --seeds 0,1 --out" in text
+    assert "## Baselines from the same start (rope 1)" in text
+    assert "the oracle learner (the same objective" in text.split("## `03-ropes`")[1]
+    runs.clear()
+    searches.clear()
+    assert main([*argv, "--resume"]) == 0
+    assert [r[3] for r in runs] == [True] * 5 and searches == []
+
+
+def test_all_on_runs_without_resume_runs_nothing(tmp_path, capsys, monkeypatch):
+    """An ``--out`` whose variant already holds runs: one line before anything runs; and
+    ``--all`` with an option that picks part of it: one line."""
+    import flyknot_app.reports.paper as paper
+
+    monkeypatch.setattr(paper, "run_paper", lambda *a, **k: pytest.fail("ran"))
+    (tmp_path / "oracle" / "05-demos").mkdir(parents=True)
+    (tmp_path / "oracle" / "05-demos" / "manifest.json").write_text("{}")
+    argv = ["paper", "--all", "--out", str(tmp_path)]
+    assert main(argv) == 2
+    where = tmp_path / "oracle"
+    assert capsys.readouterr().err == (
+        f"flyknot: error: --out: {str(where)!r} already holds paper runs; use --resume\n"
+    )
+    for extra, flag in (
+        (["--variant", "oracle"], "--variant"),
+        (["--table-only"], "--table-only"),
+        (["--scenarios", "03-ropes"], "--scenarios"),
+    ):
+        assert main([*argv, *extra]) == 2
+        assert capsys.readouterr().err == (
+            f"flyknot: error: --all: runs every scenario and variant; not with {flag}\n"
+        )

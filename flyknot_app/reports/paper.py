@@ -50,6 +50,15 @@ step's noise band and common time (``docs/measuring-sticks.md``)."""
 
 
 @dataclass(frozen=True)
+class Part:
+    """Scenarios a variant runs for the results document, with ``--set`` pairs of their own
+    (e.g. fewer repeats)."""
+
+    scenarios: tuple[str, ...]
+    sets: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
 class Variant:
     """The paper's experiments run again with a few options changed, into ``OUT/<name>``; the
     table puts each run's results beside the scenarios' own, under ``label``.
@@ -60,12 +69,15 @@ class Variant:
             fields and the user's ``--set``.
         label: The column heads' prefix in the table.
         skips: Scenarios the variant does not apply to (run without it or not at all).
+        results: What ``flyknot paper --all`` runs of it for ``docs/results.md`` (none: the
+            variant is run by hand only).
     """
 
     name: str
     overrides: tuple[str, ...]
     label: str
     skips: tuple[str, ...] = ()
+    results: tuple[Part, ...] = ()
 
 
 VARIANTS: dict[str, Variant] = {
@@ -78,6 +90,10 @@ VARIANTS: dict[str, Variant] = {
             "from the robot demonstration (a command searched in this lab, not the paper's "
             "protocol)",
             skips=("05-demos",),  # its runs name their demonstrations
+            results=(
+                Part(("02-objectives", "03-ropes", "07-sensitivity")),
+                Part(("01-tracking", "04-success-rate"), ("repeats=8",)),
+            ),
         ),
         Variant(
             "oracle",
@@ -85,6 +101,7 @@ VARIANTS: dict[str, Variant] = {
             "the oracle learner (the same objective with the lab's own Jacobian, a measuring "
             "stick)",
             skips=("01-tracking", "02-objectives", "07-sensitivity"),  # no update / no model
+            results=(Part(("03-ropes", "05-demos")),),
         ),
         Variant(
             "follow-through",
@@ -92,6 +109,9 @@ VARIANTS: dict[str, Variant] = {
             "with the follow-through term at a tenth of the paper's weights, the noise band "
             "and the common time (learner options)",
             skips=("01-tracking",),  # no update
+            results=(
+                Part(("02-objectives", "03-ropes", "04-success-rate", "05-demos", "08-certainty")),
+            ),
         ),
     )
 }
@@ -284,6 +304,54 @@ BASELINES_DIR = "baselines"
 each a ``flyknot baseline NAME --demo ... --seeds ... --out`` directory."""
 
 
+RESULT_BASELINES = ("cma", "random")
+"""The black-box searches ``flyknot paper --all`` runs beside ILC on rope 1."""
+RESULT_BASELINE_BUDGET = 10
+"""Their trial budget: ILC's ``max_trials`` on rope 1."""
+
+
+def run_all(
+    out: str | Path,
+    seeds: Sequence[int],
+    *,
+    workers: int = 1,
+    resume: bool = False,
+    sets: Sequence[str] = (),
+    progress: bool = True,
+) -> None:
+    """Everything ``docs/results.md`` shows, into ``out``: every paper scenario
+    (:func:`run_paper`), each variant's :attr:`Variant.results` into ``OUT/<variant>``, and
+    :data:`RESULT_BASELINES` from the rope-1 demonstration of ``03-ropes`` into
+    ``OUT/baselines/<name>`` (with ``resume``, those already written are kept). ``sets`` lie
+    over every run, under each part's own."""
+    from flyknot_app.baselines import BaselineParams, search_seeds, write_results
+    from flyknot_app.scenario import load_scenario, parse_overrides
+
+    out = Path(out)
+    jobs = [(out, list(PAPER_SCENARIOS), parse_overrides(list(sets)))]
+    for v in VARIANTS.values():
+        for part in v.results:
+            scenarios = [n for n in part.scenarios if n not in v.skips]
+            overrides = parse_overrides([*part.sets, *sets], defaults=v.overrides)
+            jobs.append((out / v.name, scenarios, overrides))
+    for where, scenarios, _ in jobs:
+        if not resume and any((where / n / "manifest.json").is_file() for n in scenarios):
+            raise ConfigError("--out", f"{str(where)!r} already holds paper runs; use --resume")
+    for where, scenarios, overrides in jobs:
+        run_paper(
+            where, seeds, workers=workers, resume=resume, overrides=overrides,
+            scenarios=scenarios, progress=progress,
+        )  # fmt: skip
+    demo = load_scenario("03-ropes", parse_overrides(list(sets))).runs[0].demo
+    params = BaselineParams(budget=RESULT_BASELINE_BUDGET)
+    for name in RESULT_BASELINES:
+        where = out / BASELINES_DIR / name
+        if resume and (where / "baseline.json").is_file():
+            continue
+        results, settings = search_seeds(name, seeds, params, demo=demo, progress=progress)
+        write_results(where, results, params, 1, settings)
+
+
 def _rope1(runs) -> tuple[list[int], int]:
     """A :class:`flyknot_app.reports.compare.RunSet`'s rope-1 runs: their trials until the first
     knot (a run that did not tie: its trials + 1) and how many tied."""
@@ -445,6 +513,12 @@ def add_paper_parser(sub) -> None:
         help="the same as --variant paper-settings",
     )
     p.add_argument("--table-only", action="store_true", help="run nothing; write the table")
+    p.add_argument(
+        "--all",
+        action="store_true",
+        help="everything docs/results.md shows: every experiment, each variant's columns and "
+        "the baselines beside ILC (" + ", ".join(RESULT_BASELINES) + ")",
+    )
     p.set_defaults(func=_cmd_paper)
 
 
@@ -452,6 +526,8 @@ def _cmd_paper(args: argparse.Namespace) -> int:
     from flyknot_app.scenario import parse_overrides, parse_seeds
 
     seeds = parse_seeds(args.seeds)
+    if args.all:
+        return _cmd_all(args, seeds)
     name = "paper-settings" if args.paper_settings else args.variant
     variant = None if name is None else variant_kind(name)
     overrides = parse_overrides(args.set, defaults=variant.overrides if variant else ())
@@ -471,6 +547,28 @@ def _cmd_paper(args: argparse.Namespace) -> int:
         )
     command = f"flyknot paper --seeds {args.seeds} --out {args.out}"
     command += "".join(f" --set {p}" for p in args.set or [])
+    return _write_tables(args, out, command)
+
+
+def _cmd_all(args: argparse.Namespace, seeds: list[int]) -> int:
+    """``flyknot paper --all``: :func:`run_all`, then the tables."""
+    for flag, given in (
+        ("--variant", args.variant is not None),
+        ("--paper-settings", args.paper_settings),
+        ("--table-only", args.table_only),
+        ("--scenarios", list(args.scenarios) != list(PAPER_SCENARIOS)),
+    ):
+        if given:
+            raise ConfigError("--all", f"runs every scenario and variant; not with {flag}")
+    out = Path(args.out)
+    run_all(out, seeds, workers=args.workers, resume=args.resume, sets=args.set or ())
+    command = f"flyknot paper --all --seeds {args.seeds} --out {args.out}"
+    command += "".join(f" --set {p}" for p in args.set or [])
+    return _write_tables(args, out, command)
+
+
+def _write_tables(args: argparse.Namespace, out: Path, command: str) -> int:
+    """``OUT/results.md`` and, with ``--results``, that file with its pictures."""
     found = knot_pictures(out)
     pictures = {n: str(p.relative_to(out)) for n, p in found.items()}
     (out / "results.md").write_text(paper_table(out, command, pictures))
