@@ -14,6 +14,7 @@ from flyknot_app.baselines import (
     PPOParams,
     require_rl,
     run_baseline,
+    search_seeds,
     write_results,
 )
 
@@ -81,6 +82,10 @@ def test_errors_name_the_field():
         match=r"^baseline: unknown baseline 'sgd' \(valid choices: random, cma, ppo\)$",
     ):
         run_baseline("sgd", QuadraticEnv())
+    with pytest.raises(ConfigError, match=r"^baseline: unknown baseline 'sgd'"):
+        search_seeds("sgd", [0])  # before any lab is built
+    with pytest.raises(ConfigError, match=r"^demo: "):
+        search_seeds("cma", [0], demo="no-such-demo")
     with pytest.raises(ConfigError, match=r"^budget: must be an integer >= 1, got 0$"):
         BaselineParams(budget=0)
     with pytest.raises(ConfigError, match=r"^gamma: must lie in \(0, 1\], got 0$"):
