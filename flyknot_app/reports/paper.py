@@ -322,8 +322,8 @@ def run_all(
     """Everything ``docs/results.md`` shows, into ``out``: every paper scenario
     (:func:`run_paper`), each variant's :attr:`Variant.results` into ``OUT/<variant>``, and
     :data:`RESULT_BASELINES` from the rope-1 demonstration of ``03-ropes`` into
-    ``OUT/baselines/<name>`` (with ``resume``, those already written are kept). ``sets`` lie
-    over every run, under each part's own."""
+    ``OUT/baselines/<name>`` (with ``resume``, those already written are kept). ``sets``, the
+    user's ``--set`` pairs, lie over every run and win over a part's own."""
     from flyknot_app.baselines import BaselineParams, search_seeds, write_results
     from flyknot_app.scenario import load_scenario, parse_overrides
 
