@@ -114,7 +114,8 @@ class SecantCorrection:
         C_{k+1} = C_k + (de - M_k dkappa) dkappa^T / (dkappa^T dkappa)          (66, 80)
 
     so that the corrected M_{k+1} maps the last measured step exactly onto the measured
-    change (the secant condition), changing nothing along directions orthogonal to it.
+    change (the secant condition), changing nothing along directions orthogonal to it. The
+    update (:func:`learner.update.ilc_update`) hands it only errors measured at t_c.
     """
 
     def __init__(self) -> None:

@@ -419,7 +419,10 @@ def ilc_update(
             fit the critical point only. None: the model's everywhere.
         correct: ``correct(M_model (66, 80), err (66,)) -> M``, the model's M(t_c) corrected
             (:class:`learner.jacobians.SecantCorrection`) when ``jacobian`` does not give it;
-            objectives that fit the critical point only.
+            objectives that fit the critical point only. Called only when the critical error
+            is measured at t_c: a record that lost its markers before t_c is fitted at an
+            earlier step with the model's M there, and the correction, which maps steps onto
+            changes of the error at t_c, neither learns from it nor applies to it.
 
     Returns:
         The :class:`UpdateResult`.
@@ -441,9 +444,9 @@ def ilc_update(
     # 1. errors
     with _timed(timings, "error"):
         objective = objective_kind(s.objective)
-        k_c = critical_step(t_c, demo_target.dt, T)
+        k_target = critical_step(t_c, demo_target.dt, T)
         records = (record, *extra_records)
-        terms = objective.errors(records, base, demo_target, k_c, s.fit, s.fallback_s)
+        terms = objective.errors(records, base, demo_target, k_target, s.fit, s.fallback_s)
         err, k_c, t_eff, samples = terms.err, terms.k_c, terms.t_eff, terms.samples
 
     # 2-3. linearisation point and M (or the given Jacobian)
@@ -466,7 +469,7 @@ def ilc_update(
         with _timed(timings, "linearise"):
             dX = [given.get(k, M) for k, M in zip(steps, linearise(ro, T, steps), strict=True)]
     M_c = dX[steps.index(k_c)]
-    if correct is not None and k_c not in given:
+    if correct is not None and k_c == k_target and k_c not in given:
         M_c = _given_jacobian(correct(M_c, err), s.objective)
 
     # 4. follow-through

@@ -551,6 +551,30 @@ def test_tracking_lost_before_tc_falls_back_to_the_last_tracked_step(robot, prob
         ilc_update(lost, command, target, robot, PARAMS, UpdateSettings(fallback_s=0.03))
 
 
+def test_the_secant_correction_sees_only_errors_measured_at_tc(robot, problem):
+    """The secant memory corrects M(t_c): a record whose markers were lost before t_c (its
+    error fitted at an earlier step) neither teaches it nor is corrected by it, so its update
+    is the model's; a record tracked to t_c is corrected, with its own error."""
+    command, record, target, _ = problem
+    settings = UpdateSettings(limits=None, follow_through=False)
+    seen = []
+
+    def correct(M, err):
+        seen.append(np.array(err))
+        return M + 1e-3  # any correction: the update must show it
+
+    lost = _with_lost_markers(record, T_C - 0.06, 10.0)
+    plain = ilc_update(lost, command, target, robot, PARAMS, settings)
+    res = ilc_update(lost, command, target, robot, PARAMS, settings, correct=correct)
+    assert res.t_eff < T_C and seen == []
+    np.testing.assert_array_equal(res.dkappa, plain.dkappa)
+    full = ilc_update(record, command, target, robot, PARAMS, settings, correct=correct)
+    ((err,),) = [seen]
+    np.testing.assert_array_equal(err, full.err)
+    model = ilc_update(record, command, target, robot, PARAMS, settings)
+    assert not np.allclose(full.dkappa, model.dkappa)
+
+
 def test_an_objective_is_one_class_and_one_registry_line(robot, problem, monkeypatch):
     """A new objective registered beside the two (here: the critical point at the step
     before t_c) is taken by the update with no other change."""
