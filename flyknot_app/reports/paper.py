@@ -310,6 +310,12 @@ RESULT_BASELINE_BUDGET = 10
 """Their trial budget: ILC's ``max_trials`` on rope 1."""
 
 
+def check_fresh(where: Path, scenarios: Sequence[str], resume: bool) -> None:
+    """Refuse to start runs over a scenario of ``where`` that holds some, unless ``resume``."""
+    if not resume and any((where / n / "manifest.json").is_file() for n in scenarios):
+        raise ConfigError("--out", f"{str(where)!r} already holds paper runs; use --resume")
+
+
 def run_all(
     out: str | Path,
     seeds: Sequence[int],
@@ -335,8 +341,7 @@ def run_all(
             overrides = parse_overrides([*part.sets, *sets], defaults=v.overrides)
             jobs.append((out / v.name, scenarios, overrides))
     for where, scenarios, _ in jobs:
-        if not resume and any((where / n / "manifest.json").is_file() for n in scenarios):
-            raise ConfigError("--out", f"{str(where)!r} already holds paper runs; use --resume")
+        check_fresh(where, scenarios, resume)
     for where, scenarios, overrides in jobs:
         run_paper(
             where, seeds, workers=workers, resume=resume, overrides=overrides,
@@ -535,8 +540,7 @@ def _cmd_paper(args: argparse.Namespace) -> int:
     where = out / variant.name if variant else out
     scenarios = [n for n in args.scenarios if variant is None or n not in variant.skips]
     if not args.table_only:
-        if not args.resume and any((where / n / "manifest.json").is_file() for n in scenarios):
-            raise ConfigError("--out", f"{str(where)!r} already holds paper runs; use --resume")
+        check_fresh(where, scenarios, args.resume)
         run_paper(
             where,
             seeds,
@@ -545,9 +549,7 @@ def _cmd_paper(args: argparse.Namespace) -> int:
             overrides=overrides,
             scenarios=scenarios,
         )
-    command = f"flyknot paper --seeds {args.seeds} --out {args.out}"
-    command += "".join(f" --set {p}" for p in args.set or [])
-    return _write_tables(args, out, command)
+    return _write_tables(args, out)
 
 
 def _cmd_all(args: argparse.Namespace, seeds: list[int]) -> int:
@@ -562,13 +564,15 @@ def _cmd_all(args: argparse.Namespace, seeds: list[int]) -> int:
             raise ConfigError("--all", f"runs every scenario and variant; not with {flag}")
     out = Path(args.out)
     run_all(out, seeds, workers=args.workers, resume=args.resume, sets=args.set or ())
-    command = f"flyknot paper --all --seeds {args.seeds} --out {args.out}"
+    return _write_tables(args, out)
+
+
+def _write_tables(args: argparse.Namespace, out: Path) -> int:
+    """``OUT/results.md`` and, with ``--results``, that file with its pictures; the header
+    names the command line that ran the experiments."""
+    command = "flyknot paper" + (" --all" if args.all else "")
+    command += f" --seeds {args.seeds} --out {args.out}"
     command += "".join(f" --set {p}" for p in args.set or [])
-    return _write_tables(args, out, command)
-
-
-def _write_tables(args: argparse.Namespace, out: Path, command: str) -> int:
-    """``OUT/results.md`` and, with ``--results``, that file with its pictures."""
     found = knot_pictures(out)
     pictures = {n: str(p.relative_to(out)) for n, p in found.items()}
     (out / "results.md").write_text(paper_table(out, command, pictures))
