@@ -196,13 +196,16 @@ DEFAULT_CHECK_MODELS = ("1e5,50", "100,0.5", "2,0")
 """The paper's rope model, a middle one and the scenario files' (identified with ``--grid``)."""
 
 
-def _parse_model(text: str) -> tuple[float, float]:
+def _parse_model(text: str) -> tuple[float, ...]:
+    """``STIFFNESS,DAMPING`` or ``STIFFNESS,DAMPING,END_MASS`` of ``--model``."""
     parts = text.split(",")
     try:
-        k, c = (float(v) for v in parts)
+        values = tuple(float(v) for v in parts)
     except ValueError:
-        raise ConfigError("--model", f"expected STIFFNESS,DAMPING, got {text!r}") from None
-    return k, c
+        values = ()
+    if len(values) not in (2, 3):
+        raise ConfigError("--model", f"expected STIFFNESS,DAMPING[,END_MASS], got {text!r}")
+    return values
 
 
 def _cmd_model_check(args: argparse.Namespace) -> int:
@@ -419,9 +422,8 @@ def _add_model_check_parser(sub: argparse._SubParsersAction) -> None:
         "--model",
         action="append",
         default=None,
-        help="STIFFNESS,DAMPING of a rope model to score (repeatable; default: "
-        + " ".join(DEFAULT_CHECK_MODELS)
-        + ")",
+        help="STIFFNESS,DAMPING[,END_MASS] of a rope model to score (end mass in link masses, "
+        "default 5; repeatable; default: " + " ".join(DEFAULT_CHECK_MODELS) + ")",
     )
     m.add_argument(
         "--grid",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
-from flyknot.errors import ConfigError, check_nonnegative
+from flyknot.errors import ConfigError, check_nonnegative, check_positive
 from flyknot.limits import JointLimits
 from flyknot.options import INLINE
 from learner.jacobians import jacobian_kind
@@ -33,6 +33,34 @@ class PlateauParams:
         if isinstance(v, bool) or not isinstance(v, int) or v < 0:
             raise ConfigError("plateau.patience", f"must be an integer >= 0, got {v!r}")
         check_nonnegative("plateau.noise", self.noise)
+
+
+@dataclass(frozen=True)
+class ExploreParams:
+    """The exploring step's settings (:class:`learner.stops.Explore`).
+
+    Attributes:
+        size: RMS of the random offset r over the 56 arm knot entries [rad]; 0: no exploring
+            (the default, and the paper's).
+        patience: Counted trials in a row without a new lowest cost after which the next
+            command explores (>= 1).
+        w_control: The QP's control weight of an exploring step [1/rad^2] (the damped step's
+            first lambda, :class:`learner.steps.DampingParams`).
+        seed: Seed of the offsets: trial k's is drawn from ``(seed, k)``.
+    """
+
+    size: float = 0.0
+    patience: int = 2
+    w_control: float = 0.25
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_nonnegative("explore.size", self.size)
+        check_positive("explore.w_control", self.w_control)
+        for name, low in (("patience", 1), ("seed", 0)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                raise ConfigError(f"explore.{name}", f"must be an integer >= {low}, got {v!r}")
 
 
 def parse_confirm(value: object, stop_at_success: bool = True) -> tuple[int, int] | None:
@@ -92,6 +120,9 @@ class ILCParams:
         damping: The damped step's settings (``step = "damped"``).
         plateau: Stop when the best measured cost has not fallen by more than the noise
             floor in ``patience`` counted trials (off by default; the paper has none).
+        explore: At the noise floor, step from the best command toward a random offset that
+            the model says keeps the objective's rope states (off by default; the paper has
+            none).
         step_halvings: Halvings of an update's step at most while its command breaks a
             joint limit on its samples (the QP holds torque limits to first order only); the
             last is taken anyway and the cell's controller decides (>= 0).
@@ -111,6 +142,7 @@ class ILCParams:
     step: str = "gain"
     damping: DampingParams = field(default_factory=DampingParams)
     plateau: PlateauParams = field(default_factory=PlateauParams)
+    explore: ExploreParams = field(default_factory=ExploreParams)
     step_halvings: int = 4
     update: UpdateSettings = field(default_factory=UpdateSettings, metadata=INLINE)
 
@@ -142,6 +174,7 @@ class ILCParams:
             ("update", UpdateSettings),
             ("damping", DampingParams),
             ("plateau", PlateauParams),
+            ("explore", ExploreParams),
         ):
             if not isinstance(getattr(self, name), cls):
                 raise ConfigError(name, f"must be a {cls.__name__}, got {getattr(self, name)!r}")

@@ -18,9 +18,11 @@ Objective (all terms summed; constant kept so that ``QPData.objective`` is the t
 
     f(x) = ||M x - err||_Q^2                                      critical point, eq. cpobj
          + sum_t ||e_ft(t) - J_ft(t) x||_W(t)^2                   follow-through, eq. followthrough
-         + w_control ||x_arm||^2                                  control, eq. reg (56 arm entries)
+         + w_control ||x_arm - c_arm||^2                          control, eq. reg (56 arm entries)
          = 1/2 x^T P x + q^T x + const
 
+    c    = 0 (the paper's), or a centre the step is pulled toward (``center``: an exploring
+           step, :class:`learner.stops.Explore`)
     Q    = diag(w_crit_pos I_3N, w_crit_vel I_3N)          rows of M: 3N positions, 3N velocities
     W(t) = diag(w_p I_3, w_R I_3, w_v I_3)                 rows of e_ft: position, rotation,
                                                            velocity
@@ -322,12 +324,14 @@ def build_inverse_qp(
     base_update: str = "constant",
     keep_rest: bool = True,
     trust_region: float | None = None,
+    center: np.ndarray | None = None,
 ) -> QPData:
     """Assemble the inverse-model QP (see the module docstring for every term).
 
     ``P = 2 (sum M^T Q M + sum_t J_t^T W_t J_t + w_control S^T S)``,
-    ``q = -2 (sum M^T Q err + sum_t J_t^T W_t e_t)``,
-    ``const = sum err^T Q err + sum_t e_t^T W_t e_t``, with S selecting the 56 arm entries.
+    ``q = -2 (sum M^T Q err + sum_t J_t^T W_t e_t + w_control S^T S c)``,
+    ``const = sum err^T Q err + sum_t e_t^T W_t e_t + w_control ||S c||^2``, with S selecting
+    the 56 arm entries.
 
     Args:
         M_crit: Linearised model at t_c, ``d x(t_c) / d kappa`` (6N, 80): N marker positions
@@ -345,6 +349,9 @@ def build_inverse_qp(
         trust_region: If given, the box ``-r <= dk_arm <= r`` on each of the 56 arm knot
             entries [rad] (rows ``trust``): the linearised model is only trusted near the
             command it was taken about. None: no box (the paper's).
+        center: c, the knot update (10, 8) or (80,) [rad] the control term pulls the step
+            toward (its 56 arm entries): w_control ||dk_arm - c_arm||^2. None: c = 0 (the
+            paper's).
 
     Returns:
         The QP.
@@ -381,6 +388,13 @@ def build_inverse_qp(
         g -= weighted_rhs(J, W, np.ascontiguousarray(follow.e, dtype=float))  # sum_t J_t^T W_t e_t
         const += float(np.sum(W * follow.e**2))
     H[ARM_COLUMNS, ARM_COLUMNS] += weights.w_control
+    if center is not None:
+        c = np.asarray(center, dtype=float).ravel()
+        if c.shape != (N_VARS,):
+            raise ConfigError("center", f"must have {N_VARS} entries, got {c.size}")
+        _finite("center", c)
+        g[ARM_COLUMNS] -= weights.w_control * c[ARM_COLUMNS]
+        const += weights.w_control * float(c[ARM_COLUMNS] @ c[ARM_COLUMNS])
     P = 2.0 * H
     P = 0.5 * (P + P.T)  # exact symmetry against rounding in the sums
     E = base_equality_rows(base_update)

@@ -14,6 +14,8 @@ After each attempt the loop (:func:`learner.ilc_step.decide`) asks its rules, in
   command, its own step shrunk (option ``safeguard``).
 * ``"average"`` (:class:`Averaging`): each command played ``average`` times, the update on the
   mean error of its plays.
+* ``"explore"`` (:class:`Explore`): at the noise floor, a step from the best command toward a
+  random offset the model says keeps the objective's rope states (option ``explore``).
 * ``"damped"`` (:class:`DampedStep`): the damped step (:mod:`learner.steps`, ``step``).
 * ``"gain"`` (:class:`GainStep`, the paper's): kappa - gain dkappa; a fault or lost tracking
   halfway back to the previous command, or stop when there is none.
@@ -47,6 +49,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 import numpy as np
 
+from flyknot.constants import N_JOINTS, N_KNOTS, N_ROWS
 from flyknot.errors import ConfigError
 from learner.steps import Damping
 from learner.trial_view import Trial
@@ -66,9 +69,12 @@ class Moves(Protocol):
         """kappa - gain dkappa from ``knots`` (10, 8), halved while it breaks a limit."""
         ...
 
-    def update_about(self, trial: Trial, w_control: float) -> UpdateResult | None:
+    def update_about(
+        self, trial: Trial, w_control: float, center: np.ndarray | None = None
+    ) -> UpdateResult | None:
         """The update about ``trial``'s record and command again, with the QP's control
-        weight ``w_control`` (None: the model failed on it)."""
+        weight ``w_control`` and its control term pulled toward ``center`` (None: the model
+        failed on it)."""
         ...
 
 
@@ -342,6 +348,72 @@ class Averaging(StopRule):
             self.group.clear()
 
 
+def exploration_offset(size: float, seed: int, trial: int) -> np.ndarray:
+    """r (10, 8) [rad]: standard normal on the 56 arm knot entries drawn from ``(seed,
+    trial)``, scaled to an RMS of ``size``; zero on the base rows."""
+    r = np.zeros((N_ROWS, N_KNOTS))
+    z = np.random.default_rng([seed, trial]).standard_normal((N_JOINTS, N_KNOTS))
+    r[:N_JOINTS] = size * z / np.sqrt(np.mean(z**2))
+    return r
+
+
+class Explore(StopRule):
+    """The exploring step (``explore``), a step toward a random offset at the noise floor.
+
+    After ``explore.patience`` counted trials in a row without a new lowest cost, the next
+    command is the best trial's command moved by the update about its record whose control
+    term is pulled toward a random offset r (:func:`exploration_offset`, a new one each trial):
+
+        min_dk ||M dk - err||_Q^2 (+ the objective's other points) + w ||dk_arm - r_arm||^2
+
+    The step keeps the rope states the objective fits as the model predicts them and spends
+    the freedom they leave on r: near the noise floor another throw to the same rope state at
+    t_c, where the damped step would play nearly the same command again (the knot is decided
+    after t_c, docs/measuring-sticks.md). A trial that lowers the best cost hands the step
+    back to the other rules. The rule sees only measured costs."""
+
+    name = "explore"
+    description = "at the noise floor, a step from the best command toward a random offset"
+
+    def __init__(self, params: ILCParams) -> None:
+        self._p = params.explore
+        self.best: Trial | None = None
+        """The counted trial with the lowest measured cost."""
+        self.best_cost: float | None = None
+        self.since = 0
+        """Counted trials since the last new lowest cost."""
+
+    def observe(self, trial: Trial) -> None:
+        """A new lowest cost resets the count; any other counted trial adds one."""
+        if self._p.size <= 0:
+            return
+        cost = trial.summary.cost if trial.measured else None
+        if cost is not None and (self.best_cost is None or cost < self.best_cost):
+            self.best, self.best_cost, self.since = trial, float(cost), 0
+        else:
+            self.since += 1
+
+    def verdict(self, trial: Trial) -> Ruling | None:
+        """An exploring step from the best command once ``patience`` trials made no
+        progress."""
+        p, best = self._p, self.best
+        if p.size <= 0 or best is None or self.since < p.patience:
+            return None
+        r = exploration_offset(p.size, p.seed, trial.summary.trial)
+        action = (
+            f"explore: from the best command (trial {best.summary.trial + 1}) toward a "
+            f"{p.size:g} rad offset"
+        )
+
+        def move(moves: Moves) -> np.ndarray:
+            step = moves.update_about(best, p.w_control, r)
+            done = step is not None and step.solved
+            trial.summary = replace(trial.summary, action=action + ("" if done else ": QP failed"))
+            return moves.step(best.knots, step.dkappa) if done else best.knots
+
+        return Ruling(STEP, self.name, move=move)
+
+
 class DampedStep(StopRule):
     """The damped step (``step = "damped"``, :mod:`learner.steps`): the full step from a new
     best trial, else a more damped one from the best trial's command and record."""
@@ -484,6 +556,7 @@ STOPS: dict[str, type[StopRule]] = {
         Plateau,
         Safeguard,
         Averaging,
+        Explore,
         DampedStep,
         GainStep,
     )
@@ -557,6 +630,7 @@ __all__ = [
     "Averaging",
     "Confirmation",
     "DampedStep",
+    "Explore",
     "GainStep",
     "Moves",
     "Plateau",
@@ -566,5 +640,6 @@ __all__ = [
     "StopAtSuccess",
     "StopRule",
     "StopRules",
+    "exploration_offset",
     "stop_rule",
 ]

@@ -357,10 +357,12 @@ def _generated(
     rows: LimitRows | None,
     s: UpdateSettings,
     timings: dict[str, float],
+    center: np.ndarray | None = None,
 ) -> GeneratedSolve:
-    """The inverse-model QP of ``qp_terms`` built and solved with the limit rows generated
-    as they are violated (:func:`learner.limit_rows.generate_constraints`); build and solve
-    times added to ``timings``."""
+    """The inverse-model QP of ``qp_terms`` (its control term pulled toward ``center``) built
+    and solved with the limit rows generated as they are violated
+    (:func:`learner.limit_rows.generate_constraints`); build and solve times added to
+    ``timings``."""
 
     def solve(lim: LimitRows | None) -> QPResult:
         with _timed(timings, "qp_build"):
@@ -371,6 +373,7 @@ def _generated(
                 limits=lim,
                 base_update=s.base_update,
                 trust_region=s.trust_region,
+                center=center,
             )
         with _timed(timings, "qp_solve"):
             return solve_qp(qp, s.backend, **dict(s.solver_settings))
@@ -389,6 +392,7 @@ def ilc_update(
     extra_records: Sequence[TrialRecord] = (),
     jacobian: Mapping[float, np.ndarray] | None = None,
     correct: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+    center: np.ndarray | None = None,
 ) -> UpdateResult:
     """One ILC update: measured error -> linearised model -> inverse-model QP -> new knots.
 
@@ -423,6 +427,9 @@ def ilc_update(
             is measured at t_c: a record that lost its markers before t_c is fitted at an
             earlier step with the model's M there, and the correction, which maps steps onto
             changes of the error at t_c, neither learns from it nor applies to it.
+        center: The knot update (10, 8) [rad] the control term pulls the step toward,
+            w_control ||dk_arm - c_arm||^2 (:func:`learner.inverse_qp.build_inverse_qp`; an
+            exploring step). None: toward no change (the paper's).
 
     Returns:
         The :class:`UpdateResult`.
@@ -488,7 +495,7 @@ def ilc_update(
 
     # 6. solve, with constraint generation
     qp_terms = objective.qp_terms(terms, lambda k: dX[steps.index(k)], M_c)
-    gen = _generated(qp_terms, follow, rows, s, timings)
+    gen = _generated(qp_terms, follow, rows, s, timings, center)
     res, viol = gen.result, gen.violation
 
     # the update, checked

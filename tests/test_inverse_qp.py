@@ -453,3 +453,59 @@ def test_links_torque_rows_join_only_once_violated(robot: RobotModel):
     assert first["tau"][1] > first["tau"][0]  # the whole torque's near rows are there
     generate_constraints(rows, solve, margin=0.0, max_rounds=3)
     assert dict(seen.pop()) == dict(rows.blocks)  # every row of every block
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_a_centred_control_term_is_the_distance_to_the_centre(seed: int):
+    """center c: w_control ||x_arm - c_arm||^2 in place of w_control ||x_arm||^2; the base
+    rows of c are ignored."""
+    M, err, follow = _problem(seed)
+    w = InverseModelWeights()
+    rng = np.random.default_rng(seed + 2)
+    c, x = rng.normal(size=80), rng.normal(size=80)
+    qp = build_inverse_qp(M_crit=M, err_crit=err, weights=w, follow=follow, center=c)
+    plain = _direct_cost(x, M, err, follow, w) - w.w_control * x[:56] @ x[:56]
+    direct = plain + w.w_control * (x[:56] - c[:56]) @ (x[:56] - c[:56])
+    assert qp.objective(x) == pytest.approx(direct, rel=1e-10, abs=1e-12)
+    np.testing.assert_array_equal(qp.P.toarray(), build_inverse_qp(
+        M_crit=M, err_crit=err, weights=w, follow=follow).P.toarray())  # fmt: skip
+
+
+def test_a_centred_step_moves_toward_the_centre_where_the_model_cannot_see():
+    """With fewer state rows than knots, the step toward a centre keeps the fitted state
+    (M dk = err, as without a centre) and its difference from the plain step lies in M's null
+    space, as near the centre as the rest rows allow."""
+    rng = np.random.default_rng(7)
+    M = np.zeros((6 * N_MARK, 80))
+    M[:, :56] = rng.normal(size=(6 * N_MARK, 56))
+    M[:36] = 0.0  # 30 state rows on the 42 arm directions the rest rows leave free
+    x0 = rng.normal(size=(10, 8)) * 0.1
+    x0[:, 1], x0[:, 6] = x0[:, 0], x0[:, 7]  # at rest at both ends
+    err = M @ x0.ravel()
+    w = InverseModelWeights(w_control=1e-6)
+    c = np.zeros(80)
+    c[:56] = rng.normal(size=56)
+    plain = require_solved(
+        solve_qp(build_inverse_qp(M_crit=M, err_crit=err, weights=w), "clarabel")
+    )
+    pulled = require_solved(
+        solve_qp(build_inverse_qp(M_crit=M, err_crit=err, weights=w, center=c), "clarabel")
+    )
+    d = (pulled.dkappa - plain.dkappa).ravel()
+    np.testing.assert_allclose(M @ pulled.dkappa.ravel(), err, atol=1e-3)
+    assert np.linalg.norm(M @ d) < 1e-3 * np.linalg.norm(d)
+    assert np.linalg.norm(d[:56]) > 0.1 * np.linalg.norm(c[:56])
+    assert (pulled.dkappa.ravel()[:56] - c[:56]) @ (pulled.dkappa.ravel()[:56] - c[:56]) < (
+        plain.dkappa.ravel()[:56] - c[:56]
+    ) @ (plain.dkappa.ravel()[:56] - c[:56])
+
+
+def test_a_bad_centre_raises_exact_messages():
+    M, err, _ = _problem(1)
+    with pytest.raises(ConfigError) as e:
+        build_inverse_qp(M_crit=M, err_crit=err, center=np.zeros(79))
+    assert str(e.value) == "center: must have 80 entries, got 79"
+    with pytest.raises(ConfigError) as e:
+        build_inverse_qp(M_crit=M, err_crit=err, center=np.full(80, np.nan))
+    assert str(e.value) == "center: must be finite"

@@ -88,17 +88,20 @@ def test_cli_model_check_end_to_end(tmp_path, capsys):
     assert (ours.stiffness, ours.damping) in grid_models()
     code = cli.main(
         ["model-check", "--json", "--model", "1e5,50", "--model", "100,0.5", "--model",
-         f"{ours.stiffness},{ours.damping}"]
+         f"{ours.stiffness},{ours.damping}", "--model", f"{ours.stiffness},{ours.damping},0.5"]
     )  # fmt: skip
     assert code == 0
     res = json.loads(capsys.readouterr().out)
     assert 0.0 < res["t_eval"] <= res["t_c"]
     assert len(res["response_norms"]) == 8 and min(res["response_norms"]) > 1e-3
-    paper, middle, scen = res["models"]
+    paper, middle, scen, light = res["models"]
     assert (paper["stiffness"], middle["damping"]) == (1e5, 0.5)
+    assert (scen["end_mass"], light["end_mass"]) == (5.0, 0.5)
+    # The end mass reaches the model: a tenth of it predicts other responses.
+    assert abs(light["mean_cos"] - scen["mean_cos"]) > 1e-3
     assert scen["mean_cos"] > middle["mean_cos"] + 0.2 > paper["mean_cos"] + 0.2
     assert scen["mean_cos"] > 0.9 and scen["min_cos"] > 0.8
-    assert best_model(res) is res["models"][2]
+    assert best_model({"models": [paper, middle, scen]}) is scen
 
 
 def test_best_model_is_the_highest_mean_cosine():
@@ -113,10 +116,11 @@ def test_cli_model_check_grid_or_models(capsys):
     )
 
 
-def test_cli_model_check_bad_model(capsys):
-    assert cli.main(["model-check", "--model", "100"]) == 2
+@pytest.mark.parametrize("text", ["100", "2,0,5,1", "2,x"])
+def test_cli_model_check_bad_model(capsys, text):
+    assert cli.main(["model-check", "--model", text]) == 2
     assert capsys.readouterr().err == (
-        "flyknot: error: --model: expected STIFFNESS,DAMPING, got '100'\n"
+        f"flyknot: error: --model: expected STIFFNESS,DAMPING[,END_MASS], got {text!r}\n"
     )
 
 

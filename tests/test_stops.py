@@ -15,7 +15,7 @@ from flyknot.limits import JointLimits
 from learner import ilc, stops
 from learner.bezier import BezierCommand
 from learner.ilc import ILCParams, learn
-from learner.ilc_params import PlateauParams
+from learner.ilc_params import ExploreParams, PlateauParams
 from learner.ilc_step import Context, LoopState
 from learner.kinematics import RobotModel
 from learner.run_directory import RunDirectory, TrialSummary
@@ -152,6 +152,11 @@ SCENARIOS = {
         {"fault_on": {2, 3}},
         ["update (damped", "fault: from the best command"],
     ),
+    "explore": (
+        {"max_trials": 7, "step": "damped", "explore": ExploreParams(size=0.05, patience=2)},
+        {"shifted": {2, 3}},
+        ["update (damped", "cost rose: from the best command", "explore: from the best command"],
+    ),
     "plateau": (
         {"max_trials": 8, "plateau": PlateauParams(patience=2, noise=0.5)},
         {"shifted": {2}},
@@ -209,6 +214,7 @@ def _ledger(run_dir):
         ("confirm and average", 2),  # inside a confirmation, with a play being averaged
         ("safeguard and average", 2),  # after a group whose last play is the best trial
         ("safeguard and average", 4),  # then back to the best command
+        ("explore", 5),  # after an exploring step
     ],
 )
 def test_a_killed_run_resumed_is_the_uninterrupted_run(
@@ -236,7 +242,7 @@ def test_an_unknown_rule_names_the_valid_ones():
         stop_rule("patience")
     assert str(e.value) == (
         "stop_rule: unknown stop rule 'patience' (valid choices: retry, success, confirm, "
-        "plateau, safeguard, average, damped, gain)"
+        "plateau, safeguard, average, explore, damped, gain)"
     )
     assert isinstance(e.value, FlyknotError)
     with pytest.raises(ConfigError, match=r"unknown stop rule 3 \(valid choices: retry, "):
@@ -251,7 +257,8 @@ def test_an_unknown_rule_names_the_valid_ones():
 
 def test_the_registry_is_the_order_the_loop_asks():
     assert list(STOPS) == [
-        "retry", "success", "confirm", "plateau", "safeguard", "average", "damped", "gain"
+        "retry", "success", "confirm", "plateau", "safeguard", "average", "explore", "damped",
+        "gain",
     ]  # fmt: skip
     for name, rule in STOPS.items():
         assert rule.name == name and rule.description and rule.__doc__
@@ -367,3 +374,59 @@ def test_plateau_settings_are_checked(value, message):
     with pytest.raises(ConfigError) as e:
         PlateauParams(**value)
     assert str(e.value).startswith(message)
+
+
+def test_an_exploration_offset_is_seeded_scaled_and_on_the_arm_rows():
+    r = stops.exploration_offset(0.05, 3, 4)
+    assert r.shape == (10, 8)
+    assert np.sqrt(np.mean(r[:7] ** 2)) == pytest.approx(0.05, rel=1e-12)
+    assert not np.any(r[7:])
+    np.testing.assert_array_equal(r, stops.exploration_offset(0.05, 3, 4))
+    assert not np.allclose(r, stops.exploration_offset(0.05, 3, 5))
+    assert not np.allclose(r, stops.exploration_offset(0.05, 4, 4))
+
+
+def test_exploring_waits_for_patience_and_a_new_best_hands_back():
+    """Costs 5, 1, 2, 3 (patience 2): the fourth trial explores from the second; a trial that
+    then lowers the best cost is the damped step's again."""
+    rule = stops.Explore(ILCParams(step="damped", explore=ExploreParams(size=0.1, patience=2)))
+
+    class Seen(Trial):
+        def __init__(self, k, cost):
+            summary = TrialSummary(
+                trial=k, attempt=0, fault=None, knot=None, tracking_lost=False, cost=cost,
+                update_solved=True, update_status="solved", predicted_cost_after=None,
+                action="update", wall_s=0.0,
+            )  # fmt: skip
+            super().__init__(summary, np.full((10, 8), float(k)), None)
+
+        record = cost_at = own_update = average_over = None  # not asked by the rule
+
+    rulings = []
+    for k, cost in enumerate([5.0, 1.0, 2.0, 3.0, 0.5]):
+        trial = Seen(k, cost)
+        rule.observe(trial)
+        rulings.append(rule.verdict(trial))
+    assert [r is not None for r in rulings] == [False, False, False, True, False]
+    assert rulings[3].kind == stops.STEP and rulings[3].rule == "explore"
+    assert rule.best.summary.trial == 4 and rule.since == 0
+    off = stops.Explore(ILCParams(step="damped"))  # size 0: never
+    for k, cost in enumerate([5.0, 6.0, 7.0, 8.0]):
+        trial = Seen(k, cost)
+        off.observe(trial)
+        assert off.verdict(trial) is None
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ({"size": -0.1}, "explore.size: must be a finite number >= 0, got -0.1"),
+        ({"patience": 0}, "explore.patience: must be an integer >= 1, got 0"),
+        ({"w_control": 0.0}, "explore.w_control: must be a finite number > 0, got 0.0"),
+        ({"seed": "a"}, "explore.seed: must be an integer >= 0, got 'a'"),
+    ],
+)
+def test_bad_explore_settings_raise_exact_messages(value, message):
+    with pytest.raises(ConfigError) as e:
+        ExploreParams(**value)
+    assert str(e.value) == message

@@ -148,7 +148,7 @@ def evaluation_time(t_marker: np.ndarray, markers: np.ndarray, t_c: float, dt: f
 def check_models(
     demo: str,
     rope: int | str,
-    models: Sequence[tuple[float, float]],
+    models: Sequence[tuple[float, ...]],
     *,
     knots: np.ndarray | None = None,
     window: tuple[float, float] = (0.035, 0.05),
@@ -162,7 +162,8 @@ def check_models(
     Args:
         demo: Demonstration name or path (its target gives t_c and T).
         rope: Rope id of the lab, or a rope's name.
-        models: (stiffness, damping) pairs to score (other model parameters: defaults).
+        models: (stiffness, damping) or (stiffness, damping, end mass) of each model to score
+            (other model parameters: :class:`learner.rope_model.RopeModelParams`' defaults).
         knots: Command to linearise about (default: the demonstration's initial guess).
         window: Demonstration window (follow-through [s], path fraction at t_0).
         n_directions: Random directions.
@@ -190,7 +191,10 @@ def check_models(
     if not models:
         raise ConfigError("models", "give at least one (stiffness, damping) pair")
     check_demo(demo)
-    rope_models = [RopeModelParams(stiffness=float(k), damping=float(c)) for k, c in models]
+    names = ("stiffness", "damping", "end_mass")
+    rope_models = [
+        RopeModelParams(**{n: float(v) for n, v in zip(names, m, strict=False)}) for m in models
+    ]
     dt = rope_models[0].dt
     _, target = prepare_target(demo, dt, window)
     robot = RobotModel.from_mjcf()
@@ -300,18 +304,19 @@ def format_table(res: dict) -> str:
         f"demo {res['demo']}, rope {res['rope']}: t_c {res['t_c']:.3f} s, "
         f"compared at {res['t_eval']:.3f} s; measured |response| per direction [m]: "
         + ", ".join(f"{v:.3f}" for v in res["response_norms"]),
-        f"{'stiffness':>10} {'damping':>8} {'mean cos':>9} {'min cos':>8} {'ratio':>6} "
-        f"{'rel miss':>8}",
+        f"{'stiffness':>10} {'damping':>8} {'end mass':>8} {'mean cos':>9} {'min cos':>8} "
+        f"{'ratio':>6} {'rel miss':>8}",
     ]
     best = best_model(res)
     for r in res["models"]:
         lines.append(
-            f"{r['stiffness']:>10g} {r['damping']:>8g} {r['mean_cos']:>9.2f} {r['min_cos']:>8.2f} "
-            f"{r['ratio']:>6.2f} {r['rel_miss']:>8.2f}" + ("  <- best" if r is best else "")
+            f"{r['stiffness']:>10g} {r['damping']:>8g} {r['end_mass']:>8g} {r['mean_cos']:>9.2f} "
+            f"{r['min_cos']:>8.2f} {r['ratio']:>6.2f} {r['rel_miss']:>8.2f}"
+            + ("  <- best" if r is best else "")
         )
     lines.append(
-        f"best: stiffness {best['stiffness']:g}, damping {best['damping']:g} (mean cos "
-        f"{best['mean_cos']:.2f}); use it with --set rope_model.stiffness=K --set "
-        "rope_model.damping=B"
+        f"best: stiffness {best['stiffness']:g}, damping {best['damping']:g}, end mass "
+        f"{best['end_mass']:g} (mean cos {best['mean_cos']:.2f}); use it with --set "
+        "rope_model.stiffness=K --set rope_model.damping=B --set rope_model.end_mass=M"
     )
     return "\n".join(lines)
