@@ -42,8 +42,12 @@ class ExploreParams:
     Attributes:
         size: RMS of the random offset r over the 56 arm knot entries [rad]; 0: no exploring
             (the default, and the paper's).
-        patience: Counted trials in a row without a new lowest cost after which the next
-            command explores (>= 1).
+        patience: Counted trials in a row near the noise floor without a new lowest cost
+            after which the next command explores (>= 1).
+        band: Near the noise floor: a measured cost within (1 + band) of the lowest; a
+            larger rise, or a trial that measured nothing, starts the count again (the
+            damped step's to mend) (>= 0). 0.5: three of the relative standard deviation of
+            one command's cost over the lab's variation, 0.15 (``damping.noise``).
         w_control: The QP's control weight of an exploring step [1/rad^2] (the damped step's
             first lambda, :class:`learner.steps.DampingParams`).
         seed: Seed of the offsets: trial k's is drawn from ``(seed, k)``.
@@ -51,11 +55,13 @@ class ExploreParams:
 
     size: float = 0.0
     patience: int = 2
+    band: float = 0.5
     w_control: float = 0.25
     seed: int = 0
 
     def __post_init__(self) -> None:
         check_nonnegative("explore.size", self.size)
+        check_nonnegative("explore.band", self.band)
         check_positive("explore.w_control", self.w_control)
         for name, low in (("patience", 1), ("seed", 0)):
             v = getattr(self, name)

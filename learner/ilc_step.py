@@ -192,11 +192,11 @@ class LoopMoves:
         return safe_step(knots, dk, ctx.target.T, ctx.robot, ctx.limits, p.step_halvings)
 
     def update_about(
-        self, trial: Trial, w_control: float, center: np.ndarray | None = None
+        self, trial: Trial, w_control: float, explore: np.ndarray | None = None
     ) -> UpdateResult | None:
         """The update about ``trial``'s record and command again at control weight
-        ``w_control``, pulled toward ``center`` (already judged; the secant source's
-        correction without learning)."""
+        ``w_control``, or the exploring update toward ``explore`` (already judged; the secant
+        source's correction without learning)."""
         command = BezierCommand(trial.knots, self.ctx.target.T)
         _, update = assess(
             trial.record(),
@@ -207,7 +207,7 @@ class LoopMoves:
             w_control=w_control,
             judged=False,
             correct=self.state.correct(trial.knots, learn=False),
-            center=center,
+            explore=explore,
         )
         return update
 
@@ -293,15 +293,15 @@ def assess(
     w_control: float | None = None,
     judged: bool = True,
     correct=None,
-    center: np.ndarray | None = None,
+    explore: np.ndarray | None = None,
 ) -> tuple[TrialSummary, UpdateResult | None]:
     """Trial ``k``'s ledger line and update: the judge's verdict, then (no fault) the
     critical-point error and the inverse-model QP (on the mean error with ``extra_records``,
     earlier plays of the same command); lost tracking gives no update. ``w_control``: the
     QP's control weight instead of the run's (the damped step's lambda); ``judged=False``
     skips the judge (a trial already judged, stepped from again); ``correct``: the model
-    Jacobian's correction (:meth:`LoopState.correct`); ``center``: the knot update the QP's
-    control term pulls toward (an exploring step; None: none)."""
+    Jacobian's correction (:meth:`LoopState.correct`); ``explore``: the exploring update
+    toward that knot update (:func:`learner.update.ilc_update`; None: the update)."""
     target, robot, params, limits = ctx.target, ctx.robot, ctx.params, ctx.limits
     verdict = ctx.judge(record) if judged else None
     settings = params.update_settings(limits)
@@ -342,7 +342,7 @@ def assess(
                 _fit_times(settings.objective, target),
             ),
             correct=correct,
-            center=center,
+            explore=explore,
         )
     except SolverError as e:  # the model failed on the measured motion: no update
         return TrialSummary(

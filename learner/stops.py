@@ -70,11 +70,11 @@ class Moves(Protocol):
         ...
 
     def update_about(
-        self, trial: Trial, w_control: float, center: np.ndarray | None = None
+        self, trial: Trial, w_control: float, explore: np.ndarray | None = None
     ) -> UpdateResult | None:
         """The update about ``trial``'s record and command again, with the QP's control
-        weight ``w_control`` and its control term pulled toward ``center`` (None: the model
-        failed on it)."""
+        weight ``w_control``, or the exploring update toward ``explore``
+        (:func:`learner.update.ilc_update`; None: the model failed on it)."""
         ...
 
 
@@ -360,17 +360,18 @@ def exploration_offset(size: float, seed: int, trial: int) -> np.ndarray:
 class Explore(StopRule):
     """The exploring step (``explore``), a step toward a random offset at the noise floor.
 
-    After ``explore.patience`` counted trials in a row without a new lowest cost, the next
-    command is the best trial's command moved by the update about its record whose control
-    term is pulled toward a random offset r (:func:`exploration_offset`, a new one each trial):
+    After ``explore.patience`` counted trials in a row whose costs stay within (1 +
+    ``explore.band``) of the lowest without lowering it, the next command is the best trial's
+    command moved by the exploring update about its record toward a random offset r
+    (:func:`exploration_offset`, a new one each trial), every fitted error taken as zero:
 
-        min_dk ||M dk - err||_Q^2 (+ the objective's other points) + w ||dk_arm - r_arm||^2
+        min_dk ||M dk||_Q^2 (+ the objective's other points) + w ||dk_arm - r_arm||^2
 
-    The step keeps the rope states the objective fits as the model predicts them and spends
-    the freedom they leave on r: near the noise floor another throw to the same rope state at
-    t_c, where the damped step would play nearly the same command again (the knot is decided
-    after t_c, docs/measuring-sticks.md). A trial that lowers the best cost hands the step
-    back to the other rules. The rule sees only measured costs."""
+    The step keeps the rope states the objective fits where the model predicts them and
+    spends the freedom they leave on r: another throw to the same rope state at t_c, where
+    the damped step would play nearly the same command again (the knot is decided after t_c,
+    docs/measuring-sticks.md). A trial that lowers the best cost hands the step back to the
+    other rules; a larger rise too. The rule sees only measured costs."""
 
     name = "explore"
     description = "at the noise floor, a step from the best command toward a random offset"
@@ -384,14 +385,17 @@ class Explore(StopRule):
         """Counted trials since the last new lowest cost."""
 
     def observe(self, trial: Trial) -> None:
-        """A new lowest cost resets the count; any other counted trial adds one."""
+        """A new lowest cost, a larger rise than the band or a trial without a cost resets
+        the count; a cost within the band adds one."""
         if self._p.size <= 0:
             return
         cost = trial.summary.cost if trial.measured else None
         if cost is not None and (self.best_cost is None or cost < self.best_cost):
             self.best, self.best_cost, self.since = trial, float(cost), 0
-        else:
+        elif cost is not None and cost <= (1.0 + self._p.band) * self.best_cost:
             self.since += 1
+        else:
+            self.since = 0
 
     def verdict(self, trial: Trial) -> Ruling | None:
         """An exploring step from the best command once ``patience`` trials made no

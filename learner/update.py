@@ -41,7 +41,7 @@ import numbers
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -351,6 +351,24 @@ def _checked_step(
     return dk, new_knots, float(np.sum(qw * r**2)), viol, sampled
 
 
+def _held(qp_terms: dict) -> dict:
+    """The objective's QP terms with every error taken as zero: ||M dk||_Q^2 each, a step
+    that keeps the fitted rope states where the model predicts them."""
+
+    def zero(pairs):
+        return [(M, np.zeros_like(e)) for M, e in pairs]
+
+    held = {k: zero(v) for k, v in qp_terms.items() if k in ("equal", "points")}
+    if "err_crit" in qp_terms:
+        held |= {"M_crit": qp_terms["M_crit"], "err_crit": np.zeros_like(qp_terms["err_crit"])}
+    return held
+
+
+def _held_follow(follow: FollowThrough | None) -> FollowThrough | None:
+    """The follow-through terms with their errors taken as zero (None stays None)."""
+    return None if follow is None else replace(follow, e=np.zeros_like(follow.e))
+
+
 def _generated(
     qp_terms: dict,
     follow: FollowThrough | None,
@@ -392,7 +410,7 @@ def ilc_update(
     extra_records: Sequence[TrialRecord] = (),
     jacobian: Mapping[float, np.ndarray] | None = None,
     correct: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
-    center: np.ndarray | None = None,
+    explore: np.ndarray | None = None,
 ) -> UpdateResult:
     """One ILC update: measured error -> linearised model -> inverse-model QP -> new knots.
 
@@ -427,9 +445,11 @@ def ilc_update(
             is measured at t_c: a record that lost its markers before t_c is fitted at an
             earlier step with the model's M there, and the correction, which maps steps onto
             changes of the error at t_c, neither learns from it nor applies to it.
-        center: The knot update (10, 8) [rad] the control term pulls the step toward,
-            w_control ||dk_arm - c_arm||^2 (:func:`learner.inverse_qp.build_inverse_qp`; an
-            exploring step). None: toward no change (the paper's).
+        explore: An exploring update toward the knot update r (10, 8) [rad]: every fitted
+            error taken as zero (the step keeps the objective's rope states, and the
+            follow-through, where the model predicts them) and the control term pulled
+            toward r, w_control ||dk_arm - r_arm||^2
+            (:func:`learner.inverse_qp.build_inverse_qp`'s ``center``). None: the update.
 
     Returns:
         The :class:`UpdateResult`.
@@ -495,7 +515,9 @@ def ilc_update(
 
     # 6. solve, with constraint generation
     qp_terms = objective.qp_terms(terms, lambda k: dX[steps.index(k)], M_c)
-    gen = _generated(qp_terms, follow, rows, s, timings, center)
+    if explore is not None:
+        qp_terms, follow = _held(qp_terms), _held_follow(follow)
+    gen = _generated(qp_terms, follow, rows, s, timings, explore)
     res, viol = gen.result, gen.violation
 
     # the update, checked

@@ -153,7 +153,7 @@ SCENARIOS = {
         ["update (damped", "fault: from the best command"],
     ),
     "explore": (
-        {"max_trials": 7, "step": "damped", "explore": ExploreParams(size=0.05, patience=2)},
+        {"max_trials": 7, "step": "damped", "explore": ExploreParams(size=0.05, band=1e3)},
         {"shifted": {2, 3}},
         ["update (damped", "cost rose: from the best command", "explore: from the best command"],
     ),
@@ -386,10 +386,12 @@ def test_an_exploration_offset_is_seeded_scaled_and_on_the_arm_rows():
     assert not np.allclose(r, stops.exploration_offset(0.05, 4, 4))
 
 
-def test_exploring_waits_for_patience_and_a_new_best_hands_back():
-    """Costs 5, 1, 2, 3 (patience 2): the fourth trial explores from the second; a trial that
-    then lowers the best cost is the damped step's again."""
-    rule = stops.Explore(ILCParams(step="damped", explore=ExploreParams(size=0.1, patience=2)))
+def test_exploring_waits_for_patience_near_the_floor_and_a_new_best_hands_back():
+    """Costs 5, 1, 3 (a rise beyond the band), 1.2, 1.4 (patience 2, band 0.5): the fifth
+    trial explores from the second; a trial that then lowers the best cost is the damped
+    step's again."""
+    explore = ExploreParams(size=0.1, patience=2, band=0.5)
+    rule = stops.Explore(ILCParams(step="damped", explore=explore))
 
     class Seen(Trial):
         def __init__(self, k, cost):
@@ -403,13 +405,13 @@ def test_exploring_waits_for_patience_and_a_new_best_hands_back():
         record = cost_at = own_update = average_over = None  # not asked by the rule
 
     rulings = []
-    for k, cost in enumerate([5.0, 1.0, 2.0, 3.0, 0.5]):
+    for k, cost in enumerate([5.0, 1.0, 3.0, 1.2, 1.4, 0.5]):
         trial = Seen(k, cost)
         rule.observe(trial)
         rulings.append(rule.verdict(trial))
-    assert [r is not None for r in rulings] == [False, False, False, True, False]
-    assert rulings[3].kind == stops.STEP and rulings[3].rule == "explore"
-    assert rule.best.summary.trial == 4 and rule.since == 0
+    assert [r is not None for r in rulings] == [False, False, False, False, True, False]
+    assert rulings[4].kind == stops.STEP and rulings[4].rule == "explore"
+    assert rule.best.summary.trial == 5 and rule.since == 0
     off = stops.Explore(ILCParams(step="damped"))  # size 0: never
     for k, cost in enumerate([5.0, 6.0, 7.0, 8.0]):
         trial = Seen(k, cost)
@@ -422,6 +424,7 @@ def test_exploring_waits_for_patience_and_a_new_best_hands_back():
     [
         ({"size": -0.1}, "explore.size: must be a finite number >= 0, got -0.1"),
         ({"patience": 0}, "explore.patience: must be an integer >= 1, got 0"),
+        ({"band": -1}, "explore.band: must be a finite number >= 0, got -1"),
         ({"w_control": 0.0}, "explore.w_control: must be a finite number > 0, got 0.0"),
         ({"seed": "a"}, "explore.seed: must be an integer >= 0, got 'a'"),
     ],

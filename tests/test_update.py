@@ -603,3 +603,25 @@ def test_an_objective_is_one_class_and_one_registry_line(robot, problem, monkeyp
     assert res.solved and res.objective == "before"
     assert res.t_eff == pytest.approx(target.t_c - target.dt)
     assert res.predicted_cost_after < 1e-3 * res.cost_before
+
+
+def test_an_exploring_update_keeps_the_fitted_rope_state_and_moves_toward_the_offset(
+    robot, problem
+):
+    """explore = r: the step no longer removes the error (predicted and measured cost stay
+    near the command's own) but moves the knots toward r, the model's state at t_c kept; the
+    plain update removes the error."""
+    command, record, target, _ = problem
+    settings = UpdateSettings(limits=None, follow_through=False, objective="launch")
+    r = np.zeros((10, 8))
+    r[:7, 2:6] = 0.05 * np.random.default_rng(4).standard_normal((7, 4))
+    plain = ilc_update(record, command, target, robot, PARAMS, settings)
+    held = ilc_update(record, command, target, robot, PARAMS, settings, explore=r)
+    assert plain.solved and held.solved
+    assert plain.predicted_cost_after < 0.2 * plain.cost_before
+    assert held.predicted_cost_after == pytest.approx(held.cost_before, rel=0.05)
+    moved = held.dkappa[:7].ravel()
+    assert np.linalg.norm(moved) > 0.2 * np.linalg.norm(r[:7])
+    assert moved @ r[:7].ravel() > 0.2 * np.linalg.norm(moved) * np.linalg.norm(r[:7])
+    after = _measured_cost(BezierCommand(held.new_knots, T), target, robot)
+    assert after == pytest.approx(held.cost_before, rel=0.2)
