@@ -40,6 +40,7 @@ from flyknot.record import TrialRecord, atomic_save_npy, atomic_write_text
 from flyknot.verdict import JUDGE_NAME
 from flyknot_app.cells import check_oracle, open_cell, oracle_provider
 from flyknot_app.guess_cache import cached_guess, guess_cache_name, guess_key, store_guess
+from flyknot_app.reports.results import git_commit
 from flyknot_app.reports.run_summary import RunSummary, ScenarioSummary
 from flyknot_app.scenario import RunSpec, Scenario, find_named_file
 
@@ -564,6 +565,7 @@ def prepare_scenario(
             "python": platform.python_version(),
         },
         "numerics": numerics_class(),
+        "commit": git_commit(),
         "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
     }
     if not (resume and (out_dir / "manifest.json").is_file()):

@@ -15,6 +15,7 @@ from flyknot_app.reports.paper import (
     transfer_cell,
     trials_text,
 )
+from flyknot_app.reports.results import git_commit
 from flyknot_app.reports.run_summary import RunSummary, ScenarioSummary
 
 
@@ -58,8 +59,11 @@ def test_the_table_has_every_experiment_beside_the_paper(tmp_path):
         _run("r2-on-r1", 0, None, rope=1, start_from="learn-rope2-seed0"),
     ]
     _write(tmp_path, "06-transfer", "transfer", transfer)
+    (tmp_path / "03-ropes" / "manifest.json").write_text(json.dumps({"commit": "abc1234"}))
+    (tmp_path / "07-sensitivity" / "manifest.json").write_text("{}")
     text = paper_table(tmp_path, "flyknot paper --seeds 0-1")
-    assert "lab seeds 0, 1;" in text and "by `flyknot paper --seeds 0-1`" in text
+    assert "lab seeds 0, 1;" in text and "by `flyknot paper --seeds 0-1` from runs made" in text
+    assert "from runs made at abc1234, unrecorded (each run directory's" in text
     assert "| rope1 | 1 | robot | critical | 2.5 (2-3), 2 of 2 seeds tied | - |" in text
     assert "Paper: All 7 ropes learned within 10 trials" in text
     assert "| 100 | 5 | none in 10 (2 seeds) | >10 |" in text
@@ -101,6 +105,8 @@ def test_one_scenario_over_two_seeds_then_resumed(egl, tmp_path, capsys):
     argv += ["--set", "max_runs=1", "--set", "max_trials=1", "--set", "settle_s=0.2"]
     argv += ["--set", "repeats=1", "--results", str(tmp_path / "results.md")]
     assert main(argv) == 0
+    manifest = json.loads((out / "04-success-rate" / "manifest.json").read_text())
+    assert manifest["commit"] == git_commit()
     ledger = out / "04-success-rate" / "runs" / "rope1-seed1" / "learning" / "ledger.jsonl"
     before = ledger.read_text()
     text = (tmp_path / "results.md").read_text()

@@ -410,6 +410,18 @@ def knot_pictures(out: str | Path) -> dict[str, Path]:
     return found
 
 
+def run_commits(out: str | Path) -> list[str]:
+    """The commits the runs under ``out`` were made at (each scenario's and variant's
+    ``manifest.json``, ``"unrecorded"`` for one that names none), each once, sorted."""
+    found = set()
+    for path in Path(out).rglob("manifest.json"):
+        try:
+            found.add(str(json.loads(path.read_text()).get("commit") or "unrecorded"))
+        except (OSError, ValueError, AttributeError):
+            found.add("unrecorded")
+    return sorted(found)
+
+
 def paper_table(out: str | Path, command: str, pictures: dict[str, str] | None = None) -> str:
     """The results document of a ``flyknot paper`` directory (module docstring); under each
     scenario in ``pictures`` its picture (a path relative to the document).
@@ -452,7 +464,9 @@ def paper_table(out: str | Path, command: str, pictures: dict[str, str] | None =
         "",
         f"The paper's experiments in the simulated lab, lab seeds "
         f"{', '.join(str(s) for s in sorted(seeds, key=str))}; written "
-        f"{dt.date.today().isoformat()} at commit {git_commit()} by `{command}`. A knot is a "
+        f"{dt.date.today().isoformat()} at commit {git_commit()} by `{command}` from runs made "
+        f"at {', '.join(run_commits(out)) or 'unrecorded'} (each run directory's "
+        "`manifest.json`). A knot is a "
         "verdict `knot` of `flyknot.verdict` (an overhand knot in the hanging rope). Trials "
         "until the first knot: median (range) over the seeds that tied; knots in the repeats: "
         "pooled over the seeds, 95 % Wilson interval. Each run's report, with a picture of "

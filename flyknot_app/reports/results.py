@@ -120,10 +120,11 @@ def rows_of(directory: str | Path) -> list[str]:
 
 
 def git_commit() -> str:
-    """The repository's short commit id, or ``"unknown"`` outside a git checkout."""
+    """The repository's short commit id, with ``-dirty`` when tracked files differ from it,
+    or ``"unknown"`` outside a git checkout."""
     try:
         out = subprocess.run(
-            ["git", "-C", str(REPO_ROOT), "rev-parse", "--short", "HEAD"],
+            ["git", "-C", str(REPO_ROOT), "describe", "--always", "--dirty", "--abbrev=7"],
             capture_output=True,
             text=True,
             check=True,
