@@ -41,8 +41,8 @@ from learner.bezier import check_knots, controller_basis, controller_jacobian
 from learner.limit_set import LimitRows
 
 if TYPE_CHECKING:
-    from learner.inverse_qp import QPResult
     from learner.kinematics import RobotModel
+    from learner.qp_solve import QPResult
 
 LIMIT_KINDS = ("pos", "vel", "acc", "tau", "tau_links")
 LATE_KINDS = ("tau_links",)

@@ -25,7 +25,7 @@ what stays fixed over a run (objective, weights, limits, solver):
    exactly for position, velocity and acceleration (linear in the knots) and to first order
    for torque.
 6. Solve with Clarabel or OSQP (:func:`learner.inverse_qp.build_inverse_qp`, then
-   :func:`learner.inverse_qp.solve_qp`). A QP that does not solve returns ``solved=False``,
+   :func:`learner.qp_solve.solve_qp`). A QP that does not solve returns ``solved=False``,
    the current knots as ``new_knots``, NaN in ``dkappa`` and the solver's status: it is never
    applied.
 
@@ -54,14 +54,7 @@ from flyknot.record import TrialRecord
 from learner.bezier import BezierCommand
 from learner.critical_state import MarkerFitParams
 from learner.follow_through import FollowThrough, follow_through_terms
-from learner.inverse_qp import (
-    BACKENDS,
-    BASE_UPDATES,
-    InverseModelWeights,
-    QPResult,
-    build_inverse_qp,
-    solve_qp,
-)
+from learner.inverse_qp import BASE_UPDATES, InverseModelWeights, build_inverse_qp
 from learner.jacobians import jacobian_kind
 from learner.kinematics import RobotModel
 from learner.limit_rows import (
@@ -73,6 +66,7 @@ from learner.limit_rows import (
     sampled_violation,
 )
 from learner.objectives import OBJECTIVES, objective_kind
+from learner.qp_solve import BACKENDS, QPResult, solve_qp
 from learner.rope_model import RopeModelParams
 from learner.system_model import (
     INTERPOLATIONS,

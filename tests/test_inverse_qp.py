@@ -15,17 +15,15 @@ from flyknot.errors import ConfigError, SolverError
 from flyknot.limits import JointLimits, command_derivatives
 from learner.bezier import sample_command
 from learner.inverse_qp import (
-    BACKENDS,
     FollowThrough,
     InverseModelWeights,
     base_equality_rows,
     build_inverse_qp,
-    require_solved,
     rest_equality_rows,
-    solve_qp,
 )
 from learner.kinematics import RobotModel
 from learner.limit_rows import LIMIT_KINDS, LimitRows, limit_rows, subset_rows
+from learner.qp_solve import BACKENDS, require_solved, solve_qp
 
 CHAIN7 = Path(__file__).parent / "data" / "chain7.xml"
 N_MARK = 11

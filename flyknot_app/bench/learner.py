@@ -42,9 +42,10 @@ from flyknot.record import TrialRecord
 from learner import rope_sensitivity
 from learner.bezier import BezierCommand
 from learner.follow_through import follow_through_terms
-from learner.inverse_qp import InverseModelWeights, build_inverse_qp, solve_qp
+from learner.inverse_qp import InverseModelWeights, build_inverse_qp
 from learner.kinematics import RobotModel
 from learner.limit_rows import initial_active_rows, limit_rows, subset_rows
+from learner.qp_solve import solve_qp
 from learner.rope_model import RopeModelParams, _StepSolver
 from learner.system_model import (
     critical_step,
