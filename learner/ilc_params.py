@@ -46,8 +46,8 @@ class ExploreParams:
             after which the next command explores (>= 1).
         band: Near the noise floor: a measured cost within (1 + band) of the lowest; a
             larger rise, or a trial that measured nothing, starts the count again (the
-            damped step's to mend) (>= 0). 0.5: three of the relative standard deviation of
-            one command's cost over the lab's variation, 0.15 (``damping.noise``).
+            damped step's to mend) (>= 0). 0.5: about three relative standard deviations of
+            one command's cost over the lab's variation, 0.15 each (``damping.noise``).
         w_control: The QP's control weight of an exploring step [1/rad^2] (the damped step's
             first lambda, :class:`learner.steps.DampingParams`).
         seed: Seed of the offsets: trial k's is drawn from ``(seed, k)``.
