@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
-from flyknot.errors import ConfigError, check_nonnegative, check_positive
+from flyknot.errors import ConfigError, check_int, check_nonnegative, check_positive
 from flyknot.limits import JointLimits
 from flyknot.options import INLINE
 from learner.jacobians import jacobian_kind
@@ -29,9 +29,7 @@ class PlateauParams:
     noise: float = 0.05
 
     def __post_init__(self) -> None:
-        v = self.patience
-        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-            raise ConfigError("plateau.patience", f"must be an integer >= 0, got {v!r}")
+        check_int("plateau.patience", self.patience)
         check_nonnegative("plateau.noise", self.noise)
 
 
@@ -63,10 +61,8 @@ class ExploreParams:
         check_nonnegative("explore.size", self.size)
         check_nonnegative("explore.band", self.band)
         check_positive("explore.w_control", self.w_control)
-        for name, low in (("patience", 1), ("seed", 0)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < low:
-                raise ConfigError(f"explore.{name}", f"must be an integer >= {low}, got {v!r}")
+        check_int("explore.patience", self.patience, 1)
+        check_int("explore.seed", self.seed)
 
 
 def parse_confirm(value: object, stop_at_success: bool = True) -> tuple[int, int] | None:
@@ -154,15 +150,12 @@ class ILCParams:
 
     def __post_init__(self) -> None:
         for name in ("max_trials", "tracking_retries", "step_halvings"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-                raise ConfigError(name, f"must be an integer >= 0, got {v!r}")
+            check_int(name, getattr(self, name))
         if isinstance(self.gain, bool) or not (
             isinstance(self.gain, (int, float)) and 0 < self.gain <= 1
         ):
             raise ConfigError("gain", f"must lie in (0, 1], got {self.gain!r}")
-        if isinstance(self.average, bool) or not isinstance(self.average, int) or self.average < 1:
-            raise ConfigError("average", f"must be an integer >= 1, got {self.average!r}")
+        check_int("average", self.average, 1)
         if not isinstance(self.safeguard, bool):
             raise ConfigError("safeguard", f"must be true or false, got {self.safeguard!r}")
         if not isinstance(self.stop_at_success, bool):
