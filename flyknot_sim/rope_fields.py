@@ -409,6 +409,14 @@ ROPE_FIELDS = (
         example=140.7,
         default=0.0,
     ),
+    RopeField(
+        "stretch_modulus", float, "Pa", NONNEGATIVE, "Effective Young's modulus of a solid "
+        "circular section of the rope's diameter for stretching: axial stiffness EA = E pi "
+        "r^2 [N], damped with the rope's damping time (flyknot_sim.rope); 0: an inextensible "
+        "rope (its edges held hard), the default. The latex tube's is 1.2 MPa times its "
+        "wall's share of the section (assets/ropes.toml).",
+        example=5.3e5, default=0.0, by_material=ByMaterial.VALUE,
+    ),
 )  # fmt: skip
 """Every field of a rope, in the order of :class:`~flyknot_sim.rope_table.RopeParams`' fields
 (those with a default last)."""

@@ -131,6 +131,11 @@ class RopeParams:
         return self.bend_modulus * math.pi * self.radius**4 / 4
 
     @property
+    def axial_stiffness(self) -> float:
+        """EA = E_s pi r^2 [N] (E_s the ``stretch_modulus``; 0: inextensible)."""
+        return self.stretch_modulus * math.pi * self.radius**2
+
+    @property
     def frictional_couple(self) -> float:
         """Grosberg's frictional couple of bending M_0 = (HB / B) EI [N m]."""
         return self.bend_hysteresis * self.bending_stiffness

@@ -164,6 +164,14 @@ def test_paper_ropes_unchanged_and_named():
             "rope[0].lock_angle: must lie in [0, 180) deg (at 180 a segment folds back onto "
             "the last), got 'steep'",
         ),
+        (
+            _one(stretch_modulus=-5e5),
+            "rope[0].stretch_modulus: must be a finite number >= 0, got -500000.0",
+        ),
+        (
+            _one(stretch_modulus="rubbery"),
+            "rope[0].stretch_modulus: must be a finite number >= 0, got 'rubbery'",
+        ),
         (_one(segments=2.5), "rope[0].segments: must be an integer, got 2.5"),
         (
             _one(segments=200),

@@ -81,7 +81,7 @@ def test_every_field_is_read_by_the_table_the_file_and_set(f):
     assert getattr(rope, f.name) == f.example
     if f.by_material is not ByMaterial.NO:  # from the material's table too
         doc = _table()
-        del doc["rope"][0][f.name]
+        doc["rope"][0].pop(f.name, None)  # rope 1 leaves out a field at its default
         doc["materials"]["cotton"][f.name] = f.example
         assert getattr(parse_rope_table(doc)[1], f.name) == f.example
     if f.in_file:

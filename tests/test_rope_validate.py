@@ -175,7 +175,8 @@ def test_cli_runs_the_quick_suite_and_reports_json(capsys):
     assert all(r["rope"] == 6 and r["source"] and r["expected"] for r in rows)
     assert code == (0 if all(r["passed"] for r in rows if r["applies"]) else 1)
     quick = [name for name, _ in SUITES["quick"](_rope(6))]
-    assert sorted(set(quick)) == sorted([*fast, "knot_hold", "rest_after_motion", "lock_up"])
+    rest = ["knot_hold", "rest_after_motion", "lock_up", "stretch"]
+    assert sorted(set(quick)) == sorted([*fast, *rest])
     assert quick.count("knot_hold") == 2
 
 

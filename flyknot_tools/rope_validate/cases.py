@@ -7,7 +7,8 @@ material, and the source or physical reason of that expectation. Expectations pe
 has no bending stiffness to measure; a latex tube's knots are reported, not judged). The knot
 cases are in :mod:`flyknot_tools.rope_validate.knots`; this module has the others and the
 table of all of them, :data:`CASES`; the rest after a throw is in
-:mod:`flyknot_tools.rope_validate.rest_after_motion`.
+:mod:`flyknot_tools.rope_validate.rest_after_motion`, the stretch in
+:mod:`flyknot_tools.rope_validate.stretch`.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from flyknot_tools.rope_validate.common import DOWN, HOME, UP, CaseResult, G, hu
 from flyknot_tools.rope_validate.knots import Swing, knot_hold, static_hold
 from flyknot_tools.rope_validate.lock_up import lock_up
 from flyknot_tools.rope_validate.rest_after_motion import Throw, rest_after_motion
+from flyknot_tools.rope_validate.stretch import stretch
 
 __all__ = [
     "CASES",
@@ -43,6 +45,7 @@ __all__ = [
     "rest_after_motion",
     "rest_shape",
     "static_hold",
+    "stretch",
     "swing_decay",
 ]
 
@@ -443,5 +446,6 @@ CASES = {
     "rest_shape": rest_shape,
     "rest_after_motion": rest_after_motion,
     "lock_up": lock_up,
+    "stretch": stretch,
 }
 """The cases by name (each ``f(rope: RopeModel, ...) -> CaseResult``)."""

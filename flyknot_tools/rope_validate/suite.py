@@ -24,6 +24,7 @@ from flyknot_tools.rope_validate.cases import (
     rest_after_motion,
     rest_shape,
     static_hold,
+    stretch,
     swing_decay,
 )
 
@@ -63,6 +64,7 @@ def _full(
         ("static_hold", lambda: static_hold(m, seconds=60.0)),
         ("rest_after_motion", lambda: rest_after_motion(m, picture=rest)),
         ("lock_up", lambda: lock_up(m)),
+        ("stretch", lambda: stretch(m)),
     ]
     for t in FULL_TAILS:
         for s in FULL_SWINGS:
@@ -84,6 +86,7 @@ def _quick(
         ("knot_hold", lambda: knot_hold(m, 0.1, Swing(0.15, 0.7))),
         ("rest_after_motion", lambda: rest_after_motion(m, picture=rest)),
         ("lock_up", lambda: lock_up(m)),
+        ("stretch", lambda: stretch(m)),
     ]
 
 
@@ -104,6 +107,7 @@ CASE_NAMES = (
     "rest_shape",
     "rest_after_motion",
     "lock_up",
+    "stretch",
 )
 
 
