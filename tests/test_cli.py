@@ -65,6 +65,16 @@ def test_bench_sim_times_the_chain_without_its_links_too():
     assert "no_links" not in _lab_variants(1)[0]  # a cord has no links
 
 
+def test_bench_sim_times_the_tube_held_inextensible_too():
+    from flyknot_app.bench.sim import _lab_variants
+
+    tube, _ = _lab_variants(7)
+    rigid = tube["inextensible"]["rope"]
+    assert (rigid.id, rigid.stretch_modulus) == (7, 0.0)
+    assert list(tube)[-2:] == ["inextensible", "now"]
+    assert "inextensible" not in _lab_variants(6)[0]  # the chain does not stretch
+
+
 def test_bench_rejects_unknown_rope(capsys):
     assert main(["bench", "sim", "--ropes", "8"]) == 2
     assert "unknown rope id 8" in capsys.readouterr().err

@@ -21,9 +21,10 @@ def elastic_rope(rope_id: int):
     return load_rope_table(path)[rope_id], load_sim_settings(path)
 
 
-LABS = ("before", "elastic", "pyramidal", "numpy", "no_links", "now")
+LABS = ("before", "elastic", "pyramidal", "numpy", "no_links", "inextensible", "now")
 """The labs ``flyknot bench sim`` times, in its order (:func:`_lab_variants`); ``no_links``
-only for a rope with links (a chain's link friction or lock-up)."""
+only for a rope with links (a chain's link friction or lock-up), ``inextensible`` only for a
+rope that stretches (a ``stretch_modulus``)."""
 
 
 def _lab_variants(rope_id: int):
@@ -33,7 +34,8 @@ def _lab_variants(rope_id: int):
     elliptic one), ``numpy`` (the lab's defaults with the air drag and the self-contact scan
     computed by NumPy instead of the compiled kernels, :data:`flyknot_sim.aero.COMPILED` and
     :data:`flyknot_sim.rope_handle.COMPILED`: the same trials), for a chain ``no_links``
-    (the lab's defaults without the links' friction and lock-up) and ``now`` (the lab's
+    (the lab's defaults without the links' friction and lock-up), for a rope that stretches
+    ``inextensible`` (the lab's defaults with its edges held hard) and ``now`` (the lab's
     defaults)."""
     from dataclasses import replace
 
@@ -62,6 +64,8 @@ def _lab_variants(rope_id: int):
     if lab_rope.link_friction_radius > 0 or lab_rope.lock_angle > 0:
         bare = replace(lab_rope, link_friction_radius=0.0, lock_angle=0.0)
         variants["no_links"] = {"rope": bare}
+    if lab_rope.stretch_modulus > 0:
+        variants["inextensible"] = {"rope": replace(lab_rope, stretch_modulus=0.0)}
     return {name: variants[name] for name in LABS if name in variants}, LabParams
 
 
@@ -216,17 +220,17 @@ def main(
             print(json.dumps(res))
         else:
             print(
-                f"{'rope':>4} {'lab':>9} {'wall s / sim s':>15} {'x real time':>12} "
+                f"{'rope':>4} {'lab':>12} {'wall s / sim s':>15} {'x real time':>12} "
                 f"{'sim s / trial':>14}"
             )
             for row in res["ropes"]:
                 for name in (n for n in LABS if n in row):
                     v = row[name]
                     print(
-                        f"{row['rope']:>4} {name:>9} {v['wall_per_sim_s']:>15.3f} "
+                        f"{row['rope']:>4} {name:>12} {v['wall_per_sim_s']:>15.3f} "
                         f"{v['realtime_factor']:>12.1f} {v['sim_s_per_trial']:>14.2f}"
                     )
-                for base in (b for b in ("elastic", "pyramidal", "numpy", "no_links") if b in row):
+                for base in (b for b in LABS[1:-1] if b in row):
                     ratio = row["now"]["wall_per_sim_s"] / row[base]["wall_per_sim_s"]
                     print(f"{row['rope']:>4} now / {base}, wall s per sim s: {ratio:.2f}")
         return 0
