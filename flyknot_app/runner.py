@@ -6,7 +6,8 @@ sees only what the cell's records carry.
 
 Output layout of ``flyknot run SCENARIO --out DIR``::
 
-    DIR/manifest.json              scenario, overrides, versions, start time
+    DIR/manifest.json              scenario, overrides, versions, start time, commit (and
+                                   each resume's commit and start time)
     DIR/initial_guess/<demo>.npz   kappa_0 per demonstration (cached)
     DIR/runs/<run>/learning/...    the ILC run directory (learner.run_directory.RunDirectory)
     DIR/runs/<run>/repeats/...     records of the repeated final command, if any
@@ -568,8 +569,11 @@ def prepare_scenario(
         "commit": git_commit(),
         "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
     }
-    if not (resume and (out_dir / "manifest.json").is_file()):
-        atomic_write_text(out_dir / "manifest.json", json.dumps(manifest, indent=2))
+    if resume:  # the code a resumed scenario's further runs are made with, beside the first
+        manifest = json.loads((out_dir / "manifest.json").read_text())
+        resumed = {"commit": git_commit(), "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
+        manifest["resumed"] = [*manifest.get("resumed", []), resumed]
+    atomic_write_text(out_dir / "manifest.json", json.dumps(manifest, indent=2))
     make_initial_guesses(scen, out_dir, progress=progress)
 
 

@@ -60,10 +60,11 @@ def test_the_table_has_every_experiment_beside_the_paper(tmp_path):
     ]
     _write(tmp_path, "06-transfer", "transfer", transfer)
     (tmp_path / "03-ropes" / "manifest.json").write_text(json.dumps({"commit": "abc1234"}))
-    (tmp_path / "07-sensitivity" / "manifest.json").write_text("{}")
+    resumed = {"commit": "unrecorded", "resumed": [{"commit": "def5678"}, {"commit": "abc1234"}]}
+    (tmp_path / "07-sensitivity" / "manifest.json").write_text(json.dumps(resumed))
     text = paper_table(tmp_path, "flyknot paper --seeds 0-1")
     assert "lab seeds 0, 1;" in text and "by `flyknot paper --seeds 0-1` from runs made" in text
-    assert "from runs made at abc1234, unrecorded (each run directory's" in text
+    assert "from runs made at abc1234, def5678, unrecorded (each run directory's" in text
     assert "| rope1 | 1 | robot | critical | 2.5 (2-3), 2 of 2 seeds tied | - |" in text
     assert "Paper: All 7 ropes learned within 10 trials" in text
     assert "| 100 | 5 | none in 10 (2 seeds) | >10 |" in text
@@ -121,6 +122,9 @@ def test_one_scenario_over_two_seeds_then_resumed(egl, tmp_path, capsys):
     assert "use --resume" in capsys.readouterr().err
     assert main([*argv, "--resume"]) == 0
     assert ledger.read_text() == before
+    resumed = json.loads((out / "04-success-rate" / "manifest.json").read_text())
+    assert {k: v for k, v in resumed.items() if k != "resumed"} == manifest
+    assert [r["commit"] for r in resumed["resumed"]] == [git_commit()]
     assert main([*argv, "--paper-settings", "--seeds", "0"]) == 0  # beside, in paper-settings/
     theirs = json.loads((out / "paper-settings" / "04-success-rate" / "summary.json").read_text())
     assert theirs["runs"][0]["gain"] == 1 and theirs["runs"][0]["weights"]["w_control"] == 0.5

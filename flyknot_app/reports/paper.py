@@ -412,13 +412,16 @@ def knot_pictures(out: str | Path) -> dict[str, Path]:
 
 def run_commits(out: str | Path) -> list[str]:
     """The commits the runs under ``out`` were made at (each scenario's and variant's
-    ``manifest.json``, ``"unrecorded"`` for one that names none), each once, sorted."""
+    ``manifest.json``: its ``commit`` and each resume's, ``"unrecorded"`` for one that names
+    none), each once, sorted."""
     found = set()
     for path in Path(out).rglob("manifest.json"):
         try:
-            found.add(str(json.loads(path.read_text()).get("commit") or "unrecorded"))
+            doc = json.loads(path.read_text())
+            commits = [doc.get("commit"), *(r.get("commit") for r in doc.get("resumed", []))]
         except (OSError, ValueError, AttributeError):
-            found.add("unrecorded")
+            commits = [None]
+        found.update(str(c or "unrecorded") for c in commits)
     return sorted(found)
 
 
