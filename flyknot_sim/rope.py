@@ -43,12 +43,16 @@ import numpy as np
 from flyknot.errors import ConfigError
 from flyknot.geometry import quat_from_x_to
 from flyknot_sim.rope_handle import RopeHandle
-from flyknot_sim.rope_table import RopeParams, SimSettings, load_sim_settings
+from flyknot_sim.rope_table import (
+    STRETCH_IMPEDANCE,
+    RopeParams,
+    SimSettings,
+    load_sim_settings,
+)
 
 __all__ = [
     "ROPE_CONAFFINITY",
     "ROPE_CONTYPE",
-    "STRETCH_IMPEDANCE",
     "add_rope",
     "configure_options",
     "stretch_solref",
@@ -58,12 +62,6 @@ ROPE_CONTYPE = 1
 """Rope contype: bit 0, so geoms with conaffinity bit 0 (floor, robot links) touch it."""
 ROPE_CONAFFINITY = 3
 """Rope conaffinity: bits 0 and 1, so geoms with contype 1 (floor) or 2 (robot) touch it."""
-
-STRETCH_IMPEDANCE = 0.9
-"""Impedance d of a stretching rope's edge equality (solimp d0 = d_width, MuJoCo's default d0):
-constant, so the edge is linear. The edge's stiffness and damping do not depend on it (k scales
-with 1 - d, :func:`stretch_solref`; a hung tube's stretch and stretch mode are the same at d
-0.5, 0.9 and 0.99 within 3 %, docs/rope-model.md)."""
 
 _RGBA = {
     "cotton": (0.92, 0.88, 0.78, 1.0),
@@ -135,23 +133,17 @@ def _flexcomp_xml(
 def stretch_solref(params: RopeParams) -> tuple[list[float], list[float]] | None:
     """The edge equality's direct solref (-k, -b) and solimp of a rope that stretches.
 
-    MuJoCo's soft equality holds a row at rest where R f = -k r, R = (1 - d) / d A_ii (A_ii the
-    row's diagonal of J M^-1 J^T), and f is MuJoCo's row force d times the spring's: a row of
-    stiffness k_e = f / r = k / ((1 - d) A_ii). An interior edge of rest length l joins two
-    vertices of mass rho l, A_ii = 2 / (rho l); for k_e = EA / l and a Kelvin-Voigt damping
-    tau k_e (tau the rope's ``damping`` time, as its bending's):
-
-        k = (EA / l) (1 - d) 2 / (rho l)  [1/s^2],   b = tau k  [1/s],
-
-    d = :data:`STRETCH_IMPEDANCE`. The end edges differ (one flex equality has one solref):
-    the first lies in the holder (both its vertices held); the last, to the end weight, has
-    A = 1 / (rho l) + 1 / (rho l / 2 + m_end) and is stiffer by 2 / (rho l A) (1.9x for the
-    tube). None for an inextensible rope (``stretch_modulus`` 0).
+    k = :attr:`~flyknot_sim.rope_table.RopeParams.stretch_spring` makes every interior edge a
+    spring of EA / l; b = tau k adds the Kelvin-Voigt damping tau EA / l, tau the rope's
+    ``damping`` time (as its bending's); the impedance is d = :data:`STRETCH_IMPEDANCE`
+    throughout. The end edges differ (one flex equality has one solref): the first lies in the
+    holder (both its vertices held); the last, to the end weight, has A = 1 / (rho l) + 1 /
+    (rho l / 2 + m_end) and is stiffer by 2 / (rho l A) (1.9x for the tube). None for an
+    inextensible rope (``stretch_modulus`` 0).
     """
     if params.stretch_modulus <= 0:
         return None
-    d, ell = STRETCH_IMPEDANCE, params.segment_length
-    k = params.axial_stiffness / ell * (1 - d) * 2 / (params.density * ell)
+    d, k = STRETCH_IMPEDANCE, params.stretch_spring
     return [-k, -params.damping * k], [d, d, 0.001, 0.5, 2.0]
 
 

@@ -414,7 +414,8 @@ ROPE_FIELDS = (
         "circular section of the rope's diameter for stretching: axial stiffness EA = E pi "
         "r^2 [N], damped with the rope's damping time (flyknot_sim.rope); 0: an inextensible "
         "rope (its edges held hard), the default. The latex tube's is 1.2 MPa times its "
-        "wall's share of the section (assets/ropes.toml).",
+        "wall's share of the section (assets/ropes.toml). A value whose edge spring is "
+        "faster than two of the rope's steps is refused, naming the largest allowed.",
         example=5.3e5, default=0.0, by_material=ByMaterial.VALUE,
     ),
 )  # fmt: skip

@@ -29,6 +29,7 @@ __all__ = [
     "SELFCOLLIDE_MODES",
     "SOLVERS",
     "STEEL_DENSITY",
+    "STRETCH_IMPEDANCE",
     "RopeParams",
     "SimSettings",
     "get_rope",
@@ -39,6 +40,12 @@ __all__ = [
 
 STEEL_DENSITY = 7850.0
 """Density of carbon steel [kg/m^3] (e.g. ASM Handbook vol. 1), for the end-weight sphere."""
+
+STRETCH_IMPEDANCE = 0.9
+"""Impedance d of a stretching rope's edge equality (solimp d0 = d_width, MuJoCo's default d0):
+constant, so the edge is linear. The edge's stiffness and damping do not depend on it (k scales
+with 1 - d, :attr:`RopeParams.stretch_spring`; a hung tube's stretch and stretch mode are the
+same at d 0.5, 0.9 and 0.99 within 3 %, docs/rope-model.md)."""
 
 CLEARANCE_EXTRA = 1e-3
 """Gap between the anchor point and the first capsule's cap [m]; clearance = radius + this."""
@@ -72,6 +79,17 @@ class RopeParams:
             raise ConfigError("id", f"must be an integer >= 1, got {self.id!r}")
         for f in ROPE_FIELDS:
             f.check(getattr(self, f.name))
+        if self.stretch_spring > 1 / (2 * self.timestep * STRETCH_IMPEDANCE) ** 2:
+            e_max = self.stretch_modulus / (
+                self.stretch_spring * (2 * self.timestep * STRETCH_IMPEDANCE) ** 2
+            )
+            raise ConfigError(
+                "stretch_modulus",
+                f"{self.stretch_modulus:.4g} Pa makes an edge's spring faster than MuJoCo's soft "
+                f"constraint follows at the rope's {self.timestep:.4g} s step (its time "
+                f"constant under twice the step); use at most {e_max:.4g} Pa, or 0 for an "
+                "inextensible rope",
+            )
         if self.length / self.segments <= self.diameter:
             n_max = max(1, int(self.length // self.diameter))
             while n_max > 1 and self.length / n_max <= self.diameter:
@@ -134,6 +152,20 @@ class RopeParams:
     def axial_stiffness(self) -> float:
         """EA = E_s pi r^2 [N] (E_s the ``stretch_modulus``; 0: inextensible)."""
         return self.stretch_modulus * math.pi * self.radius**2
+
+    @property
+    def stretch_spring(self) -> float:
+        """k [1/s^2] of the edge equality's direct solref (-k, -tau k) that makes every interior
+        edge a spring of EA / l (0: inextensible; :func:`flyknot_sim.rope.stretch_solref`).
+
+        At rest a soft equality row's force is f = k r / ((1 - d) A) for a stretch r (MuJoCo's
+        R = (1 - d) / d A, measured on MuJoCo 4.0.0: ``tests/test_rope_stretch.py``), A = 2 /
+        (rho l) for an edge between two vertices of mass rho l, d = :data:`STRETCH_IMPEDANCE`:
+
+            k = (EA / l) (1 - d) 2 / (rho l).
+        """
+        ell = self.segment_length
+        return self.axial_stiffness / ell * (1 - STRETCH_IMPEDANCE) * 2 / (self.density * ell)
 
     @property
     def frictional_couple(self) -> float:

@@ -13,8 +13,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.integrate import quad
 
-from flyknot_sim.rope import STRETCH_IMPEDANCE, stretch_solref
-from flyknot_sim.rope_table import get_rope
+from flyknot.errors import ConfigError
+from flyknot_sim.rope import stretch_solref
+from flyknot_sim.rope_table import STRETCH_IMPEDANCE, get_rope
 from flyknot_tools.rope_validate.bench import RopeModel
 from flyknot_tools.rope_validate.common import G, hung
 from flyknot_tools.rope_validate.rest_after_motion import hanging_at_home
@@ -57,8 +58,8 @@ def test_an_interior_edge_at_rest_is_a_spring_of_ea_over_its_length():
     length=st.floats(0.5, 2.0),
 )
 def test_the_hung_law_integrates_the_tension_and_solves_the_mode(ea_scale, end, length):
-    p = dataclasses.replace(
-        get_rope(7), stretch_modulus=5e5 * ea_scale, end_mass=end, length=length
+    p = dataclasses.replace(  # a short step: no stretch here is too fast for it
+        get_rope(7), stretch_modulus=5e5 * ea_scale, end_mass=end, length=length, timestep=1e-4
     )
     delta, period = hung_stretch(p)
     tension = lambda s: G * (p.end_mass + p.density * (p.length - s))  # noqa: E731
@@ -95,8 +96,25 @@ def test_the_tube_stretches_and_bounces_as_a_spring_and_the_cord_does_not():
 
 
 def test_a_stiffer_tube_stretches_less_in_the_lab():
-    """The case would fail if the edge ignored the modulus: at 4x E the tube stretches a quarter."""
-    stiff = dataclasses.replace(get_rope(7), stretch_modulus=4 * get_rope(7).stretch_modulus)
+    """The case would fail if the edge ignored the modulus: at 4x E (and half the step, which
+    such a stiff edge needs) the tube stretches a quarter."""
+    tube = get_rope(7)
+    stiff = dataclasses.replace(tube, stretch_modulus=4 * tube.stretch_modulus, timestep=5e-4)
     r = stretch(RopeModel(stiff), seconds=2.0)
     assert r.passed, r.detail
     assert r.measured["elongation_m"] < 0.3 * hung_stretch(get_rope(7))[0]
+
+
+def test_a_stretch_faster_than_the_step_is_refused_naming_the_bound():
+    """MuJoCo's soft constraint follows a time constant of at least two steps (its refsafe
+    rule); the tube's own is inside it (5.27e5 of at most 8.48e5 Pa)."""
+    with pytest.raises(ConfigError) as e:
+        dataclasses.replace(get_rope(7), stretch_modulus=2e6)
+    assert str(e.value) == (
+        "stretch_modulus: 2e+06 Pa makes an edge's spring faster than MuJoCo's soft constraint "
+        "follows at the rope's 0.001 s step (its time constant under twice the step); use at "
+        "most 8.479e+05 Pa, or 0 for an inextensible rope"
+    )
+    at_bound = dataclasses.replace(get_rope(7), stretch_modulus=8.47e5)
+    (k, _), _ = stretch_solref(at_bound)
+    assert -k * (2 * at_bound.timestep * STRETCH_IMPEDANCE) ** 2 == pytest.approx(1, rel=2e-3)
