@@ -1,13 +1,11 @@
 """Running scenarios: joins a demonstration, the learner and the simulated lab.
 
-This module is the orchestration layer above both sides of the seam: it builds a
-:class:`flyknot_sim.lab.SimLab` (the cell) and hands it to :func:`learner.ilc.learn`, which
-sees only what the cell's records carry.
+The orchestration above both sides of the seam: it builds a :class:`flyknot_sim.lab.SimLab`
+(the cell) and hands it to :func:`learner.ilc.learn`, which sees only the cell's records.
 
 Output layout of ``flyknot run SCENARIO --out DIR``::
 
-    DIR/manifest.json              scenario, overrides, versions, start time, commit (and
-                                   each resume's commit and start time)
+    DIR/manifest.json              scenario, overrides, versions, start, commit, resumes
     DIR/initial_guess/<demo>.npz   kappa_0 per demonstration (cached)
     DIR/runs/<run>/learning/...    the ILC run directory (learner.run_directory.RunDirectory)
     DIR/runs/<run>/repeats/...     records of the repeated final command, if any
@@ -570,9 +568,9 @@ def prepare_scenario(
         "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
     }
     if resume:  # the code a resumed scenario's further runs are made with, beside the first
+        now = {k: manifest[k] for k in ("commit", "started")}
         manifest = json.loads((out_dir / "manifest.json").read_text())
-        resumed = {"commit": git_commit(), "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
-        manifest["resumed"] = [*manifest.get("resumed", []), resumed]
+        manifest["resumed"] = [*manifest.get("resumed", []), now]
     atomic_write_text(out_dir / "manifest.json", json.dumps(manifest, indent=2))
     make_initial_guesses(scen, out_dir, progress=progress)
 
