@@ -296,6 +296,29 @@ def test_cli_trial_with_ropes_file(ropes_file, tmp_path, capsys):
     assert err.endswith("'my cord', 'heavy chain')\n") and err.count("\n") == 1
 
 
+@pytest.mark.parametrize(
+    ("value", "valid"),
+    [
+        ("-1.0e5", "must be a finite number >= 0, got -100000.0"),
+        ('"stiff"', "must be a finite number >= 0, got 'stiff'"),
+        ("2.0e6", "2e+06 Pa makes an edge's spring faster than MuJoCo's soft constraint"),
+    ],
+)
+def test_cli_a_bad_stretch_modulus_is_one_line_and_exit_2(tmp_path, capsys, value, valid):
+    bad = tmp_path / "tubes.toml"
+    bad.write_text(
+        '[[rope]]\nname = "tube"\nmaterial = "latex"\ndiameter = 0.009\ndensity = 0.026\n'
+        f"length = 1.1\nend_weight = 0.018\nstretch_modulus = {value}\n"
+    )
+    cmd = tmp_path / "c.csv"
+    swing_command(duration=0.2, amplitude=np.full(7, 0.05)).save(cmd)
+    argv = ["trial", "--ropes", str(bad), "--rope", "tube", "--command", str(cmd)]
+    assert main([*argv, "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"flyknot: error: rope[0].stretch_modulus: {valid}")
+    assert err.count("\n") == 1 and not (tmp_path / "o").exists()
+
+
 def test_scenario_with_a_ropes_file(ropes_file, tmp_path, monkeypatch):
     scen_path = tmp_path / "mine.toml"
     scen_path.write_text(
