@@ -115,6 +115,9 @@ def test_one_scenario_over_two_seeds_then_resumed(egl, tmp_path, capsys):
     for where, table in ((tmp_path, text), (out, (out / "results.md").read_text())):
         for link in re.findall(r"!\[[^]]*\]\(([^)]+)\)", table):
             assert (where / link).is_file(), link
+    assert "Why the learned commands' repeats of `04-success-rate` ended" in text
+    assert "| rope 1 | 2 |" in text  # one repeat a seed, under its rope
+    assert "img/results/04-success-rate-anatomy.png" in text
     assert (
         "| rope1 | 1 | fast-paced | launch |" in text and "(2 seeds)" in text
     ) or "seeds tied" in text

@@ -2,14 +2,12 @@
 
 Each paper scenario (``scenarios/0*.toml``) runs once per lab seed (``flyknot run SCENARIO
 --seeds ...``: run ``r`` becomes ``r-seedS``) into ``OUT/<scenario>``, sharing one cache of
-initial guesses (``OUT/initial_guess``); all their runs share one pool of workers, so a
-scenario's last long run does not leave a worker idle; ``--resume`` continues where a run
-stopped. Then
-:func:`paper_table` reads every ``summary.json`` back and writes ``OUT/results.md``: per
-experiment, each run over the seeds (trials until the first knot: median, range and how many
-seeds tied within the budget; knots in the repeats pooled over the seeds with a 95 % Wilson
-interval) beside the paper's result, the transfer grid and the sensitivity table.
-"""
+initial guesses (``OUT/initial_guess``) and one pool of workers (a scenario's last long run
+leaves no worker idle); ``--resume`` continues where a run stopped. :func:`paper_table` reads
+every ``summary.json`` back and writes ``OUT/results.md``: per experiment, each run over the
+seeds (trials until the first knot: median, range and how many seeds tied within the budget;
+knots in the repeats pooled over the seeds, 95 % Wilson interval) beside the paper's result,
+the transfer grid, the sensitivity table, the anatomy by rope (``paper_anatomy``)."""
 
 from __future__ import annotations
 
@@ -25,6 +23,7 @@ from typing import TYPE_CHECKING
 
 from flyknot.constants import SCENARIOS_DIR
 from flyknot.errors import ConfigError
+from flyknot_app.reports.paper_anatomy import anatomy_figures, anatomy_section
 from flyknot_app.scenario import PAPER_SETTINGS
 from learner.inverse_qp import InverseModelWeights
 
@@ -458,6 +457,7 @@ def paper_table(out: str | Path, command: str, pictures: dict[str, str] | None =
             sections += _runs_section(name, summary, beside)
         if summary.kind == "transfer":
             sections += _transfer_section(summary)
+        sections += anatomy_section(out, name, pictures)
         if name in (pictures or {}):
             picture = pictures[name]
             sections += [f"The first knot of `{name}`: ![a knot of `{name}`]({picture})", ""]
@@ -492,7 +492,7 @@ def _write_results(path: Path, out: Path, command: str, found: dict[str, Path]) 
         for old in folder.glob("*.png"):
             old.unlink()
     folder.mkdir(parents=True, exist_ok=True)
-    pictures = {}
+    pictures = anatomy_figures(out, folder, "img/results")  # and each scenario's first knot
     for name, src in found.items():
         shutil.copyfile(src, folder / f"{name}.png")
         pictures[name] = f"img/results/{name}.png"
@@ -592,6 +592,7 @@ def _write_tables(args: argparse.Namespace, out: Path) -> int:
     command += "".join(f" --set {p}" for p in args.set or [])
     found = knot_pictures(out)
     pictures = {n: str(p.relative_to(out)) for n, p in found.items()}
+    pictures |= anatomy_figures(out, out / "img", "img")
     (out / "results.md").write_text(paper_table(out, command, pictures))
     if args.results:
         _write_results(Path(args.results), out, command, found)
