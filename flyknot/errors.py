@@ -83,6 +83,13 @@ def check_nonnegative(field: str, value: float) -> None:
         raise ConfigError(field, f"must be a finite number >= 0, got {value!r}")
 
 
+def check_share(field: str, value: float) -> None:
+    """Raise :class:`ConfigError` unless ``value`` is a number in [0, 1]."""
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not (number and 0 <= value <= 1):
+        raise ConfigError(field, f"must be a number in [0, 1], got {value!r}")
+
+
 def check_int(field: str, value: object, minimum: int = 0) -> None:
     """Raise :class:`ConfigError` unless ``value`` is an integer (not a bool) >= ``minimum``."""
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:

@@ -37,7 +37,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from flyknot.constants import GRAVITY, ROPE_LENGTH
-from flyknot.errors import ConfigError, check_nonnegative, check_positive
+from flyknot.errors import ConfigError, check_nonnegative, check_positive, check_share
 
 UNKNOT = "unknot"
 
@@ -229,27 +229,34 @@ def free_end_at_rest(
 
 
 def settled_start(
-    rng: np.random.Generator, criterion: RestCriterion, length: float = ROPE_LENGTH
+    rng: np.random.Generator,
+    criterion: RestCriterion,
+    length: float = ROPE_LENGTH,
+    scale: float = 1.0,
 ) -> tuple[float, float, float]:
-    """Draw a start state uniformly within the rest criterion.
+    """Draw a start state uniformly within the rest criterion (or a share of it).
 
     The rope is taken as a rigid pendulum in its lowest swing: free-end displacement
     a cos(phi) and velocity -a omega sin(phi) along a horizontal azimuth psi, with (a, phi)
-    uniform over the disc of radius A = max_displacement (a = A sqrt(u)) and psi uniform; A
-    omega <= speed bound by construction when the displacement bound is the default.
+    uniform over the disc of radius A = s max_displacement (a = A sqrt(u), s = ``scale``) and
+    psi uniform; A omega <= speed bound by construction when the displacement bound is the
+    default. The same draws at another ``scale`` give the same start, scaled.
 
     Args:
         rng: Source of the draw.
         criterion: The criterion.
         length: Rope length L [m].
+        scale: The disc's radius as a share of the criterion's, in [0, 1] (1: any start
+            the criterion calls static; 0: hanging still).
 
     Returns:
         ``(tilt [rad], tilt_rate [rad/s], azimuth [rad])``: the rope's angle from vertical
         toward ``azimuth`` and its rate of change (tilt may be negative: toward azimuth + pi).
     """
+    check_share("scale", scale)
     omega = pendulum_omega(length)
     amp = criterion.max_displacement(length)
-    amp = min(amp, criterion.speed_m_s / omega)
+    amp = scale * min(amp, criterion.speed_m_s / omega)
     a = amp * math.sqrt(float(rng.uniform()))
     phi = float(rng.uniform(0.0, 2.0 * math.pi))
     psi = float(rng.uniform(0.0, 2.0 * math.pi))
@@ -468,6 +475,7 @@ def start_with_sway(
     length: float,
     sway: float,
     azimuth: float,
+    scale: float = 1.0,
 ) -> tuple[float, float, float]:
     """A settled start (:func:`settled_start`, drawn from ``rng``) plus an extra tilt.
 
@@ -481,11 +489,12 @@ def start_with_sway(
         length: Rope length [m].
         sway: Extra tilt [rad] (>= 0).
         azimuth: Its direction about world z [rad].
+        scale: The settled start's share of the criterion (:func:`settled_start`).
 
     Returns:
         ``(angle [rad] >= 0, azimuth [rad], rate [rad/s])`` for ``set_hanging``.
     """
-    tilt, rate, psi = settled_start(rng, criterion, length)
+    tilt, rate, psi = settled_start(rng, criterion, length, scale)
     tx = sway * math.cos(azimuth) + tilt * math.cos(psi)
     ty = sway * math.sin(azimuth) + tilt * math.sin(psi)
     angle, direction = math.hypot(tx, ty), math.atan2(ty, tx)

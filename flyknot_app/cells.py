@@ -9,6 +9,7 @@ has a small frozen spec, validated on construction, and a factory that opens the
     kind = "sim"      # the default
     rope = 1          # rope, seed, settle_s may also be given per run, in a grid or by --set
     seed = 0
+    variation = {servo_gain_rel = 0.003}   # or: --set cell.variation.servo_gain_rel=0.003
 
     [cell]
     kind = "xarm"
@@ -21,7 +22,7 @@ The runner never names a cell class; it calls :func:`open_cell` with the run's s
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 from flyknot.errors import ConfigError, check_nonnegative
@@ -44,6 +45,9 @@ class SimCellSpec:
         unknot_held: End the settle of a rope whose verdict has been unknotted for
             :attr:`flyknot.rest.SettleParams.unknot_held_s`; false: such a rope waits for
             rest, contact-free, or the cap (``flyknot bench protocol --quick`` compares).
+        variation: Fields of the lab's trial-to-trial variation to change
+            (:class:`flyknot_sim.lab_params.VariationParams`, where each number's source and
+            bracket are); empty: the lab's own.
     """
 
     rope: int | str = 1
@@ -52,6 +56,7 @@ class SimCellSpec:
     ropes: str | None = None
     knot_set: bool = True
     unknot_held: bool = True
+    variation: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
@@ -62,6 +67,31 @@ class SimCellSpec:
             value = getattr(self, name)
             if not isinstance(value, bool):
                 raise ConfigError(f"cell.{name}", f"must be true or false, got {value!r}")
+        if not isinstance(self.variation, Mapping):
+            raise ConfigError(
+                "cell.variation", f"must be a table of variation fields, got {self.variation!r}"
+            )
+        object.__setattr__(self, "variation", dict(self.variation))
+        lab_variation(self.variation)
+
+
+def lab_variation(values: Mapping[str, Any], where: str = "cell.variation"):
+    """The lab's :class:`flyknot_sim.lab_params.VariationParams` with ``values`` changed.
+
+    Raises:
+        ConfigError: A field that is not one of the variation's (the valid ones listed), or
+            a bad value (the field's own message), each named ``<where>.<field>``.
+    """
+    from flyknot_sim.lab_params import VariationParams
+
+    valid = tuple(f.name for f in fields(VariationParams))
+    for key in values:
+        if key not in valid:
+            raise ConfigError(f"{where}.{key}", "not a field of the variation", valid)
+    try:
+        return VariationParams(**values)
+    except ConfigError as e:
+        raise ConfigError(f"{where}.{e.field}", e.problem, e.choices) from None
 
 
 def sim_lab_params(spec: SimCellSpec):
@@ -71,7 +101,12 @@ def sim_lab_params(spec: SimCellSpec):
 
     settle = SettleParams().without(*(end for end in EARLY_ENDS if not getattr(spec, end)))
     return LabParams(
-        rope=spec.rope, seed=spec.seed, settle=settle, settle_s=spec.settle_s, ropes=spec.ropes
+        rope=spec.rope,
+        seed=spec.seed,
+        settle=settle,
+        settle_s=spec.settle_s,
+        ropes=spec.ropes,
+        variation=lab_variation(spec.variation),
     )
 
 

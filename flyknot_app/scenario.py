@@ -214,7 +214,7 @@ class Scenario:
         return waves
 
 
-def _coerce_override(value: str) -> Any:
+def coerce_override(value: str) -> Any:
     """A ``--set`` value as a scenario file would give it: a number, a boolean, none, a TOML
     array or inline table (``confirm=[3,4]``), else the string itself."""
     if value.startswith(("[", "{")):
@@ -274,6 +274,27 @@ def option_path(key: str) -> list[str]:
     return parts
 
 
+CELL_KEY = "cell"
+"""The first name of a ``--set`` key that sets a field of the run's cell
+(``cell.variation.servo_gain_rel=0.003``), laid over the scenario's ``[cell]`` table."""
+
+
+def cell_path(key: str) -> list[str]:
+    """A ``--set cell....`` key as its path (the cell's fields are checked with its kind, in
+    :func:`parse_scenario`).
+
+    Raises:
+        ConfigError: An empty name, or a field a run sets itself (``rope``, ``seed``,
+            ``settle_s``: ``--set rope=3``).
+    """
+    parts = key.split(".")
+    if not all(parts):
+        raise ConfigError("--set key", f"expected cell.FIELD[.NAME]=value, got {key!r}")
+    if parts[1] in RUN_KEYS:
+        raise ConfigError("--set key", f"set {parts[1]!r} as --set {parts[1]}=VALUE, not {key!r}")
+    return parts
+
+
 UNDER_RUNS = "defaults"
 """The key of an overrides dict whose options lie over a scenario's defaults and under each
 run's own fields (:func:`parse_overrides`)."""
@@ -305,11 +326,11 @@ def _parse_pairs(pairs: Sequence[str]) -> dict[str, Any]:
         if key == "max_runs":
             out["max_runs"] = int(value)
             continue
-        *tables, leaf = option_path(key)
+        *tables, leaf = cell_path(key) if key.startswith(CELL_KEY + ".") else option_path(key)
         node = out
         for t in tables:
             node = node.setdefault(t, {})
-        node[leaf] = _coerce_override(value)
+        node[leaf] = coerce_override(value)
     return out
 
 
@@ -367,7 +388,9 @@ def parse_scenario(
         if not isinstance(doc["ropes"], str) or not doc["ropes"]:
             raise ConfigError("ropes", f"must be a file path, got {doc['ropes']!r}")
         ropes = find_ropes_file(doc["ropes"], Path(source).parent if source else None)
-    cell = dict(cell if cell is not None else doc.get("cell", {}))
+    overrides = dict(overrides or {})
+    cell = merge_options(cell if cell is not None else doc.get("cell", {}))
+    cell = merge_options(cell, overrides.pop(CELL_KEY, {}))
     kind = cell.pop("kind", "sim")
     cell_kind(kind)
     settable = tuple(f for f in cell_kind(kind).fields if f != "ropes")
@@ -377,7 +400,6 @@ def parse_scenario(
     options = {k: v for k, v in cell.items() if k not in RUN_KEYS}
     cell_defaults = {k: v for k, v in cell.items() if k in RUN_KEYS}
     defaults = {**cell_defaults, **dict(doc.get("defaults", {}))}
-    overrides = dict(overrides or {})
     max_runs = overrides.pop("max_runs", None)
     under = overrides.pop(UNDER_RUNS, {})
     raw_runs: list[dict[str, Any]] = []

@@ -179,7 +179,25 @@ def rest_shape(record) -> dict[str, float]:
     return {"rest_median_turn_deg": float(np.median(turn)), "rest_max_turn_deg": float(turn.max())}
 
 
+def variation_pairs(pairs: list[str]) -> dict[str, object]:
+    """``["servo_gain_rel=0.003", "rest_scale=0.1"]`` -> the variation's fields to change.
+
+    Raises:
+        ConfigError: A pair without ``=`` (named as ``--variation``).
+    """
+    from flyknot_app.scenario import coerce_override
+
+    out: dict[str, object] = {}
+    for pair in pairs:
+        if "=" not in pair:
+            raise ConfigError("--variation", f"expected FIELD=VALUE, got {pair!r}")
+        key, value = (part.strip() for part in pair.split("=", 1))
+        out[key] = coerce_override(value)
+    return out
+
+
 def _cmd_trial(args: argparse.Namespace) -> int:
+    from flyknot_app.cells import lab_variation
     from flyknot_sim.lab import LabParams, SimLab
 
     out = Path(args.out)
@@ -188,8 +206,17 @@ def _cmd_trial(args: argparse.Namespace) -> int:
     stems = ["trial"] if args.repeats == 1 else [f"trial_{i:03d}" for i in range(args.repeats)]
     if (out / f"{stems[0]}.json").exists() and not args.force:
         raise ConfigError("--out", f"{str(out)!r} already holds a trial; use --force to replace it")
+    variation = lab_variation(variation_pairs(args.variation), "--variation")
     command = load_command(args.command)
-    lab = SimLab(LabParams(rope=args.rope, seed=args.seed, settle_s=args.settle, ropes=args.ropes))
+    lab = SimLab(
+        LabParams(
+            rope=args.rope,
+            seed=args.seed,
+            settle_s=args.settle,
+            ropes=args.ropes,
+            variation=variation,
+        )
+    )
     out.mkdir(parents=True, exist_ok=True)
     summaries = []
     for stem in stems:  # the lab's trials 0, 1, ... of its seed: each with its own variation
@@ -281,6 +308,15 @@ def add_trial_parsers(sub) -> None:
     )
     t.add_argument("--out", required=True, help="directory for the trial record")
     t.add_argument("--seed", type=int, default=0, help="trial-to-trial variation seed")
+    t.add_argument(
+        "--variation",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="change a field of the lab's trial-to-trial variation (servo_gain_rel, "
+        "start_delay_max_s, rest_start, rest_scale, sway_deg; docs/rope-model.md has each "
+        "one's source and bracket); repeatable",
+    )
     t.add_argument(
         "--settle",
         type=float,

@@ -126,7 +126,12 @@ class SimLab:
         rate = 0.0
         if var.rest_start:
             sway, azimuth, rate = start_with_sway(
-                rng, self.params.settle.rest, self.rope_params.length, sway, azimuth
+                rng,
+                self.params.settle.rest,
+                self.rope_params.length,
+                sway,
+                azimuth,
+                var.rest_scale,
             )
         self.rope.set_hanging(m, d, sway_angle=sway, sway_azimuth=azimuth, sway_rate=rate)
         mujoco.mj_forward(m, d)

@@ -8,7 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from flyknot.errors import ConfigError, check_nonnegative, check_positive
+from flyknot.errors import ConfigError, check_nonnegative, check_positive, check_share
 from flyknot.rest import SettleParams
 from flyknot_sim import mocap
 from flyknot_sim.aero import AeroParams
@@ -22,6 +22,23 @@ from flyknot_sim.scene import SceneParams
 class VariationParams:
     """Seeded trial-to-trial variation, as in a real lab.
 
+    Where each number comes from (``docs/rope-model.md``, "The lab's trial-to-trial
+    variation", with what each does to the repeats across its bracket):
+
+    * ``servo_gain_rel`` 0.03: not measured on an xArm; it stands in for everything that moves
+      the arm's path from one play of a command to the next. Bracket 0.003-0.03: at 0.003 a
+      learned rope-1 command's fingertip path spreads 0.16 mm at most from play to play (the
+      median over 160 plays), the size of the xArm's published position repeatability,
+      +-0.1 mm (UFACTORY xArm user manual, section 8.1, "Technical specifications"); at 0.03
+      0.97 mm, the size of an industrial arm's dynamic path error at speed (+-0.25 mm at
+      0.7 m/s, ABB IRB 1600: Slamani, Nubiola & Bonev, Industrial Robot 39 (2012) 57).
+    * ``start_delay_max_s`` 0.004: one tick of the controller's 250 Hz joint stream; the lab's
+      clock and the command's are not synchronised (a derivation, not a bracket).
+    * ``rest_start`` and ``rest_scale`` 1: the rope's start anywhere a lab would call it
+      static (:func:`flyknot.rest.settled_start`, the rest criterion's 8.4 mm and 3 cm/s,
+      ``docs/rope-model.md``). Bracket 0.1-1: a person who waits longer starts the rope
+      stiller; 0.1 (0.8 mm) is the motion capture's 1 mm noise, below which a lab cannot tell.
+
     Attributes:
         sway_deg: Std of an extra initial tilt of the rope from vertical [deg], |N(0, s^2)|
             toward a uniform azimuth, for robustness studies (0: the settled start alone).
@@ -30,12 +47,15 @@ class VariationParams:
         rest_start: Draw the rope's start state uniformly within the lab's rest criterion
             (a rope that a lab would call static; :func:`flyknot.rest.settled_start`); False
             starts it hanging straight and still.
+        rest_scale: The settled start's disc as a share of the rest criterion's, in [0, 1]
+            (the same draws scaled: 1 any static start, 0 hanging still).
     """
 
     sway_deg: float = 0.0
     servo_gain_rel: float = 0.03
     start_delay_max_s: float = 0.004
     rest_start: bool = True
+    rest_scale: float = 1.0
 
     def __post_init__(self) -> None:
         check_nonnegative("sway_deg", self.sway_deg)
@@ -43,6 +63,7 @@ class VariationParams:
         check_nonnegative("start_delay_max_s", self.start_delay_max_s)
         if not isinstance(self.rest_start, bool):
             raise ConfigError("rest_start", f"must be true or false, got {self.rest_start!r}")
+        check_share("rest_scale", self.rest_scale)
 
     @classmethod
     def none(cls) -> VariationParams:

@@ -25,7 +25,7 @@ def test_unknown_kind_and_field_list_the_valid_ones():
     with pytest.raises(
         ConfigError,
         match=r"^cell\.ip: not a field of a 'sim' cell "
-        r"\(valid choices: rope, seed, settle_s, ropes, knot_set, unknot_held\)$",
+        r"\(valid choices: rope, seed, settle_s, ropes, knot_set, unknot_held, variation\)$",
     ):
         cell_spec("sim", {"ip": "10.0.0.1"})
     with pytest.raises(ConfigError, match=r"^seed: must be an integer >= 0, got -1$"):
@@ -50,11 +50,57 @@ def test_a_scenarios_cell_table_sets_the_kind_and_the_cells_defaults():
     with pytest.raises(
         ConfigError,
         match=r"^cell\.gain: not a field of a 'sim' cell "
-        r"\(valid choices: rope, seed, settle_s, knot_set, unknot_held\)$",
+        r"\(valid choices: rope, seed, settle_s, knot_set, unknot_held, variation\)$",
     ):
         parse_scenario({"cell": {"gain": 0.5}, "run": [{"name": "a"}]}, name="x")
     with pytest.raises(ConfigError, match=r"^run\[0\]\.cell: unknown field"):
         parse_scenario({"run": [{"name": "a", "cell": "sim"}]}, name="x")
+
+
+def test_the_variation_is_a_cell_field_and_a_set_key():
+    from flyknot_app.cells import sim_lab_params
+    from flyknot_app.scenario import parse_overrides
+    from flyknot_sim.lab_params import VariationParams
+
+    doc = {"cell": {"variation": {"rest_scale": 0.5}}, "run": [{"name": "a"}]}
+    spec = parse_scenario(doc, name="x").runs[0].cell_spec()
+    assert sim_lab_params(spec).variation == VariationParams(rest_scale=0.5)
+    over = parse_overrides(["cell.variation.servo_gain_rel=0.003"])
+    spec = parse_scenario(doc, name="x", overrides=over).runs[0].cell_spec()
+    assert sim_lab_params(spec).variation == VariationParams(servo_gain_rel=0.003, rest_scale=0.5)
+    assert sim_lab_params(SimCellSpec()).variation == VariationParams()
+
+
+@pytest.mark.parametrize(
+    ("variation", "message"),
+    [
+        (
+            {"gains": 0.1},
+            r"^cell\.variation\.gains: not a field of the variation \(valid choices: sway_deg, "
+            r"servo_gain_rel, start_delay_max_s, rest_start, rest_scale\)$",
+        ),
+        (
+            {"servo_gain_rel": -0.01},
+            r"^cell\.variation\.servo_gain_rel: must be a finite number >= 0, got -0\.01$",
+        ),
+        ({"rest_scale": 2}, r"^cell\.variation\.rest_scale: must be a number in \[0, 1\], got 2$"),
+        ("low", r"^cell\.variation: must be a table of variation fields, got 'low'$"),
+    ],
+)
+def test_a_bad_variation_names_the_field(variation, message):
+    with pytest.raises(ConfigError, match=message):
+        SimCellSpec(variation=variation)
+
+
+def test_set_cell_keys_refuse_a_runs_own_field():
+    from flyknot_app.scenario import parse_overrides
+
+    with pytest.raises(
+        ConfigError, match=r"^--set key: set 'seed' as --set seed=VALUE, not 'cell\.seed'$"
+    ):
+        parse_overrides(["cell.seed=3"])
+    with pytest.raises(ConfigError, match=r"^--set key: expected cell\.FIELD"):
+        parse_overrides(["cell..x=3"])
 
 
 def test_the_runner_closes_the_cell_however_the_run_ends(monkeypatch, tmp_path):

@@ -30,6 +30,22 @@ def test_settled_start_is_within_the_rest_criterion(lab):
         assert np.linalg.norm(v[-1]) <= crit.speed_m_s * 1.01
 
 
+def test_a_share_of_the_criterion_scales_the_lab_start(lab):
+    """The same trial's start at rest_scale 0.25 lies a quarter as far from the plumb line."""
+    quarter = SimLab(LabParams(rope=1, seed=4, variation=VariationParams(rest_scale=0.25)))
+
+    def offset(cell, i):
+        delay = cell.reset(Q0, cell._rng(i))
+        x = cell.plant.rope.vertex_positions(cell.model, cell.data)
+        plumb = x[1] + np.array([0.0, 0.0, -np.linalg.norm(x[-1] - x[1])])
+        return np.linalg.norm(x[-1] - plumb), delay
+
+    for i in range(4):
+        (full, d_full), (part, d_part) = offset(lab, i), offset(quarter, i)
+        assert part == pytest.approx(0.25 * full, rel=0.02, abs=1e-5)
+        assert d_part == d_full  # the other draws are the trial's own
+
+
 def test_old_sway_is_a_robustness_option():
     lab = SimLab(LabParams(rope=1, variation=VariationParams(sway_deg=5.0, rest_start=False)))
     bound = lab.plant.rope

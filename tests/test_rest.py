@@ -53,6 +53,23 @@ def test_settled_start_fills_the_disc_uniformly():
     assert np.max(r2) <= amp**2 * (1 + 1e-9)
 
 
+@given(st.integers(0, 2**32 - 1), st.floats(0.0, 1.0))
+@settings(max_examples=50, deadline=None)
+def test_a_share_of_the_criterion_scales_the_same_start(seed, scale):
+    c = RestCriterion()
+    full = settled_start(np.random.default_rng(seed), c, 1.1)
+    part = settled_start(np.random.default_rng(seed), c, 1.1, scale)
+    assert part[0] == pytest.approx(scale * full[0], abs=1e-15)
+    assert part[1] == pytest.approx(scale * full[1], abs=1e-15)
+    assert part[2] == full[2]
+
+
+@pytest.mark.parametrize("scale", [-0.1, 1.5, "half", True])
+def test_a_share_outside_zero_to_one_is_refused(scale):
+    with pytest.raises(ConfigError, match=rf"^scale: must be a number in \[0, 1\], got {scale!r}$"):
+        settled_start(np.random.default_rng(0), RestCriterion(), 1.1, scale)
+
+
 def test_free_end_at_rest():
     c = RestCriterion()
     assert free_end_at_rest([0.01, 0.02], [0.001, 0.002], c, 1.1)

@@ -40,3 +40,46 @@ def test_the_trial_command_prints_the_rest_shape(tmp_path, capsys):
     summary = json.loads(capsys.readouterr().out)
     assert 0.0 <= summary["rest_median_turn_deg"] < 1.0
     assert summary["rest_median_turn_deg"] <= summary["rest_max_turn_deg"]
+
+
+def test_the_trial_command_plays_a_changed_variation(tmp_path, capsys):
+    """Without any variation two plays of a command are the same; the lab's own differ."""
+    cmd = tmp_path / "c.npy"
+    np.save(cmd, np.linspace(Q0, Q0 + 0.3, 60))
+    base = ["trial", "--rope", "1", "--command", str(cmd), "--settle", "0.2", "--repeats", "2"]
+    still = ["rest_start=false", "servo_gain_rel=0", "start_delay_max_s=0"]
+    assert main([*base, "--out", str(tmp_path / "own"), "--json"]) == 0
+    opts = [a for v in still for a in ("--variation", v)]
+    assert main([*base, *opts, "--out", str(tmp_path / "none"), "--json"]) == 0
+    capsys.readouterr()
+
+    def tips(folder):
+        return [np.load(tmp_path / folder / f"trial_{i:03d}.npz")["fingertip_pos"] for i in (0, 1)]
+
+    a, b = tips("none")
+    assert np.array_equal(a, b)
+    a, b = tips("own")
+    assert not np.array_equal(a, b)
+
+
+@pytest.mark.parametrize(
+    ("pair", "message"),
+    [
+        (
+            "gains=0.1",
+            "--variation.gains: not a field of the variation (valid choices: sway_deg, "
+            "servo_gain_rel, start_delay_max_s, rest_start, rest_scale)",
+        ),
+        ("rest_scale=1.5", "--variation.rest_scale: must be a number in [0, 1], got 1.5"),
+        ("rest_scale", "--variation: expected FIELD=VALUE, got 'rest_scale'"),
+    ],
+)
+def test_a_bad_variation_is_one_line_and_writes_nothing(tmp_path, capsys, pair, message):
+    cmd = tmp_path / "c.npy"
+    np.save(cmd, np.tile(Q0, (10, 1)))
+    out = tmp_path / "t"
+    args = ["trial", "--command", str(cmd), "--out", str(out), "--variation", pair]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.endswith(message) and "\n" not in err
+    assert not out.exists()
