@@ -21,7 +21,7 @@ The runner never names a cell class; it calls :func:`open_cell` with the run's s
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -76,22 +76,48 @@ class SimCellSpec:
 
 
 def lab_variation(values: Mapping[str, Any], where: str = "cell.variation"):
-    """The lab's :class:`flyknot_sim.lab_params.VariationParams` with ``values`` changed.
-
-    Raises:
-        ConfigError: A field that is not one of the variation's (the valid ones listed), or
-            a bad value (the field's own message), each named ``<where>.<field>``.
-    """
+    """The lab's :class:`flyknot_sim.lab_params.VariationParams` with ``values`` changed
+    (:func:`variation_from`)."""
     from flyknot_sim.lab_params import VariationParams
 
-    valid = tuple(f.name for f in fields(VariationParams))
+    return variation_from(VariationParams, values, where)
+
+
+def variation_from(cls: type, values: Mapping[str, Any], where: str) -> Any:
+    """A variation dataclass ``cls`` (the robot lab's or the hand lab's) with ``values``
+    changed from its defaults.
+
+    Raises:
+        ConfigError: A field that is not one of ``cls``'s (the valid ones listed), or a bad
+            value (the field's own message), each named ``<where>.<field>``.
+    """
+    valid = tuple(f.name for f in fields(cls))
     for key in values:
         if key not in valid:
             raise ConfigError(f"{where}.{key}", "not a field of the variation", valid)
     try:
-        return VariationParams(**values)
+        return cls(**values)
     except ConfigError as e:
-        raise ConfigError(f"{where}.{e.field}", e.problem, e.choices) from None
+        name = e.field.rsplit(".", 1)[-1]
+        raise ConfigError(f"{where}.{name}", e.problem, e.choices) from None
+
+
+def variation_pairs(pairs: Sequence[str]) -> dict[str, Any]:
+    """``["servo_gain_rel=0.003", "rest_scale=0.1"]`` (``--variation``) -> the fields to
+    change, each value read as a scenario file would give it.
+
+    Raises:
+        ConfigError: A pair without ``=`` (named as ``--variation``).
+    """
+    from flyknot_app.scenario import coerce_override
+
+    out: dict[str, Any] = {}
+    for pair in pairs:
+        if "=" not in pair:
+            raise ConfigError("--variation", f"expected FIELD=VALUE, got {pair!r}")
+        key, value = (part.strip() for part in pair.split("=", 1))
+        out[key] = coerce_override(value)
+    return out
 
 
 def sim_lab_params(spec: SimCellSpec):

@@ -22,17 +22,22 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from flyknot.errors import check_int
+from flyknot.errors import ConfigError, check_int
 from flyknot_app.scenario import parse_rope_arg
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
     from flyknot.demo import Demonstration
+    from flyknot_app.cells import variation_from, variation_pairs
     from flyknot_sim.hand import HandLab
+    from flyknot_sim.hand_params import HandVariation
     from flyknot_sim.hand_replay import hand_from_demo, replay, save_replay
 
     check_int("--repeats", args.repeats, 1)
     check_int("--seed", args.seed, 0)
+    variation = variation_from(HandVariation, variation_pairs(args.variation), "--variation")
+    if args.nominal and args.variation:
+        raise ConfigError("--variation", "a --nominal replay has no variation to change")
     demo = Demonstration.load(args.file)
     result = replay(
         demo,
@@ -40,6 +45,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         repeats=args.repeats,
         seed=args.seed,
         vary=not args.nominal,
+        variation=variation,
         settle_s=args.settle,
         keep_trials=args.out is not None,
         progress=not args.json and not args.quiet,
@@ -245,6 +251,14 @@ def add_demo_parser(subparsers: argparse._SubParsersAction) -> argparse.Argument
     r.add_argument("--seed", type=int, default=0, help="variation seed (default 0)")
     r.add_argument(
         "--nominal", action="store_true", help="no trial-to-trial variation (exact replay)"
+    )
+    r.add_argument(
+        "--variation",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="change a field of the hand lab's variation (servo_gain_rel, start_delay_max_s, "
+        "tempo_rel, rest_start, rest_scale, sway_deg); repeatable",
     )
     r.add_argument("--settle", type=float, default=None, help="settling time [s]")
     r.add_argument("--out", default=None, help="directory for one file per replay")

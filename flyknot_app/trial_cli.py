@@ -179,25 +179,8 @@ def rest_shape(record) -> dict[str, float]:
     return {"rest_median_turn_deg": float(np.median(turn)), "rest_max_turn_deg": float(turn.max())}
 
 
-def variation_pairs(pairs: list[str]) -> dict[str, object]:
-    """``["servo_gain_rel=0.003", "rest_scale=0.1"]`` -> the variation's fields to change.
-
-    Raises:
-        ConfigError: A pair without ``=`` (named as ``--variation``).
-    """
-    from flyknot_app.scenario import coerce_override
-
-    out: dict[str, object] = {}
-    for pair in pairs:
-        if "=" not in pair:
-            raise ConfigError("--variation", f"expected FIELD=VALUE, got {pair!r}")
-        key, value = (part.strip() for part in pair.split("=", 1))
-        out[key] = coerce_override(value)
-    return out
-
-
 def _cmd_trial(args: argparse.Namespace) -> int:
-    from flyknot_app.cells import lab_variation
+    from flyknot_app.cells import lab_variation, variation_pairs
     from flyknot_sim.lab import LabParams, SimLab
 
     out = Path(args.out)

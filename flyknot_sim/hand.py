@@ -289,7 +289,7 @@ class HandLab:
         if v.rest_start:
             p = self.params
             sway, azimuth, rate = start_with_sway(
-                rng, p.settle.rest, p.rope_params.length, sway, azimuth
+                rng, p.settle.rest, p.rope_params.length, sway, azimuth, v.rest_scale
             )
         return {
             "kp_factor": np.clip(kp, 0.5, 1.5).tolist(),

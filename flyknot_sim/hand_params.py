@@ -15,7 +15,7 @@ from typing import Protocol
 
 import numpy as np
 
-from flyknot.errors import ConfigError, check_nonnegative, check_positive
+from flyknot.errors import ConfigError, check_nonnegative, check_positive, check_share
 from flyknot.judge import with_rope_diameter
 from flyknot.rest import SettleParams
 from flyknot.verdict import JudgeParams
@@ -32,7 +32,8 @@ __all__ = ["HandParams", "HandVariation", "JointTrajectory", "hand_rotation"]
 # ----------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class HandVariation:
-    """Seeded trial-to-trial variation of a hand trial (the robot lab's, plus tempo).
+    """Seeded trial-to-trial variation of a hand trial (the robot lab's, plus tempo; each
+    shared number's source and bracket: :class:`flyknot_sim.lab_params.VariationParams`).
 
     Attributes:
         sway_deg: Std of an extra initial tilt of the rope from vertical [deg] (robustness
@@ -43,6 +44,7 @@ class HandVariation:
             exactly) [-].
         rest_start: Draw the rope's start uniformly within the rest criterion (as the robot
             lab does; :func:`flyknot.rest.settled_start`).
+        rest_scale: The settled start's disc as a share of the rest criterion's, in [0, 1].
     """
 
     sway_deg: float = 0.0
@@ -50,6 +52,7 @@ class HandVariation:
     start_delay_max_s: float = 0.004
     tempo_rel: float = 0.005
     rest_start: bool = True
+    rest_scale: float = 1.0
 
     def __post_init__(self) -> None:
         for f in ("sway_deg", "servo_gain_rel", "start_delay_max_s", "tempo_rel"):
@@ -60,6 +63,7 @@ class HandVariation:
             raise ConfigError(
                 "HandVariation.rest_start", f"must be true or false, got {self.rest_start!r}"
             )
+        check_share("HandVariation.rest_scale", self.rest_scale)
 
     @classmethod
     def none(cls) -> HandVariation:

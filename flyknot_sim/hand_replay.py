@@ -71,17 +71,23 @@ def motion_from_demo(demo: Demonstration, source: str = "demonstration") -> Knot
 
 
 def hand_from_demo(
-    demo: Demonstration, rope: int | str, *, vary: bool = True, ropes: str | None = None
+    demo: Demonstration,
+    rope: int | str,
+    *,
+    vary: bool = True,
+    ropes: str | None = None,
+    variation: HandVariation | None = None,
 ) -> HandParams:
     """The hand lab a demonstration was made in, holding rope ``rope`` (an id or a name,
-    from ``ropes``, a user's ropes file, for a custom rope)."""
+    from ``ropes``, a user's ropes file, for a custom rope), with ``variation`` when
+    ``vary`` (None: the lab's own, :class:`HandVariation`), else none."""
     stored = demo.metadata.get("hand", {})
     # The settle is the lab's own rule (judged at rest), not a fixed wait a demonstration
     # may have stored.
     kwargs = {f: stored[f] for f in HAND_META_FIELDS if f in stored and f != "settle_s"}
     if "home" in kwargs:
         kwargs["home"] = tuple(kwargs["home"])
-    variation = HandVariation() if vary else HandVariation.none()
+    variation = (variation or HandVariation()) if vary else HandVariation.none()
     return HandParams(rope=rope, variation=variation, ropes=ropes, **kwargs)
 
 
@@ -128,6 +134,7 @@ def replay(
     vary: bool = True,
     settle_s: float | None = None,
     keep_trials: bool = False,
+    variation: HandVariation | None = None,
     progress: bool = False,
     ropes: str | None = None,
 ) -> ReplayResult:
@@ -146,6 +153,7 @@ def replay(
         vary: Apply the lab's trial-to-trial variation.
         settle_s: Settling time [s] (default: the demonstration's).
         keep_trials: Keep the trials in the result (memory: ~2 MB each).
+        variation: The variation when ``vary`` (None: the hand lab's own).
         progress: Show a tqdm progress bar.
         ropes: A user's ropes file whose ropes ``rope`` may name.
 
@@ -159,7 +167,7 @@ def replay(
     rope = demo.rope if rope is None else rope
     if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
         raise ConfigError("repeats", f"must be an integer >= 1, got {repeats!r}")
-    hand = hand_from_demo(demo, rope, vary=vary, ropes=ropes)
+    hand = hand_from_demo(demo, rope, vary=vary, ropes=ropes, variation=variation)
     rope = hand.rope_params.id
     if settle_s is not None:
         hand = replace(hand, settle_s=settle_s)

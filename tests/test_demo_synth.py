@@ -553,6 +553,63 @@ def test_cli_bad_repeats(capsys):
     assert capsys.readouterr().err == "flyknot: error: --repeats: must be an integer >= 1, got 0\n"
 
 
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (
+            ["--variation", "rest_scale=2"],
+            "--variation.rest_scale: must be a number in [0, 1], got 2",
+        ),
+        (
+            ["--variation", "gain=1"],
+            "--variation.gain: not a field of the variation (valid choices: sway_deg, "
+            "servo_gain_rel, start_delay_max_s, tempo_rel, rest_start, rest_scale)",
+        ),
+        (
+            ["--nominal", "--variation", "rest_scale=0.5"],
+            "--variation: a --nominal replay has no variation to change",
+        ),
+    ],
+)
+def test_cli_bad_variation(capsys, extra, message):
+    code = demo_cli.main(["demo", "replay", str(DEMOS_DIR / "fast.npz"), *extra])
+    assert code == 2
+    assert capsys.readouterr().err == f"flyknot: error: {message}\n"
+
+
+def test_a_replays_variation_can_be_changed(monkeypatch):
+    """``--variation`` reaches the hand lab: the same replay with the rope's start scaled."""
+    from flyknot_sim import hand_replay
+
+    seen = []
+    monkeypatch.setattr(hand_replay, "HandLab", lambda hand: seen.append(hand) or _Stop())
+    with pytest.raises(_StopError):
+        demo_cli.main(
+            ["demo", "replay", str(DEMOS_DIR / "fast.npz"), "--variation", "rest_scale=0.25"]
+        )
+    assert seen[0].variation == HandVariation(rest_scale=0.25)
+
+
+def test_the_hand_labs_rest_scale_scales_the_same_start():
+    full = HandLab(HandParams(rope=1, variation=HandVariation()))
+    quarter = HandLab(HandParams(rope=1, variation=HandVariation(rest_scale=0.25)))
+    for seed in range(3):
+        a = full.draw_variation(np.random.default_rng(seed))
+        b = quarter.draw_variation(np.random.default_rng(seed))
+        assert b["sway"] == pytest.approx(0.25 * a["sway"], abs=1e-15)
+        assert b["sway_rate"] == pytest.approx(0.25 * a["sway_rate"], abs=1e-15)
+        assert (b["delay"], b["tempo"], b["kp_factor"]) == (a["delay"], a["tempo"], a["kp_factor"])
+
+
+class _StopError(Exception):
+    pass
+
+
+class _Stop:
+    def run(self, *args, **kwargs):
+        raise _StopError
+
+
 def test_cli_replay_json_and_saved_replays(tmp_path, capsys):
     out = tmp_path / "replays"
     code = demo_cli.main(
