@@ -27,11 +27,12 @@ class VariationParams:
 
     * ``servo_gain_rel`` 0.03: not measured on an xArm; it stands in for everything that moves
       the arm's path from one play of a command to the next. Bracket 0.003-0.03: at 0.003 a
-      learned rope-1 command's fingertip path spreads 0.16 mm at most from play to play (the
-      median over 160 plays), the size of the xArm's published position repeatability,
-      +-0.1 mm (UFACTORY xArm user manual, section 8.1, "Technical specifications"); at 0.03
-      0.97 mm, the size of an industrial arm's dynamic path error at speed (+-0.25 mm at
-      0.7 m/s, ABB IRB 1600: Slamani, Nubiola & Bonev, Industrial Robot 39 (2012) 57).
+      learned rope-1 command's fingertip path lies within 0.15 mm of its play without
+      variation (the median over 200 plays of the largest distance), the size of the xArm's
+      published position repeatability, +-0.1 mm (UFACTORY xArm user manual, section 8.1,
+      "Technical specifications"); at 0.03 within 0.97 mm, four times an industrial arm's
+      dynamic path error at 0.7 m/s (+-0.25 mm, ABB IRB 1600: Slamani, Nubiola & Bonev,
+      Industrial Robot 39 (2012) 57) at this throw's 4 m/s.
     * ``start_delay_max_s`` 0.004: one tick of the controller's 250 Hz joint stream; the lab's
       clock and the command's are not synchronised (a derivation, not a bracket).
     * ``rest_start`` and ``rest_scale`` 1: the rope's start anywhere a lab would call it

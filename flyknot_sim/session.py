@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 import platform
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import mujoco
@@ -474,8 +474,9 @@ class TrialSession:
         return t_mocap, mocap.apply_tracking_loss(t_mocap, noisy, self.first_contact, mp, self.rng)
 
     def _metadata(self, sim_duration: float, settle_meta: dict | None) -> dict:
-        """The record's metadata: the cell, the rope, the trial's seed and index, its start
-        delay, durations and step, the settle's outcome, the drag and the versions."""
+        """The record's metadata: the cell, the rope, the trial's seed and index, the lab's
+        variation and the start delay it drew, durations and step, the settle's outcome, the
+        drag and the versions."""
         params = self.params
         n_cmd = self.plan.n if self.plan is not None else self.n_sent
         duration = self.plan.duration if self.plan is not None else (n_cmd - 1) * self.dt
@@ -484,6 +485,7 @@ class TrialSession:
             **rope_record(self.plant.rope_params, params.ropes),
             "seed": params.seed,
             "trial_index": self.trial_index,
+            "variation": asdict(params.variation),
             "start_delay_s": self.delay,
             "command_duration_s": duration,
             "sim_duration_s": sim_duration,

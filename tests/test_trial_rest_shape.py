@@ -58,6 +58,8 @@ def test_the_trial_command_plays_a_changed_variation(tmp_path, capsys):
 
     a, b = tips("none")
     assert np.array_equal(a, b)
+    meta = json.loads((tmp_path / "none" / "trial_000.json").read_text())["metadata"]
+    assert meta["variation"]["servo_gain_rel"] == 0 and meta["variation"]["rest_start"] is False
     a, b = tips("own")
     assert not np.array_equal(a, b)
 
