@@ -9,20 +9,32 @@ import numpy as np
 import pytest
 
 from flyknot.errors import ConfigError
-from flyknot_app.diagnose.variation_split import alone, format_split, split_variation
+from flyknot_app.diagnose.variation_split import (
+    Play,
+    alone,
+    format_split,
+    path_spread,
+    split_variation,
+)
 from flyknot_sim.lab_params import LabParams, VariationParams
 
 
-def _fake_play(lab_params) -> str:
-    """Ties unless the start delay is on and the seed is odd (a knife edge in timing)."""
-    delayed = lab_params.variation.start_delay_max_s > 0.0
-    return "unknot" if delayed and lab_params.seed % 2 else "knot"
+def _fake_play(lab_params) -> Play:
+    """Ties unless the start delay is on and the seed is odd (a knife edge in timing); the
+    fingertip moves off the nominal path by the servo spread (1e-3 s) [m] at its last tick."""
+    v = lab_params.variation
+    klass = "unknot" if v.start_delay_max_s > 0.0 and lab_params.seed % 2 else "knot"
+    tip = np.zeros((5, 3))
+    tip[-1, 2] = 1e-3 * v.servo_gain_rel * (1 + lab_params.seed % 2)
+    return Play(klass, tip)
 
 
 def test_each_component_alone_and_the_split_it_makes():
     v = VariationParams()
     only = alone(v, "servo_gain_rel")
     assert only == VariationParams(0.0, v.servo_gain_rel, 0.0, False)
+    scaled = VariationParams(rest_scale=0.25)
+    assert alone(scaled, "rest_start") == VariationParams(0.0, 0.0, 0.0, True, 0.25)
     split = split_variation(LabParams(), _fake_play, 4, seeds=[1, 2, 3, 4])
     assert list(split.classes) == [
         "none",
@@ -35,14 +47,26 @@ def test_each_component_alone_and_the_split_it_makes():
     assert split.knots("rest_start") == 4 and split.knots("servo_gain_rel") == 4
     assert split.classes["start_delay_max_s"] == ("unknot", "knot", "unknot", "knot")
     assert split.knots("all") == 2
+    # the servo spread moves the last tick by 0.03 or 0.06 mm (odd seeds)
+    assert split.spread["servo_gain_rel"] == pytest.approx((6e-5, 3e-5, 6e-5, 3e-5))
+    assert split.median_spread("rest_start") == 0.0
     assert format_split(split).splitlines() == [
         "no variation: 1 of 1 tied",
-        "rest_start alone: 4 of 4 tied",
-        "servo_gain_rel alone: 4 of 4 tied",
-        "start_delay_max_s alone: 2 of 4 tied (misses: unknot)",
-        "all: 2 of 4 tied (misses: unknot)",
+        "rest_start alone: 4 of 4 tied; fingertip path spread 0 mm (median)",
+        "servo_gain_rel alone: 4 of 4 tied; fingertip path spread 0.045 mm (median)",
+        "start_delay_max_s alone: 2 of 4 tied (misses: unknot); fingertip path spread 0 mm "
+        "(median)",
+        "all: 2 of 4 tied (misses: unknot); fingertip path spread 0.045 mm (median)",
     ]
-    assert json.loads(json.dumps(split.to_json()))["knots"]["all"] == 2
+    doc = json.loads(json.dumps(split.to_json()))
+    assert doc["knots"]["all"] == 2
+    assert doc["median_spread_mm"]["all"] == pytest.approx(0.045)
+
+
+def test_path_spread_is_the_largest_distance_over_the_common_ticks():
+    nominal = np.zeros((4, 3))
+    tip = np.array([[0.0, 0, 0], [0.003, 0.004, 0], [0, 0, 0.001], [0, 0, 0], [9, 9, 9]])
+    assert path_spread(tip, nominal) == pytest.approx(0.005)  # the 5th tick is past nominal
 
 
 def test_a_component_the_lab_does_not_vary_is_left_out():
@@ -134,3 +158,30 @@ def test_cli_plays_a_floors_command(tmp_path, capsys, monkeypatch):
     assert "is not a result of `flyknot diagnose floor`" in capsys.readouterr().err
     assert main(["diagnose", "variation"]) == 2
     assert "give a run directory or --floor, not both or neither" in capsys.readouterr().err
+
+
+def test_cli_splits_a_changed_variation(tmp_path, capsys, monkeypatch):
+    import flyknot_app.diagnose.variation_split as vs
+    from flyknot_app.cli import main
+
+    seen = []
+
+    def play(lab_params):
+        seen.append(lab_params.variation)
+        return _fake_play(lab_params)
+
+    monkeypatch.setattr(vs, "lab_play", lambda knots, T: play)
+    run = _run_dir(tmp_path)
+    args = ["diagnose", "variation", str(run), "--plays", "1", "--json"]
+    assert (
+        main([*args, "--variation", "servo_gain_rel=0.003", "--variation", "rest_scale=0.1"]) == 0
+    )
+    assert seen[-1] == VariationParams(servo_gain_rel=0.003, rest_scale=0.1)  # "all"
+    assert json.loads(capsys.readouterr().out)["variation"] == {
+        "servo_gain_rel": 0.003,
+        "rest_scale": 0.1,
+    }
+    assert main([*args, "--variation", "rest_scale=-1"]) == 2
+    assert capsys.readouterr().err == (
+        "flyknot: error: --variation.rest_scale: must be a number in [0, 1], got -1\n"
+    )

@@ -249,13 +249,16 @@ def _variation_source(
 
 
 def _cmd_variation(args: argparse.Namespace) -> int:
-    from flyknot_app.cells import cell_spec, sim_lab_params
+    from flyknot_app.cells import cell_spec, lab_variation, sim_lab_params, variation_pairs
     from flyknot_app.diagnose.variation_split import format_split, lab_play, split_variation
 
     what, values, knots, T, fields, default = _variation_source(args)
+    changed = variation_pairs(args.variation)
+    lab_variation(changed, "--variation")
+    values = {**values, "variation": {**values.get("variation", {}), **changed}}
     lab_params = sim_lab_params(cell_spec("sim", values))
     split = split_variation(lab_params, lab_play(knots, T), args.plays)
-    out = split.to_json() | fields
+    out = split.to_json() | fields | {"variation": values["variation"]}
     path = Path(args.out) if args.out else default
     if path is not None:
         path.write_text(json.dumps(out, indent=2))
@@ -307,6 +310,14 @@ def add_diagnose_parser(sub: argparse._SubParsersAction) -> None:
         "--trial", type=int, help="its trial (default: the first knot, else lowest cost)"
     )
     v.add_argument("--plays", type=int, default=12, help="varied plays per setting (default 12)")
+    v.add_argument(
+        "--variation",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="split a changed variation (over the run's own): e.g. servo_gain_rel=0.003; "
+        "repeatable",
+    )
     v.add_argument("--out", help="the result's JSON file (default RUN_DIR/variation.json)")
     v.add_argument("--json", action="store_true", help="print JSON")
     v.set_defaults(func=_cmd_variation)
