@@ -17,6 +17,7 @@ A field whose default is itself a dataclass is a nested table (``weights = {w_co
 
 from __future__ import annotations
 
+import tomllib
 from collections.abc import Iterator, Mapping
 from dataclasses import MISSING, Field, fields, is_dataclass, replace
 from types import MappingProxyType
@@ -176,6 +177,27 @@ def _build(
         return replace(base, **kwargs) if base is not None else cls(**kwargs)
     except TypeError as e:
         raise ConfigError(prefix.rstrip(".") or cls.__name__, str(e)) from None
+
+
+def coerce_override(value: str) -> Any:
+    """A ``--set`` value as a scenario file would give it: a number, a boolean, none, a TOML
+    array or inline table (``confirm=[3,4]``), else the string itself."""
+    if value.startswith(("[", "{")):
+        try:
+            return tomllib.loads(f"v = {value}")["v"]
+        except tomllib.TOMLDecodeError:
+            return value
+    for cast in (int, float):
+        try:
+            return cast(value)
+        except ValueError:
+            pass
+    low = value.lower()
+    if low in ("true", "false"):
+        return low == "true"
+    if low in ("none", "null"):
+        return None
+    return value
 
 
 def to_mapping(obj: Any) -> dict[str, Any]:

@@ -109,7 +109,7 @@ def variation_pairs(pairs: Sequence[str]) -> dict[str, Any]:
     Raises:
         ConfigError: A pair without ``=`` (named as ``--variation``).
     """
-    from flyknot_app.scenario import coerce_override
+    from flyknot.options import coerce_override
 
     out: dict[str, Any] = {}
     for pair in pairs:

@@ -44,6 +44,7 @@ from flyknot.errors import ConfigError, RecordError, check_choice, check_nonnega
 from flyknot.options import (
     INLINE,
     NOT_AN_OPTION,
+    coerce_override,
     from_mapping,
     nested_options,
     option_names,
@@ -212,27 +213,6 @@ class Scenario:
             done |= {r.name for r in wave}
             left = [r for r in left if r.name not in done]
         return waves
-
-
-def coerce_override(value: str) -> Any:
-    """A ``--set`` value as a scenario file would give it: a number, a boolean, none, a TOML
-    array or inline table (``confirm=[3,4]``), else the string itself."""
-    if value.startswith(("[", "{")):
-        try:
-            return tomllib.loads(f"v = {value}")["v"]
-        except tomllib.TOMLDecodeError:
-            return value
-    for cast in (int, float):
-        try:
-            return cast(value)
-        except ValueError:
-            pass
-    low = value.lower()
-    if low in ("true", "false"):
-        return low == "true"
-    if low in ("none", "null"):
-        return None
-    return value
 
 
 PAPER_SETTINGS = (
