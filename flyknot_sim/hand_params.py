@@ -41,7 +41,9 @@ class HandVariation:
         servo_gain_rel: Relative std of each servo's stiffness and damping gain [-].
         start_delay_max_s: The motion starts after a uniform delay in [0, this) [s].
         tempo_rel: Relative std of the motion's duration (a person never repeats a tempo
-            exactly) [-].
+            exactly) [-]. 0.005 is 4 ms on a 0.8 s throw; bracket 0.0025-0.0125 (2-10 ms):
+            recreational ball players time a throw's release to about 10 ms (Hore et al.,
+            J. Neurophysiol. 75 (1996) 1013, as New Scientist, 6 April 1996, reports it).
         rest_start: Draw the rope's start uniformly within the rest criterion (as the robot
             lab does; :func:`flyknot.rest.settled_start`).
         rest_scale: The settled start's disc as a share of the rest criterion's, in [0, 1].
