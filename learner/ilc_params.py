@@ -116,6 +116,11 @@ class ILCParams:
             own update, shrunk by 1/2 per consecutive rejection (the paper has none).
         average: Plays of each command before an update (>= 1; the paper: 1); the update
             uses the mean critical-point error of the plays (each play is a trial).
+        average_first: Plays of the initial command before the first update (>= 1; None:
+            ``average``), the update on their mean error; the damped step weighs their mean
+            cost and steps from it again on their mean error. The first update is the longest
+            step, and the one a single trial's variation moves most (``docs/rope-model.md``,
+            "The lab's trial-to-trial variation").
         step: How far each update moves the command (:data:`learner.steps.STEPS`):
             ``"gain"`` (the paper's fixed gain) or ``"damped"`` (Levenberg-Marquardt on the
             measured cost, back to the best command when the cost rose).
@@ -141,6 +146,7 @@ class ILCParams:
     confirm: tuple[int, int] | None = None
     safeguard: bool = False
     average: int = 1
+    average_first: int | None = None
     step: str = "gain"
     damping: DampingParams = field(default_factory=DampingParams)
     plateau: PlateauParams = field(default_factory=PlateauParams)
@@ -156,6 +162,13 @@ class ILCParams:
         ):
             raise ConfigError("gain", f"must lie in (0, 1], got {self.gain!r}")
         check_int("average", self.average, 1)
+        if self.average_first is not None:
+            check_int("average_first", self.average_first, 1)
+        if self.safeguard and (self.average_first or 1) > 1:
+            raise ConfigError(
+                "average_first", "the safeguard steps by a trial's own update: it takes no "
+                "average_first > 1"
+            )  # fmt: skip
         if not isinstance(self.safeguard, bool):
             raise ConfigError("safeguard", f"must be true or false, got {self.safeguard!r}")
         if not isinstance(self.stop_at_success, bool):

@@ -157,6 +157,8 @@ class PlayedTrial(Trial):
         self.update = update
         self._record, self._command, self._ctx = record, command, ctx
         self._own = (summary.update_solved, None if update is None else update.dkappa)
+        self._correct = state.correct(state.knots, learn=False)
+        self._w_control = state.w_control()  # what the loop's own update of this play used
 
     def record(self) -> TrialRecord:
         """What the trial measured."""
@@ -171,10 +173,20 @@ class PlayedTrial(Trial):
         return self._own
 
     def average_over(self, group: Sequence[Trial]) -> bool | None:
-        """The update on the mean error of this play and ``group``'s, taken as its update."""
+        """The update on the mean error of this play and ``group``'s, taken as its update (the
+        secant source's correction as this play left it, without learning again)."""
         extra = tuple(t.record() for t in group)
         s = self.summary
-        _, self.update = assess(self._record, self._command, self._ctx, s.trial, s.attempt, extra)
+        _, self.update = assess(
+            self._record,
+            self._command,
+            self._ctx,
+            s.trial,
+            s.attempt,
+            extra,
+            w_control=self._w_control,
+            correct=self._correct,
+        )
         return None if self.update is None else self.update.solved
 
 
@@ -204,6 +216,7 @@ class LoopMoves:
             self.ctx,
             trial.summary.trial,
             0,
+            tuple(t.record() for t in trial.group),
             w_control=w_control,
             judged=False,
             correct=self.state.correct(trial.knots, learn=False),

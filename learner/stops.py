@@ -12,8 +12,8 @@ After each attempt the loop (:func:`learner.ilc_step.decide`) asks its rules, in
   than the trial-to-trial noise floor in ``plateau.patience`` counted trials.
 * ``"safeguard"`` (:class:`Safeguard`): a cost above the best trial's: back to the best
   command, its own step shrunk (option ``safeguard``).
-* ``"average"`` (:class:`Averaging`): each command played ``average`` times, the update on the
-  mean error of its plays.
+* ``"average"`` (:class:`Averaging`): each command played ``average`` times (the initial one
+  ``average_first`` times), the update on the mean error of its plays.
 * ``"explore"`` (:class:`Explore`): at the noise floor, a step from the best command toward a
   random offset the model says keeps the objective's rope states (option ``explore``).
 * ``"damped"`` (:class:`DampedStep`): the damped step (:mod:`learner.steps`, ``step``).
@@ -224,19 +224,28 @@ class Safeguard(StopRule):
 
 
 class Averaging(StopRule):
-    """``average`` plays of each command; the update on the mean error of the plays."""
+    """``average`` plays of each command (``average_first`` of the initial one); the update
+    on the mean error of the plays."""
 
     name = "average"
     description = "each command played `average` times, the update on their mean error"
 
     def __init__(self, params: ILCParams) -> None:
-        self.plays = params.average
+        self.each = params.average
+        self.first = params.average if params.average_first is None else params.average_first
+        self.stepped = False
+        """A new command has been stepped to (the initial one's group is behind)."""
         self.group: list[Trial] = []
         """The earlier plays of the current command."""
 
+    @property
+    def plays(self) -> int:
+        """Plays of the current command before its update."""
+        return self.each if self.stepped else self.first
+
     def verdict(self, trial: Trial) -> Ruling | None:
         """Play the command again while the group fills; the last play takes the update on
-        the group's mean error (the next rule steps by it)."""
+        the group's mean error (the next rule steps by it) and keeps the group."""
         if not trial.measured:
             return None
         s = trial.summary
@@ -248,6 +257,7 @@ class Averaging(StopRule):
             return Ruling(REPLAY, self.name)
         if self.group:
             n = len(self.group) + 1
+            trial.group = tuple(self.group)
             solved = trial.average_over(self.group)
             action = f"update on the mean error of {n} plays"
             trial.summary = replace(s, average=n, update_solved=solved, action=action)
@@ -257,6 +267,7 @@ class Averaging(StopRule):
         """A new command empties the group (a replay or a stop leaves it)."""
         if ruling.kind == STEP:
             self.group.clear()
+            self.stepped = True
 
 
 def exploration_offset(size: float, seed: int, trial: int) -> np.ndarray:
@@ -357,13 +368,15 @@ class DampedStep(StopRule):
         if not s.update_solved:
             return None
         lam_used = self.damping.lam
-        took = self.damping.observe(*self._weighed(trial), own=s.cost)
+        weighed = self._weighed(trial)
+        took = self.damping.observe(*weighed, own=weighed[0] if trial.group else s.cost)
         if took and self.damping.is_best(s.trial):
             self.best = trial
         if took or self.best is None:
             within = took and self.best is not trial
             base = trial.knots
-            action = f"update (damped, lambda {lam_used:.3g}" + (
+            mean = f", on the mean error of {len(trial.group) + 1} plays" if trial.group else ""
+            action = f"update (damped, lambda {lam_used:.3g}{mean}" + (
                 f"; within the noise of the best, trial {self.best.summary.trial + 1})"
                 if within
                 else ")"
@@ -389,6 +402,9 @@ class DampedStep(StopRule):
         point, or (``damping.common_time``) both at the earlier of the two when they differ
         (a trial whose markers were lost before t_c is fitted earlier)."""
         s, best = trial.summary, self.best
+        if trial.group:  # an averaged command: the mean cost of its plays
+            costs = [p.summary.cost for p in (*trial.group, trial) if p.summary.cost is not None]
+            return (float(np.mean(costs)) if costs else None), s.trial, None
         if not self.damping.params.common_time or best is None or s.cost is None:
             return s.cost, s.trial, None
         t_k, t_b = s.t_eff, best.summary.t_eff

@@ -30,9 +30,12 @@ class Trial(ABC):
         prev_knots: The command of the trial before, or None (the first trial).
         update: The update computed from it, which the loop's moves step by (a resumed run
             never moves: None there).
+        group: The earlier plays of its command whose mean error its update is on (set by the
+            averaging rule on a group's last play; empty otherwise).
     """
 
     update: UpdateResult | None = None
+    group: tuple[Trial, ...] = ()
 
     def __init__(
         self, summary: TrialSummary, knots: np.ndarray, prev_knots: np.ndarray | None

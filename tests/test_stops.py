@@ -22,6 +22,7 @@ from learner.run_directory import RunDirectory, TrialSummary
 from learner.steps import DampingParams
 from learner.stops import STOP, STOPS, Ruling, StopRule, StopRules, stop_rule
 from learner.trial_view import Trial
+from learner.update import UpdateSettings
 from tests.knot_curves import judged
 from tests.test_ilc import ROPE, ModelCell, model_problem
 
@@ -152,6 +153,20 @@ SCENARIOS = {
         {"fault_on": {2, 3}},
         ["update (damped", "fault: from the best command"],
     ),
+    "damped, secant and the first command averaged": (
+        {
+            "max_trials": 7,
+            "step": "damped",
+            "average_first": 3,
+            "update": UpdateSettings(jacobian="secant"),
+        },
+        {"fault_on": {3}, "shifted": {5}},
+        [
+            "play 2/3 of the command",
+            "update (damped, lambda 0.25, on the mean error of 3 plays)",
+            "fault: from the best command (trial 3)",
+        ],
+    ),
     "explore": (
         {"max_trials": 7, "step": "damped", "explore": ExploreParams(size=0.05, band=1e3)},
         {"shifted": {2, 3}},
@@ -215,6 +230,8 @@ def _ledger(run_dir):
         ("safeguard and average", 2),  # after a group whose last play is the best trial
         ("safeguard and average", 4),  # then back to the best command
         ("explore", 5),  # after an exploring step
+        ("damped, secant and the first command averaged", 2),  # inside the first group
+        ("damped, secant and the first command averaged", 5),  # after a rise, from the group
     ],
 )
 def test_a_killed_run_resumed_is_the_uninterrupted_run(
@@ -433,3 +450,26 @@ def test_bad_explore_settings_raise_exact_messages(value, message):
     with pytest.raises(ConfigError) as e:
         ExploreParams(**value)
     assert str(e.value) == message
+
+
+def test_a_step_from_an_averaged_best_is_on_its_groups_mean_error(
+    arm, setup, monkeypatch, tmp_path
+):
+    """After the fault the damped step goes back to the averaged first command and solves
+    about it again: on the mean error of its three plays, at lambda 0.25 halved by the new
+    best and grown x4 by the fault."""
+    from learner import ilc_step
+
+    calls = []
+    assess = ilc_step.assess
+
+    def spy(record, command, ctx, k, attempt, extra_records=(), **kw):
+        calls.append((k, len(extra_records), kw.get("w_control"), kw.get("judged", True)))
+        return assess(record, command, ctx, k, attempt, extra_records, **kw)
+
+    monkeypatch.setattr(ilc_step, "assess", spy)
+    options, script, _ = SCENARIOS["damped, secant and the first command averaged"]
+    _, _, res = _run(arm, setup, monkeypatch, tmp_path / "run", options, script)
+    assert [s.average for s in res.trials[:3]] == [1, 2, 3]
+    assert (2, 2, 0.25, True) in calls  # the group's update, at the loop's own lambda
+    assert (2, 2, 0.5, False) in calls  # from the best again after the fault
