@@ -250,8 +250,7 @@ def test_average_must_be_a_positive_integer():
     with pytest.raises(ConfigError) as e:
         ILCParams(average_first=2, safeguard=True)
     assert str(e.value) == (
-        "average_first: the safeguard steps by a trial's own update: it takes no "
-        "average_first > 1"
+        "average_first: the safeguard steps by a trial's own update: it takes no average_first > 1"
     )
     # the damped step and the secant take an averaged first command (not every command)
     assert ILCParams(step="damped", average_first=3).average_first == 3
