@@ -65,6 +65,7 @@ def test_the_table_has_every_experiment_beside_the_paper(tmp_path):
     text = paper_table(tmp_path, "flyknot paper --seeds 0-1")
     assert "lab seeds 0, 1;" in text and "by `flyknot paper --seeds 0-1` from runs made" in text
     assert "from runs made at abc1234, def5678, unrecorded (each run directory's" in text
+    assert "knots in the repeats (with the lab's trial-to-trial variation, whose bracket" in text
     assert "| rope1 | 1 | robot | critical | 2.5 (2-3), 2 of 2 seeds tied | - |" in text
     assert "Paper: All 7 ropes learned within 10 trials" in text
     assert "| 100 | 5 | none in 10 (2 seeds) | >10 |" in text

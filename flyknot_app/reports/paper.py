@@ -469,12 +469,12 @@ def paper_table(out: str | Path, command: str, pictures: dict[str, str] | None =
         f"{', '.join(str(s) for s in sorted(seeds, key=str))}; written "
         f"{dt.date.today().isoformat()} at commit {git_commit()} by `{command}` from runs made "
         f"at {', '.join(run_commits(out)) or 'unrecorded'} (each run directory's "
-        "`manifest.json`). A knot is a "
-        "verdict `knot` of `flyknot.verdict` (an overhand knot in the hanging rope). Trials "
-        "until the first knot: median (range) over the seeds that tied; knots in the repeats: "
-        "pooled over the seeds, 95 % Wilson interval. Each run's report, with a picture of "
-        "every counted knot: `OUT/<scenario>/report.md`. Where the same experiments ran as a "
-        "variant (`flyknot paper --variant NAME`: "
+        "`manifest.json`). A knot is a verdict `knot` of `flyknot.verdict` (an overhand knot in "
+        "the hanging rope). Trials until the first knot: median (range) over the seeds that "
+        "tied; knots in the repeats (with the lab's trial-to-trial variation, whose bracket and "
+        "what it does to them `docs/rope-model.md` gives): pooled over the seeds, 95 % Wilson "
+        "interval. Each run's report, with a picture of every counted knot: `OUT/<scenario>/"
+        "report.md`. Where the same experiments ran as a variant (`flyknot paper --variant NAME`: "
         + ", ".join(f"`{v.name}`, {v.label}" for v in VARIANTS.values())
         + "), their results stand beside.",
         "",
