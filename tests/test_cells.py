@@ -137,3 +137,22 @@ def test_the_sim_cells_early_end_options_reach_the_labs_settle():
         SimCellSpec(knot_set="no")
     with pytest.raises(ConfigError, match=r"^cell.unknot_held: must be true or false, got 1"):
         SimCellSpec(unknot_held=1)
+
+
+@pytest.mark.slow
+def test_a_run_plays_the_variation_set_on_its_cell(tmp_path, capsys):
+    """``flyknot run ... --set cell.variation.FIELD=V`` reaches the lab: its records say so."""
+    import json
+
+    from flyknot_app.cli import main
+
+    out = tmp_path / "run"
+    sets = ["--set", "cell.variation.rest_scale=0", "--set", "cell.variation.servo_gain_rel=0"]
+    assert main(["run", "quick", "--out", str(out), *sets]) == 0
+    capsys.readouterr()
+    record = json.loads((out / "runs/rope1/learning/trial_0000_a0.json").read_text())
+    variation = record["metadata"]["variation"]
+    assert variation["rest_scale"] == 0 and variation["servo_gain_rel"] == 0
+    assert variation["start_delay_max_s"] == 0.004  # the lab's own where nothing was set
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["overrides"]["cell"] == {"variation": {"rest_scale": 0, "servo_gain_rel": 0}}
