@@ -342,6 +342,42 @@ def _make_run(
     return from_mapping(RunSpec, raw, where=where, given=given)
 
 
+def _leaves(table: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A nested option table as ``{"a.b": value}``: its leaf values by dotted key."""
+    out: dict[str, Any] = {}
+    for k, v in table.items():
+        key = f"{prefix}{k}"
+        out |= _leaves(v, key + ".") if isinstance(v, Mapping) else {key: v}
+    return out
+
+
+def _refuse_collapsing(
+    scenario: str,
+    overrides: Mapping[str, Any],
+    entries: Sequence[Mapping[str, Any]],
+) -> None:
+    """Refuse a ``--set`` of a field every run of the scenario sets itself, not all alike.
+
+    Such a field is what the scenario compares (02-objectives' objective, 03-ropes' rope,
+    05-demos' demo): overriding it gives every run the same value under its own name.
+
+    Raises:
+        ConfigError: ``--set KEY`` names one (its values listed).
+    """
+    sets = [_leaves(e) for e in entries]
+    for key in _leaves(overrides):
+        if not sets or not all(key in s for s in sets):
+            continue
+        values = sorted({repr(s[key]) for s in sets})
+        if len(values) > 1:
+            raise ConfigError(
+                f"--set {key}",
+                f"{scenario!r} compares its runs by {key} ({', '.join(values)}); a --set "
+                "would give every run the same value under its own name: set it on a "
+                "scenario that does not vary it (learn-rope1)",
+            )
+
+
 def parse_scenario(
     doc: Mapping[str, Any],
     *,
@@ -395,6 +431,7 @@ def parse_scenario(
             raw_runs.append(entry)
     for entry in doc.get("run", []):
         raw_runs.append(dict(entry))
+    _refuse_collapsing(str(doc.get("name", name)), overrides, raw_runs)
     runs = []
     for i, entry in enumerate(raw_runs):
         merged = merge_options({"name": f"run{i}"}, defaults, under, entry, overrides)

@@ -205,3 +205,10 @@ def test_model_check_knots_are_read_safely(tmp_path):
     np.save(tmp_path / "s.npy", np.zeros((5, 3)))
     with pytest.raises(ConfigError, match=r"knots: must have shape \(10, 8\), got \(5, 3\)$"):
         load_knots(tmp_path / "s.npy")
+
+
+def test_a_set_of_what_a_scenario_compares(tmp_path):
+    """``flyknot run 05-demos --set demo=...`` would run one demonstration under four names."""
+    err = _refused(tmp_path / "out", "run", "05-demos", "--set", "demo=slow-paced")
+    assert len(err) == 1
+    assert err[0].startswith("flyknot: error: --set demo: '05-demos' compares its runs by demo (")

@@ -352,10 +352,39 @@ def test_paper_settings_lie_under_each_runs_own_fields():
     assert models == [(1e5, 5.0), (1e4, 5.0), (1e3, 5.0), (1e2, 5.0), (1e5, 0.05), (1e5, 0.005)]
     assert {r.learner.rope_model.damping for r in sens.runs} == {50.0}
     assert {r.learner.update.jacobian for r in sens.runs} == {"model"}
-    top = parse_overrides(["objective=equal"], paper_settings=True)
-    assert {r.learner.update.objective for r in load_scenario("02-objectives", top).runs} == {
-        "equal"
+    top = parse_overrides(["jacobian=model"], paper_settings=True)
+    assert {r.learner.update.jacobian for r in load_scenario("02-objectives", top).runs} == {
+        "model"
     }
+
+
+@pytest.mark.parametrize(
+    ("scenario", "pair", "values"),
+    [
+        ("02-objectives", "objective=equal", "'critical', 'equal', 'launch'"),
+        ("03-ropes", "rope=2", "1, 2, 3, 4, 5, 6, 7"),
+        (
+            "05-demos",
+            "demo=fast-paced",
+            "'fast-paced', 'inverse-paced', 'slow-paced', 'swipe-paced'",
+        ),
+        ("07-sensitivity", "rope_model.end_mass=1", "0.005, 0.05, 5.0"),
+    ],
+)
+def test_a_set_of_what_the_runs_compare_is_refused(scenario, pair, values):
+    """A --set of a field every run sets itself would run one setting under every run's own
+    name: refused, naming the field and the runs' values; a field some runs leave to the
+    defaults (02-objectives' jacobian, which only the equal run sets) is still set."""
+    key = pair.split("=")[0]
+    message = (
+        f"--set {key}: {scenario!r} compares its runs by {key} ({values}); a --set would give "
+        "every run the same value under its own name: set it on a scenario that does not vary "
+        "it (learn-rope1)"
+    )
+    with pytest.raises(ConfigError) as e:
+        load_scenario(scenario, parse_overrides([pair]))
+    assert str(e.value) == message
+    assert load_scenario(scenario, parse_overrides(None, defaults=[pair])).runs
 
 
 @pytest.mark.parametrize("name", sorted(p.stem for p in SCENARIOS_DIR.glob("*.toml")))
