@@ -175,7 +175,7 @@ def test_an_unknown_variant_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err == (
         "flyknot: error: --variant: unknown variant 'nope' (valid choices: paper-settings, "
-        "robot-demo, oracle, follow-through)\n"
+        "robot-demo, oracle, velocity, follow-through)\n"
     )
 
 
@@ -258,6 +258,10 @@ def test_every_variant_loads_on_every_scenario_it_runs(variant):
         if name in v.skips:
             continue
         scen = load_scenario(name, parse_overrides([], defaults=v.overrides))
+        if variant == "velocity":
+            for run in scen.runs:
+                w = run.learner.update.weights
+                assert (w.w_crit_vel, w.w_crit_pos) == (0.1, InverseModelWeights().w_crit_pos)
         if variant != "follow-through":
             continue
         paper = InverseModelWeights()
@@ -306,10 +310,13 @@ def test_all_runs_every_experiment_each_variants_parts_then_the_baselines(tmp_pa
         ("robot-demo", ["01-tracking", "04-success-rate"], {"repeats": 8, **mine, **robot}, False),
     ]
     assert runs[3][:2] == ("oracle", ["03-ropes", "05-demos"])
-    name, scenarios, overrides, _ = runs[4]
+    velocity = ["02-objectives", "03-ropes", "04-success-rate", "05-demos"]
+    assert runs[4][:2] == ("velocity", velocity)
+    assert runs[4][2]["defaults"] == {"weights": {"w_crit_vel": 0.1}}
+    name, scenarios, overrides, _ = runs[5]
     assert (name, scenarios[0]) == ("follow-through", "02-objectives")
     assert overrides["defaults"]["weights"]["w_pc"] == pytest.approx(10.0)
-    assert len(runs) == 5  # paper-settings is run by hand only
+    assert len(runs) == 6  # paper-settings is run by hand only
     assert searches == [("cma", [0, 1], 10, "fast-paced"), ("random", [0, 1], 10, "fast-paced")]
     text = (tmp_path / "results.md").read_text()
     assert "by `flyknot paper --all --seeds 0,1 --out" in text
@@ -318,7 +325,7 @@ def test_all_runs_every_experiment_each_variants_parts_then_the_baselines(tmp_pa
     runs.clear()
     searches.clear()
     assert main([*argv, "--resume"]) == 0
-    assert [r[3] for r in runs] == [True] * 5 and searches == []
+    assert [r[3] for r in runs] == [True] * 6 and searches == []
 
 
 def test_all_on_runs_without_resume_runs_nothing(tmp_path, capsys, monkeypatch):
