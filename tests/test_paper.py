@@ -9,12 +9,12 @@ import pytest
 
 from flyknot_app.cli import main
 from flyknot_app.reports.paper import (
-    VARIANTS,
     paper_table,
     repeats_text,
     transfer_cell,
     trials_text,
 )
+from flyknot_app.reports.paper_variants import VARIANTS
 from flyknot_app.reports.results import git_commit
 from flyknot_app.reports.run_summary import RunSummary, ScenarioSummary
 
@@ -249,7 +249,8 @@ def test_every_variant_loads_on_every_scenario_it_runs(variant):
     """Each variant's options lie over every paper scenario it does not skip; the
     follow-through variant's runs learn with the follow-through term at a tenth of each of its
     weights and the damped step's noise band and common time, and keep the rest."""
-    from flyknot_app.reports.paper import FOLLOW_WEIGHTS, PAPER_SCENARIOS
+    from flyknot_app.reports.paper import PAPER_SCENARIOS
+    from flyknot_app.reports.paper_variants import FOLLOW_WEIGHTS
     from flyknot_app.scenario import load_scenario, parse_overrides
     from learner.inverse_qp import InverseModelWeights
 
