@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from flyknot.errors import ConfigError
-from flyknot_app.diagnose.decided import class_separation, decided_time, separation
+from flyknot_app.diagnose.decided import (
+    class_separation,
+    decided_time,
+    separation,
+    velocity_weight,
+)
 
 
 def test_class_separation_by_hand():
@@ -53,8 +60,9 @@ def test_lost_samples_and_undecided():
         separation(t, states[:, :2], tied)
 
 
-def _synthetic(tied: bool, offset: float, rng: np.random.Generator):
-    """A record whose markers move 5 cm apart from 0.5 s on when it tied."""
+def _synthetic(tied: bool, offset: float, rng: np.random.Generator, contact: float | None = None):
+    """A record whose markers move 5 cm apart from 0.5 s on when it tied (first self-contact
+    at ``contact`` [s], or unknown)."""
     from flyknot.record import TrialRecord
     from flyknot.verdict import Verdict
 
@@ -76,6 +84,7 @@ def _synthetic(tied: bool, offset: float, rng: np.random.Generator):
         knot=knot,
         verdict=Verdict(klass=klass, knot=knot),
         metadata={"cell": "sim", "rope": 1},
+        first_contact_time=contact,
     )
 
 
@@ -96,3 +105,29 @@ def test_cli_decided(tmp_path, capsys):
     assert capsys.readouterr().err.strip() == (
         "flyknot: error: DIR: needs at least two trials that tied and two that did not, got 4 and 1"
     )
+
+
+def test_velocity_weight_is_position_weight_times_lead_squared():
+    assert velocity_weight(0.063, 25.0) == pytest.approx(0.099225)
+    assert velocity_weight(np.sqrt(0.00375 / 25.0), 25.0) == pytest.approx(0.00375)  # the paper's
+    with pytest.raises(ConfigError, match=r"^lead_s: "):
+        velocity_weight(0.0, 25.0)
+
+
+def test_cli_decided_names_the_lead_after_the_first_contact(tmp_path, capsys):
+    """Trials that touch themselves at 0.44-0.46 s (median 0.45) and part at 0.5 s: decided 50
+    ms after the first contact, the velocity weight 25 x 0.05^2; without contacts no such line."""
+    from flyknot_app.cli import main
+
+    rng = np.random.default_rng(0)
+    for i in range(8):
+        rec = _synthetic(i % 2 == 0, 0.0, rng, contact=0.44 + 0.01 * (i % 3))
+        rec.save(tmp_path / "trials" / f"trial_{i:03d}")
+    assert main(["diagnose", "decided", str(tmp_path / "trials"), "--end", "1.0"]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == (
+        "50 ms after the median first self-contact (0.450 s): velocities weighed as that much "
+        "position, --set weights.w_crit_vel=0.0625 (the paper's 0.00375 is 12 ms)"
+    )
+    assert main(["diagnose", "decided", str(tmp_path / "trials"), "--end", "1.0", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert (out["t_contact"], out["lead_s"], out["w_crit_vel"]) == (0.45, 0.05, 0.0625)

@@ -160,12 +160,13 @@ def format_floor(out: dict, path: Path) -> str:
 
 def _cmd_decided(args: argparse.Namespace) -> int:
     from flyknot_app.diagnose.decided import record_stems, separation, trial_states
+    from learner.inverse_qp import InverseModelWeights
 
     if args.step <= 0 or args.end <= 0:
         raise ConfigError("--step", "--step and --end must be > 0 [s]")
     stems = record_stems(args.dirs)
     t = np.arange(0.0, args.end + 1e-9, args.step)
-    states, tied = trial_states(stems, t, truth=args.truth)
+    states, tied, contacts = trial_states(stems, t, truth=args.truth)
     if tied.sum() < 2 or (~tied).sum() < 2:
         raise ConfigError(
             "DIR", f"needs at least two trials that tied and two that did not, got "
@@ -173,18 +174,38 @@ def _cmd_decided(args: argparse.Namespace) -> int:
         )  # fmt: skip
     sep = separation(t, states, tied, args.threshold)
     out = sep.to_json() | {"source": "truth" if args.truth else "markers"}
+    out |= lead_after_contact(sep.t_decided, contacts, InverseModelWeights().w_crit_pos)
     if args.out:
         Path(args.out).write_text(json.dumps(out, indent=2))
-    print(json.dumps(out) if args.json else format_decided(sep, out["source"]))
+    print(json.dumps(out) if args.json else format_decided(sep, out))
     return 0
 
 
-def format_decided(sep, source: str) -> str:
-    """The separation's result as a few lines of text."""
+def lead_after_contact(t_decided: float | None, contacts: np.ndarray, w_crit_pos: float) -> dict:
+    """How long after the trials' median first self-contact the knot is decided, and the
+    critical cost's velocity weight that weighs a velocity error as the position error it
+    makes in that time (:func:`flyknot_app.diagnose.decided.velocity_weight`); ``{}`` when the
+    records do not know their contacts or the knot is decided at or before them."""
+    from flyknot_app.diagnose.decided import velocity_weight
+
+    known = contacts[np.isfinite(contacts)]
+    if t_decided is None or known.size == 0 or t_decided <= float(np.median(known)):
+        return {}
+    t_contact = float(np.median(known))
+    lead = t_decided - t_contact
+    return {
+        "t_contact": round(t_contact, 4),
+        "lead_s": round(lead, 4),
+        "w_crit_vel": round(velocity_weight(lead, w_crit_pos), 5),
+    }
+
+
+def format_decided(sep, out: dict) -> str:
+    """The separation's result (and ``out``'s lead after the first contact) as text lines."""
     finite = np.isfinite(sep.ratio)
     peak = int(np.nanargmax(sep.ratio)) if finite.any() else None
     lines = [
-        f"{sep.n_knot} trials tied, {sep.n_other} did not ({source})",
+        f"{sep.n_knot} trials tied, {sep.n_other} did not ({out['source']})",
         "decided at "
         + (f"{sep.t_decided:.3f} s" if sep.t_decided is not None else "no time in the range")
         + f" (separation >= {sep.threshold:g} from then on)",
@@ -194,6 +215,12 @@ def format_decided(sep, source: str) -> str:
             f"largest separation {sep.ratio[peak]:.2f} at {sep.t[peak]:.3f} s "
             f"(class distance {100 * sep.distance[peak]:.1f} cm, spread "
             f"{100 * sep.spread[peak]:.1f} cm)"
+        )
+    if "lead_s" in out:
+        lines.append(
+            f"{1000 * out['lead_s']:.0f} ms after the median first self-contact "
+            f"({out['t_contact']:.3f} s): velocities weighed as that much position, "
+            f"--set weights.w_crit_vel={out['w_crit_vel']:.3g} (the paper's 0.00375 is 12 ms)"
         )
     return "\n".join(lines)
 

@@ -142,15 +142,25 @@ def _is_record(json_path: Path) -> bool:
     return json_path.is_file() and json_path.with_suffix(".npz").is_file()
 
 
+def velocity_weight(lead_s: float, w_crit_pos: float) -> float:
+    """w_crit_vel = w_crit_pos dt^2 [s^2/m^2]: a marker's velocity error weighed as the position
+    error it makes in ``lead_s`` = dt [s] (from the first self-contact to where the knot is
+    decided), for the critical cost's position weight ``w_crit_pos`` [1/m^2]."""
+    check_positive("lead_s", lead_s)
+    check_positive("w_crit_pos", w_crit_pos)
+    return float(w_crit_pos * lead_s**2)
+
+
 def trial_states(
     stems: Sequence[Path], t: np.ndarray, *, truth: bool = False
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The marker positions (n, k, 33) [m] of each record at times t (linear interpolation,
-    NaN outside its samples or where lost) and whether each tied (n,); faulted and unjudged
+    NaN outside its samples or where lost), whether each tied (n,) and its first self-contact
+    time (n,) [s] (NaN where the record does not know it: a real lab's); faulted and unjudged
     records are left out."""
     from flyknot.record import TrialRecord
 
-    states, tied = [], []
+    states, tied, contacts = [], [], []
     for stem in stems:
         rec = TrialRecord.load(stem, with_truth=truth)
         if rec.fault is not None or rec.verdict is None:
@@ -165,7 +175,8 @@ def trial_states(
         cols = [np.interp(t, tm, flat[:, c], left=np.nan, right=np.nan) for c in range(33)]
         states.append(np.stack(cols, axis=1))
         tied.append(rec.succeeded)
-    return np.array(states), np.array(tied, dtype=bool)
+        contacts.append(np.nan if rec.first_contact_time is None else rec.first_contact_time)
+    return np.array(states), np.array(tied, dtype=bool), np.array(contacts, dtype=float)
 
 
 __all__ = [
@@ -175,4 +186,5 @@ __all__ = [
     "record_stems",
     "separation",
     "trial_states",
+    "velocity_weight",
 ]
