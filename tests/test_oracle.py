@@ -196,6 +196,7 @@ def test_an_oracle_run_updates_with_the_lab_s_jacobian(egl, tmp_path):
 
 
 _ORACLE_UPDATE = """
+import json
 import sys
 from pathlib import Path
 import numpy as np
@@ -214,9 +215,9 @@ record = TrialRecord.load(learning / "trial_0000_a0")
 rope_model = RopeModelParams(stiffness=2.0, damping=0.0)
 _, target = prepare_target("fast-paced", rope_model.dt, (0.25, 0.0))
 M = oracle_provider("sim", SimCellSpec(rope=1, settle_s=0.5), target.t_c)(knots0, target.T)
-settings = UpdateSettings(
-    weights=InverseModelWeights(w_control=5.0), jacobian="oracle", follow_through=False
-)
+run = json.loads((learning.parent / "result.json").read_text())
+weights = InverseModelWeights(**run["weights"])  # the run's own, as the scenario set them
+settings = UpdateSettings(weights=weights, jacobian="oracle", follow_through=False)
 command = BezierCommand(knots0, target.T)
 res = ilc_update(record, command, target, RobotModel.from_mjcf(), rope_model, settings, jacobian=M)
 print(float(np.abs(knots1 - (knots0 - 0.5 * np.asarray(res.dkappa))).max()))
