@@ -159,7 +159,12 @@ def format_floor(out: dict, path: Path) -> str:
 
 
 def _cmd_decided(args: argparse.Namespace) -> int:
-    from flyknot_app.diagnose.decided import record_stems, separation, trial_states
+    from flyknot_app.diagnose.decided import (
+        lead_after_contact,
+        record_stems,
+        separation,
+        trial_states,
+    )
     from learner.inverse_qp import InverseModelWeights
 
     if args.step <= 0 or args.end <= 0:
@@ -179,25 +184,6 @@ def _cmd_decided(args: argparse.Namespace) -> int:
         Path(args.out).write_text(json.dumps(out, indent=2))
     print(json.dumps(out) if args.json else format_decided(sep, out))
     return 0
-
-
-def lead_after_contact(t_decided: float | None, contacts: np.ndarray, w_crit_pos: float) -> dict:
-    """How long after the trials' median first self-contact the knot is decided, and the
-    critical cost's velocity weight that weighs a velocity error as the position error it
-    makes in that time (:func:`flyknot_app.diagnose.decided.velocity_weight`); ``{}`` when the
-    records do not know their contacts or the knot is decided at or before them."""
-    from flyknot_app.diagnose.decided import velocity_weight
-
-    known = contacts[np.isfinite(contacts)]
-    if t_decided is None or known.size == 0 or t_decided <= float(np.median(known)):
-        return {}
-    t_contact = float(np.median(known))
-    lead = t_decided - t_contact
-    return {
-        "t_contact": round(t_contact, 4),
-        "lead_s": round(lead, 4),
-        "w_crit_vel": round(velocity_weight(lead, w_crit_pos), 5),
-    }
 
 
 def format_decided(sep, out: dict) -> str:

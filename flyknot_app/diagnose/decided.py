@@ -151,6 +151,24 @@ def velocity_weight(lead_s: float, w_crit_pos: float) -> float:
     return float(w_crit_pos * lead_s**2)
 
 
+def lead_after_contact(t_decided: float | None, contacts: np.ndarray, w_crit_pos: float) -> dict:
+    """How long after the trials' median first self-contact ``contacts`` (n,) [s] the knot is
+    decided, and the velocity weight for that lead (:func:`velocity_weight`); ``{}`` when the
+    records do not know their contacts or the knot is decided at or before them."""
+    known = contacts[np.isfinite(contacts)]
+    if t_decided is None or known.size == 0:
+        return {}
+    t_contact = float(np.median(known))
+    if t_decided <= t_contact:
+        return {}
+    lead = t_decided - t_contact
+    return {
+        "t_contact": round(t_contact, 4),
+        "lead_s": round(lead, 4),
+        "w_crit_vel": round(velocity_weight(lead, w_crit_pos), 5),
+    }
+
+
 def trial_states(
     stems: Sequence[Path], t: np.ndarray, *, truth: bool = False
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -183,6 +201,7 @@ __all__ = [
     "Separation",
     "class_separation",
     "decided_time",
+    "lead_after_contact",
     "record_stems",
     "separation",
     "trial_states",
