@@ -222,6 +222,7 @@ PAPER_SETTINGS = (
     "jacobian=model",
     "follow_through=true",
     "weights.w_control=0.5",
+    "weights.w_crit_vel=0.00375",
     "rope_model.stiffness=1e5",
     "rope_model.damping=50",
     "path_frac=0.05",
@@ -230,8 +231,8 @@ PAPER_SETTINGS = (
 """The paper's learner settings (``flyknot run --paper-settings``, laid over a scenario's
 defaults and under each run's own fields): the critical-point objective, ILC gain 1 with the
 fixed-gain step, the rope model's own Jacobian, the follow-through term,
-control weight 0.5, rope model bending stiffness 1e5 and damping 50, the
-demonstration window from 5 % of the hand path to t_c + 35 ms (Suresh & Atkeson; the
+control weight 0.5, the critical point's velocity weight 0.00375, rope model bending stiffness
+1e5 and damping 50, the demonstration window from 5 % of the hand path to t_c + 35 ms (Suresh & Atkeson; the
 scenario files' own values and why they differ: README "Learner settings")."""
 
 

@@ -175,7 +175,7 @@ def test_an_unknown_variant_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err == (
         "flyknot: error: --variant: unknown variant 'nope' (valid choices: paper-settings, "
-        "robot-demo, oracle, velocity, follow-through)\n"
+        "robot-demo, oracle, paper-velocity, follow-through)\n"
     )
 
 
@@ -259,10 +259,11 @@ def test_every_variant_loads_on_every_scenario_it_runs(variant):
         if name in v.skips:
             continue
         scen = load_scenario(name, parse_overrides([], defaults=v.overrides))
-        if variant == "velocity":
-            for run in scen.runs:
-                w = run.learner.update.weights
-                assert (w.w_crit_vel, w.w_crit_pos) == (0.1, InverseModelWeights().w_crit_pos)
+        paper_vel = variant in ("paper-velocity", "paper-settings")
+        for run in scen.runs:  # the scenarios' velocity weight, or the paper's where it says
+            w = run.learner.update.weights
+            want = InverseModelWeights().w_crit_vel if paper_vel else 0.1
+            assert (w.w_crit_vel, w.w_crit_pos) == (want, InverseModelWeights().w_crit_pos)
         if variant != "follow-through":
             continue
         paper = InverseModelWeights()
@@ -312,8 +313,8 @@ def test_all_runs_every_experiment_each_variants_parts_then_the_baselines(tmp_pa
     ]
     assert runs[3][:2] == ("oracle", ["03-ropes", "05-demos"])
     velocity = ["02-objectives", "03-ropes", "04-success-rate", "05-demos"]
-    assert runs[4][:2] == ("velocity", velocity)
-    assert runs[4][2]["defaults"] == {"weights": {"w_crit_vel": 0.1}}
+    assert runs[4][:2] == ("paper-velocity", velocity)
+    assert runs[4][2]["defaults"] == {"weights": {"w_crit_vel": 0.00375}}
     name, scenarios, overrides, _ = runs[5]
     assert (name, scenarios[0]) == ("follow-through", "02-objectives")
     assert overrides["defaults"]["weights"]["w_pc"] == pytest.approx(10.0)
