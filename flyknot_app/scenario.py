@@ -230,9 +230,9 @@ PAPER_SETTINGS = (
 )
 """The paper's learner settings (``flyknot run --paper-settings``, laid over a scenario's
 defaults and under each run's own fields): the critical-point objective, ILC gain 1 with the
-fixed-gain step, the rope model's own Jacobian, the follow-through term,
-control weight 0.5, the critical point's velocity weight 0.00375, rope model bending stiffness
-1e5 and damping 50, the demonstration window from 5 % of the hand path to t_c + 35 ms (Suresh & Atkeson; the
+fixed-gain step, the rope model's own Jacobian, the follow-through term, control weight 0.5,
+the critical point's velocity weight 0.00375, rope model bending stiffness 1e5 and damping 50,
+the demonstration window from 5 % of the hand path to t_c + 35 ms (Suresh & Atkeson; the
 scenario files' own values and why they differ: README "Learner settings")."""
 
 
