@@ -38,6 +38,7 @@ import numpy as np
 
 from flyknot.errors import ConfigError, check_positive
 from flyknot.verdict import JUDGE_NAME, KNOT
+from flyknot_app.scenario import SCENARIO_DEMO, scenario_weights
 
 BASELINES = ("random", "cma", "ppo")
 RL_HINT = (
@@ -307,12 +308,13 @@ def search_seeds(
     params: BaselineParams = BaselineParams(),
     *,
     rope: int | str = 1,
-    demo: str = "fast-paced",
+    demo: str = SCENARIO_DEMO,
     settle_s: float | None = None,
     progress: bool = False,
 ) -> tuple[list[BaselineResult], dict[str, Any]]:
     """:func:`run_baseline` ``name`` once per lab seed from ``demo``'s initial command on
-    ``rope``; the results and the settings :func:`write_results` records (the env's)."""
+    ``rope``, scored with the scenarios' critical weights (the env's default); the results
+    and the settings :func:`write_results` records (the env's)."""
     from tqdm import tqdm
 
     from flyknot.progress import bar_disable
@@ -321,7 +323,7 @@ def search_seeds(
     if name not in BASELINES:
         raise ConfigError("baseline", f"unknown baseline {name!r}", BASELINES)
     check_demo(demo)  # before the initial guess is computed
-    settings: dict[str, Any] = {"demo": demo}
+    settings: dict[str, Any] = {"demo": demo, "weights": asdict(scenario_weights())}
     if name == "ppo":
         from flyknot_app.gym.tick_env import FlyknotTickEnv
 

@@ -11,7 +11,7 @@ from flyknot.errors import ConfigError
 from flyknot_app.bench.sim import BENCHMARKS
 from flyknot_app.dispatch import dispatch
 from flyknot_app.reports.paper import add_paper_parser
-from flyknot_app.scenario import parse_rope_arg, parse_seeds
+from flyknot_app.scenario import SCENARIO_DEMO, SCENARIO_WINDOW, parse_rope_arg, parse_seeds
 from flyknot_app.trial_cli import add_trial_parsers
 
 
@@ -402,7 +402,11 @@ def _add_model_check_parser(sub: argparse._SubParsersAction) -> None:
         "model-check",
         help="compare the learner's rope-model Jacobian with the lab's measured response",
     )
-    m.add_argument("--demo", default="robot", help="demonstration name or file (default robot)")
+    m.add_argument(
+        "--demo",
+        default=SCENARIO_DEMO,
+        help=f"demonstration name or file (default {SCENARIO_DEMO})",
+    )
     m.add_argument(
         "--rope", type=parse_rope_arg, default=1, help="rope id 1..7 or a rope's name (default 1)"
     )
@@ -411,10 +415,16 @@ def _add_model_check_parser(sub: argparse._SubParsersAction) -> None:
     )
     m.add_argument("--directions", type=int, default=8, help="random directions (default 8)")
     m.add_argument(
-        "--follow-through", type=float, default=0.25, help="window t_f - t_c [s] (default 0.25)"
+        "--follow-through",
+        type=float,
+        default=SCENARIO_WINDOW[0],
+        help=f"window t_f - t_c [s] (default {SCENARIO_WINDOW[0]:g})",
     )
     m.add_argument(
-        "--path-frac", type=float, default=0.0, help="window start path fraction (default 0)"
+        "--path-frac",
+        type=float,
+        default=SCENARIO_WINDOW[1],
+        help=f"window start path fraction (default {SCENARIO_WINDOW[1]:g})",
     )
     m.add_argument("--step", type=float, default=0.01, help="direction size [rad] (default 0.01)")
     m.add_argument("--seed", type=int, default=1, help="seed of the directions (default 1)")
@@ -468,7 +478,9 @@ def _add_baseline_parser(sub: argparse._SubParsersAction) -> None:
         "--rope", type=parse_rope_arg, default=1, help="rope id 1..7 or a rope's name (default 1)"
     )
     bl.add_argument("--budget", type=int, default=30, help="trials per seed (default 30)")
-    bl.add_argument("--demo", default="fast-paced", help="the demonstration ILC starts from")
+    bl.add_argument(
+        "--demo", default=SCENARIO_DEMO, help=f"the demonstration ILC starts from ({SCENARIO_DEMO})"
+    )
     bl.add_argument("--seeds", default="0", help="lab seeds: A-B or A,B,... (default 0)")
     bl.add_argument(
         "--repeats", type=int, default=0, help="plays of the best command after (success rate)"

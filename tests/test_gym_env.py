@@ -125,3 +125,26 @@ def test_the_env_starts_from_ilc_s_initial_command_as_it_is():
     env.reset(seed=0)
     np.testing.assert_array_equal(env.knots, env.initial_knots())
     assert env.knots[-1, 0] > 1.0
+
+
+def test_the_env_starts_and_scores_as_the_scenarios_do():
+    """By default the env starts from the scenarios' demonstration and window and scores a
+    trial with their critical weights; ``weights`` scores the same trial with others."""
+    from flyknot_app.scenario import SCENARIO_DEMO, SCENARIO_WINDOW, scenario_weights
+    from learner.ilc import critical_cost
+    from learner.inverse_qp import InverseModelWeights
+
+    ours = FlyknotEnv(rope=1, max_trials=2, settle_s=0.2)
+    paper = FlyknotEnv(rope=1, max_trials=2, settle_s=0.2, weights=InverseModelWeights())
+    assert (ours._demo, ours._window) == (SCENARIO_DEMO, SCENARIO_WINDOW)
+    (obs, info), (obs_p, info_p) = ours.reset(seed=0), paper.reset(seed=0)
+    err = obs[:66].astype(float)
+    np.testing.assert_array_equal(err, obs_p[:66])  # the same trial
+    assert info["cost"] == pytest.approx(critical_cost(err, scenario_weights()))
+    assert info_p["cost"] == pytest.approx(critical_cost(err, InverseModelWeights()))
+    assert info["cost"] > info_p["cost"]  # its velocities weigh 0.1, the paper's 0.00375
+    from flyknot.errors import ConfigError
+
+    with pytest.raises(ConfigError) as e:
+        FlyknotEnv(rope=1, weights={"w_crit_vel": 0.1})
+    assert str(e.value) == "weights: must be an InverseModelWeights, got {'w_crit_vel': 0.1}"

@@ -174,3 +174,14 @@ def test_options_are_checked():
         make(base_offset=np.zeros(2))
     spec = gym.spec("flyknot/FlyingKnotTick-v0")
     assert spec.entry_point == "flyknot_app.gym.tick_env:FlyknotTickEnv"
+
+
+def test_the_tick_env_scores_with_the_scenarios_weights(env):
+    from flyknot.errors import ConfigError
+    from flyknot_app.scenario import scenario_weights
+    from learner.inverse_qp import InverseModelWeights
+
+    assert env._weights == scenario_weights()
+    assert make(weights=InverseModelWeights())._weights == InverseModelWeights()
+    with pytest.raises(ConfigError, match=r"^weights: must be an InverseModelWeights, got 0.1$"):
+        make(weights=0.1)

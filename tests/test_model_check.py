@@ -97,8 +97,9 @@ def test_cli_model_check_end_to_end(tmp_path, capsys):
     paper, middle, scen, light = res["models"]
     assert (paper["stiffness"], middle["damping"]) == (1e5, 0.5)
     assert (scen["end_mass"], light["end_mass"]) == (5.0, 0.5)
-    # The end mass reaches the model: a tenth of it predicts other responses.
-    assert abs(light["mean_cos"] - scen["mean_cos"]) > 1e-3
+    # The end mass reaches the model: a tenth of it predicts other responses (their size,
+    # from the scenarios' demonstration: 0.86 against 0.95 of the lab's).
+    assert abs(light["ratio"] - scen["ratio"]) > 0.03
     assert scen["mean_cos"] > middle["mean_cos"] + 0.2 > paper["mean_cos"] + 0.2
     assert scen["mean_cos"] > 0.9 and scen["min_cos"] > 0.8
     assert best_model({"models": [paper, middle, scen]}) is scen

@@ -222,3 +222,43 @@ command = BezierCommand(knots0, target.T)
 res = ilc_update(record, command, target, RobotModel.from_mjcf(), rope_model, settings, jacobian=M)
 print(float(np.abs(knots1 - (knots0 - 0.5 * np.asarray(res.dkappa))).max()))
 """
+
+
+def test_the_floor_scores_with_the_objective_s_weights(tmp_path, capsys):
+    """`flyknot diagnose floor --demo` costs the start with the scenarios' weights, or with
+    ``--w-crit-vel``: the same play (the lab without variation), its velocity part scaled by
+    the weights' ratio; a budget under one Jacobian (91 plays) plays the start alone."""
+    import json
+
+    from flyknot_app.cli import main
+
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    base = ["diagnose", "floor", "--demo", "fast-paced", "--budget", "1", "--json"]
+    assert main([*base, "--out", str(a)]) == 0
+    assert main([*base, "--out", str(b), "--w-crit-vel", "0.00375"]) == 0
+    A, B = json.loads(a.read_text()), json.loads(b.read_text())
+    assert A["plays"] == B["plays"] == 1
+    assert (A["w_crit_pos"], A["w_crit_vel"], B["w_crit_vel"]) == (25.0, 0.1, 0.00375)
+    assert A["position_part"] == B["position_part"]
+    assert A["velocity_part"] == pytest.approx(B["velocity_part"] * 0.1 / 0.00375)
+    assert A["cost"] == pytest.approx(A["position_part"] + A["velocity_part"])
+    capsys.readouterr()
+    assert main(["diagnose", "floor", str(tmp_path), "--w-crit-vel", "0.1"]) == 2
+    assert capsys.readouterr().err == (
+        "flyknot: error: --w-crit-vel: a run's floor uses the run's own weights; give --demo\n"
+    )
+
+
+def test_a_run_s_floor_takes_the_run_s_weights(tmp_path):
+    import json
+
+    from flyknot_app.diagnose.cli import _run_inputs
+
+    (tmp_path / "learning").mkdir()
+    np.save(tmp_path / "learning" / "knots_0000.npy", np.zeros((10, 8)))
+    weights = {"w_crit_pos": 20.0, "w_crit_vel": 0.3}
+    opts = {"demo": "fast-paced", "follow_through_s": 0.25, "path_frac": 0.0, "rope": 1,
+            "seed": 0, "weights": weights}  # fmt: skip
+    (tmp_path / "result.json").write_text(json.dumps(opts))
+    w = _run_inputs(tmp_path)["weights"]
+    assert (w.w_crit_pos, w.w_crit_vel, w.w_control) == (20.0, 0.3, 0.5)

@@ -13,10 +13,13 @@ from flyknot.errors import ConfigError
 from flyknot_app.reports.run_summary import RunSummary, ScenarioSummary
 from flyknot_app.scenario import (
     RUN_KEYS,
+    SCENARIO_DEMO,
+    SCENARIO_WINDOW,
     limit_runs,
     load_scenario,
     parse_overrides,
     parse_scenario,
+    scenario_weights,
 )
 
 FILES = sorted(SCENARIOS_DIR.glob("*.toml"))
@@ -44,6 +47,11 @@ def test_every_scenario_file_validates(path: Path):
     assert scen.runs
     waves = scen.order()
     assert sum(len(w) for w in waves) == len(scen.runs)
+    # what the gym envs, the baselines and the floor take as "the scenarios'" is each file's
+    for run in scen.runs:
+        assert run.learner.update.weights == scenario_weights(), run.name
+        assert run.window == SCENARIO_WINDOW, run.name
+        assert run.demo == SCENARIO_DEMO or scen.kind == "demos", run.name
 
 
 def test_transfer_covers_all_49_pairs_after_the_learning_runs():

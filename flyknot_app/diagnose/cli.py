@@ -6,10 +6,12 @@
     flyknot diagnose variation RUN_DIR [--trial K] [--plays N]    # a run's command
 
 ``floor``: the reachable floor (:mod:`flyknot_app.diagnose.floor`) from the run's initial command
-(or the demonstration's initial guess), for the run's rope, lab and demonstration window; written
-to ``RUN_DIR/floor.json`` (or ``--out``). ``--repeats K`` plays the floor's command K times
-with the lab's trial-to-trial variation and counts its knots. Only a simulated cell can be
-diagnosed this way; a run on a real cell is refused in one line.
+(or the demonstration's initial guess), for the run's rope, lab, demonstration window and
+critical weights (a demonstration alone: the scenarios' window and weights, ``--w-crit-vel``
+to change the velocity weight); written to ``RUN_DIR/floor.json`` (or ``--out``).
+``--repeats K`` plays the floor's command K times with the lab's trial-to-trial variation and
+counts its knots. Only a simulated cell can be diagnosed this way; a run on a real cell is
+refused in one line.
 
 ``decided``: when the rope states of the trials that tied and of those that did not part
 (:mod:`flyknot_app.diagnose.decided`), from any records: a real lab's too (markers only).
@@ -23,16 +25,23 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from flyknot.constants import FOLLOW_THROUGH_S, PATH_FRAC
 from flyknot.errors import ConfigError
+from flyknot.options import from_mapping
 from flyknot.progress import bar_disable
 from flyknot_app.diagnose.floor import FloorParams
-from flyknot_app.scenario import parse_rope_arg
+from flyknot_app.scenario import (
+    SCENARIO_CRIT_VEL_WEIGHT,
+    SCENARIO_WINDOW,
+    parse_rope_arg,
+    scenario_weights,
+)
+from learner.inverse_qp import InverseModelWeights
 
 
 def _run_inputs(run_dir: Path) -> dict[str, Any]:
@@ -59,6 +68,7 @@ def _run_inputs(run_dir: Path) -> dict[str, Any]:
         },
         "knots0": np.load(knots0),
         "out": run_dir / "floor.json",
+        "weights": from_mapping(InverseModelWeights, opts["weights"]),
     }
 
 
@@ -73,6 +83,7 @@ def _demo_inputs(args: argparse.Namespace) -> dict[str, Any]:
         "cell_values": {"rope": args.rope, "seed": args.seed},
         "knots0": None,
         "out": Path(args.out),
+        "weights": replace(scenario_weights(), w_crit_vel=args.w_crit_vel),
     }
 
 
@@ -88,6 +99,10 @@ def _cmd_floor(args: argparse.Namespace) -> int:
 
     if (args.run is None) == (args.demo is None):
         raise ConfigError("RUN_DIR", "give a run directory or --demo, not both or neither")
+    if args.run and args.w_crit_vel is not None:
+        raise ConfigError("--w-crit-vel", "a run's floor uses the run's own weights; give --demo")
+    if args.w_crit_vel is None:
+        args.w_crit_vel = SCENARIO_CRIT_VEL_WEIGHT
     inputs = _run_inputs(Path(args.run)) if args.run else _demo_inputs(args)
     spec = cell_spec(inputs["cell"], inputs["cell_values"])
     check_oracle(inputs["cell"], dry_run=bool(getattr(spec, "dry_run", False)))
@@ -109,7 +124,14 @@ def _cmd_floor(args: argparse.Namespace) -> int:
 
     try:
         res = reachable_floor(
-            lab_params, target, knots0, robot, RopeModelParams(), params, on_iteration=on_iteration
+            lab_params,
+            target,
+            knots0,
+            robot,
+            RopeModelParams(),
+            params,
+            weights=inputs["weights"],
+            on_iteration=on_iteration,
         )
     finally:
         bar.close()
@@ -296,8 +318,25 @@ def add_diagnose_parser(sub: argparse._SubParsersAction) -> None:
         "--rope", type=parse_rope_arg, default=1, help="rope id 1..7 or a rope's name (--demo)"
     )
     f.add_argument("--seed", type=int, default=0, help="the lab's seed, with --demo")
-    f.add_argument("--follow-through", type=float, default=FOLLOW_THROUGH_S)
-    f.add_argument("--path-frac", type=float, default=PATH_FRAC)
+    f.add_argument(
+        "--follow-through",
+        type=float,
+        default=SCENARIO_WINDOW[0],
+        help=f"window t_f - t_c [s], with --demo (default {SCENARIO_WINDOW[0]:g})",
+    )
+    f.add_argument(
+        "--path-frac",
+        type=float,
+        default=SCENARIO_WINDOW[1],
+        help=f"window start path fraction, with --demo (default {SCENARIO_WINDOW[1]:g})",
+    )
+    f.add_argument(
+        "--w-crit-vel",
+        type=float,
+        default=None,
+        help="the cost's marker velocity weight [s^2/m^2], with --demo (default "
+        f"{SCENARIO_CRIT_VEL_WEIGHT:g}, the scenarios'; the paper's 0.00375)",
+    )
     f.add_argument("--budget", type=int, default=FloorParams().budget, help="plays at most")
     f.add_argument("--repeats", type=int, default=0, help="varied plays of the floor's command")
     f.add_argument("--out", help="the result's JSON file (default RUN_DIR/floor.json)")

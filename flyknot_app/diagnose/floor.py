@@ -12,7 +12,8 @@ without variation, with the lab's own Jacobian (:class:`flyknot_app.diagnose.ora
     kappa_{i+1} = kappa_i - dk   if its measured cost is lower, lambda <- lambda / shrink
                   kappa_i        else, lambda <- lambda * grow (at most ``tries`` times)
 
-with e_i = x(kappa_i; t_c) - x_demo(t_c) and Q the paper's critical weights. The budget
+with e_i = x(kappa_i; t_c) - x_demo(t_c) and Q the critical weights of the objective
+(a run's own; for a demonstration alone the scenarios', w_crit_vel 0.1). The budget
 counts the lab's plays (a Jacobian is 91 of them, each cut shortly after t_c). The result
 splits the floor into its position and velocity parts and per-marker errors, so a miss says
 which part of the rope state the arm cannot reach.
@@ -20,7 +21,7 @@ which part of the rope state the arm cannot reach.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -79,6 +80,8 @@ class FloorResult:
         marker_velocity_error: |e_v| per marker (11,) [m/s].
         demo_marker_speed: |v_demo| per marker at t_c (11,) [m/s], for scale.
         stopped_because: ``"budget"`` or ``"no lower cost"`` (every try of a Jacobian rose).
+        w_crit_pos: The cost's marker position weight [1/m^2].
+        w_crit_vel: The cost's marker velocity weight [s^2/m^2].
     """
 
     costs: tuple[float, ...]
@@ -91,6 +94,8 @@ class FloorResult:
     marker_velocity_error: tuple[float, ...]
     demo_marker_speed: tuple[float, ...]
     stopped_because: str
+    w_crit_pos: float
+    w_crit_vel: float
 
     def to_json(self) -> dict:
         """Plain data (the knots as nested lists)."""
@@ -120,26 +125,25 @@ def _error(record, knots: np.ndarray, target) -> np.ndarray | None:
 class _Search:
     """The search's state: the accepted command, its record and error, and the damping."""
 
-    def __init__(self, oracle: LabJacobian, target, robot, rope_model, limits, params):
+    def __init__(self, oracle: LabJacobian, target, robot, rope_model, limits, params, weights):
         self.oracle, self.target, self.robot = oracle, target, robot
         self.rope_model, self.limits, self.params = rope_model, limits, params
+        self.weights = weights
         self.lam = params.damping
 
     def cost(self, err: np.ndarray | None) -> float:
         from learner.ilc_step import critical_cost
-        from learner.inverse_qp import InverseModelWeights
 
-        return float("inf") if err is None else critical_cost(err, InverseModelWeights())
+        return float("inf") if err is None else critical_cost(err, self.weights)
 
     def step(self, knots: np.ndarray, record, M: np.ndarray) -> np.ndarray | None:
         """kappa - dk of the damped QP at lambda (None if the QP did not solve)."""
         from learner.bezier import BezierCommand
         from learner.ilc_step import safe_step
-        from learner.inverse_qp import InverseModelWeights
         from learner.update import UpdateSettings, ilc_update
 
         settings = UpdateSettings(
-            weights=InverseModelWeights(w_control=self.lam),
+            weights=replace(self.weights, w_control=self.lam),
             limits=self.limits,
             follow_through=False,
         )
@@ -161,6 +165,7 @@ def reachable_floor(
     params: FloorParams = FloorParams(),
     *,
     limits: JointLimits = JointLimits(),  # noqa: B008 - frozen value
+    weights=None,
     on_iteration=None,
 ) -> FloorResult:
     """The Levenberg-Marquardt search of the module docstring from ``knots0``.
@@ -174,13 +179,19 @@ def reachable_floor(
         rope_model: The learner's rope model parameters (only its step is used).
         params: The search's settings.
         limits: Joint limits every command keeps.
+        weights: The objective's QP weights (:class:`learner.inverse_qp.InverseModelWeights`;
+            its critical part is the cost, its control weight is replaced by the damping).
+            None: the scenarios' (:func:`flyknot_app.scenario.scenario_weights`).
         on_iteration: Called with (plays, cost) after each Jacobian.
 
     Returns:
         The :class:`FloorResult`.
     """
+    from flyknot_app.scenario import scenario_weights
+
+    weights = scenario_weights() if weights is None else weights
     oracle = LabJacobian(lab_params, target.t_c, params.oracle)
-    search = _Search(oracle, target, robot, rope_model, limits, params)
+    search = _Search(oracle, target, robot, rope_model, limits, params, weights)
     knots = np.asarray(knots0, dtype=float)
     record = oracle.play(knots, target.T)
     err = _error(record, knots, target)
@@ -207,14 +218,12 @@ def reachable_floor(
         costs.append(search.cost(err))
         if on_iteration is not None:
             on_iteration(oracle.plays, costs[-1])
-    return _result(costs, oracle.plays, knots, err, target, stopped)
+    return _result(costs, oracle.plays, knots, err, target, stopped, weights)
 
 
-def _result(costs, plays, knots, err, target, stopped) -> FloorResult:
-    """The :class:`FloorResult` of the accepted command ``knots`` with error ``err``."""
-    from learner.inverse_qp import InverseModelWeights
-
-    w = InverseModelWeights()
+def _result(costs, plays, knots, err, target, stopped, w) -> FloorResult:
+    """The :class:`FloorResult` of the accepted command ``knots`` with error ``err``, its cost
+    split with the weights ``w``."""
     pos, vel = cost_parts(err, w.w_crit_pos, w.w_crit_vel)
     e = np.asarray(err).reshape(2, N_MARKERS, 3)
     v_demo = np.asarray(target.x_c).reshape(2, N_MARKERS, 3)[1]
@@ -229,6 +238,8 @@ def _result(costs, plays, knots, err, target, stopped) -> FloorResult:
         marker_velocity_error=tuple(np.linalg.norm(e[1], axis=1).round(3).tolist()),
         demo_marker_speed=tuple(np.linalg.norm(v_demo, axis=1).round(3).tolist()),
         stopped_because=stopped,
+        w_crit_pos=float(w.w_crit_pos),
+        w_crit_vel=float(w.w_crit_vel),
     )
 
 

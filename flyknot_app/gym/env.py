@@ -29,9 +29,11 @@ state error at the critical time, from the motion-capture markers) plus the knot
 * The episode terminates at the first knot and is truncated after ``max_trials`` trials.
 
 The initial command is the paper's initial guess for the demonstration (cached per env).
-Defaults as the scenario files: the robot demonstration with the window (follow-through
-t_f - t_c = 0.25 s, t_0 at the start of the hand motion); ``window=(0.035, 0.05)`` is the
-paper's.
+Defaults as the scenario files (:mod:`flyknot_app.scenario`): the person's demonstration
+``fast-paced`` with the window (follow-through t_f - t_c = 0.25 s, t_0 at the start of the
+hand motion; ``window=(0.035, 0.05)`` is the paper's) and the scenarios' critical weights
+(w_crit_vel 0.1; ``weights=InverseModelWeights()`` scores with the paper's), so that a learner
+here starts from ILC's initial command and is scored on ILC's objective.
 """
 
 from __future__ import annotations
@@ -44,6 +46,8 @@ import numpy as np
 from flyknot.constants import N_JOINTS, N_KNOTS, N_ROWS
 from flyknot.errors import ConfigError, check_positive
 from flyknot.limits import JointLimits
+from flyknot_app.scenario import SCENARIO_DEMO, SCENARIO_WINDOW, scenario_weights
+from learner.inverse_qp import InverseModelWeights
 
 POS_BOUND = 5.0
 """Bound of the marker position errors in the observation [m]."""
@@ -147,9 +151,10 @@ class FlyknotEnv(gym.Env):
     def __init__(
         self,
         rope: int | str = 1,
-        demo: str = "robot",
+        demo: str = SCENARIO_DEMO,
         *,
-        window: tuple[float, float] = (0.25, 0.0),
+        window: tuple[float, float] = SCENARIO_WINDOW,
+        weights: InverseModelWeights | None = None,
         max_trials: int = 10,
         action_scale: float = 0.05,
         knot_bonus: float = 100.0,
@@ -161,11 +166,11 @@ class FlyknotEnv(gym.Env):
     ):
         """``rope``: a paper rope id 1..7 or a rope's name (the paper's, or one of ``ropes``,
         a user's ropes file; see ``assets/ropes_example.toml``); ``record_dir``: where each
-        trial's record is saved (a temporary directory if None)."""
+        trial's record is saved (a temporary directory if None); ``weights``: the QP weights
+        whose critical part scores a trial (None: the scenarios', :func:`scenario_weights`)."""
         super().__init__()
         from flyknot_app.runner import prepare_target
         from flyknot_sim.lab import LabParams, SimLab
-        from learner.inverse_qp import InverseModelWeights
         from learner.kinematics import RobotModel
         from learner.rope_model import RopeModelParams
 
@@ -178,7 +183,9 @@ class FlyknotEnv(gym.Env):
         self.fault_penalty = float(fault_penalty)
         self._lab = SimLab(LabParams(rope=rope, seed=seed, settle_s=settle_s, ropes=ropes))
         self._robot = RobotModel.from_mjcf()
-        self._weights = InverseModelWeights()
+        self._weights = scenario_weights() if weights is None else weights
+        if not isinstance(self._weights, InverseModelWeights):
+            raise ConfigError("weights", f"must be an InverseModelWeights, got {weights!r}")
         self._window = (float(window[0]), float(window[1]))
         _, self.target = prepare_target(demo, RopeModelParams().dt, self._window)
         self._demo = demo

@@ -66,6 +66,8 @@ from flyknot.errors import CommandError, ConfigError, check_nonnegative, check_p
 from flyknot.limits import JointLimits
 from flyknot.record import JointCommand
 from flyknot_app.gym.env import POS_BOUND, checked_action, paper_initial_knots, score_trial
+from flyknot_app.scenario import SCENARIO_DEMO, SCENARIO_WINDOW, scenario_weights
+from learner.inverse_qp import InverseModelWeights
 
 JOINT_VEL_BOUND = 10.0
 """Bound of the joint velocities in the observation [rad/s]."""
@@ -84,9 +86,10 @@ class FlyknotTickEnv(gym.Env):
     def __init__(
         self,
         rope: int | str = 1,
-        demo: str = "robot",
+        demo: str = SCENARIO_DEMO,
         *,
-        window: tuple[float, float] = (0.25, 0.0),
+        window: tuple[float, float] = SCENARIO_WINDOW,
+        weights: InverseModelWeights | None = None,
         command: JointCommand | None = None,
         base_offset: np.ndarray | None = None,
         action_scale: float = ACTION_SCALE,
@@ -102,12 +105,13 @@ class FlyknotTickEnv(gym.Env):
         ``command``: the initial command (its samples at 250 Hz) instead of the paper's
         initial guess; ``base_offset``: the robot base's position in the demonstration frame
         (3,) [m] for the critical-point cost (default: the initial guess's);
-        ``record_dir``: where each episode's record is saved (None: not saved)."""
+        ``record_dir``: where each episode's record is saved (None: not saved); ``demo``,
+        ``window`` and ``weights`` as for :class:`~flyknot_app.gym.env.FlyknotEnv` (its
+        defaults are the scenario files')."""
         super().__init__()
         from flyknot_app.runner import prepare_target
         from flyknot_sim.lab import LabParams, SimLab
         from learner.bezier import BezierCommand
-        from learner.inverse_qp import InverseModelWeights
         from learner.rope_model import RopeModelParams
 
         check_positive("action_scale", action_scale)
@@ -118,7 +122,9 @@ class FlyknotTickEnv(gym.Env):
         self.knot_bonus = float(knot_bonus)
         self.fault_penalty = float(fault_penalty)
         self._lab = SimLab(LabParams(rope=rope, seed=seed, settle_s=settle_s, ropes=ropes))
-        self._weights = InverseModelWeights()
+        self._weights = scenario_weights() if weights is None else weights
+        if not isinstance(self._weights, InverseModelWeights):
+            raise ConfigError("weights", f"must be an InverseModelWeights, got {weights!r}")
         window = (float(window[0]), float(window[1]))
         _, self.target = prepare_target(demo, RopeModelParams().dt, window)
         knots0 = None
