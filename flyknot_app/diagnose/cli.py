@@ -83,7 +83,10 @@ def _demo_inputs(args: argparse.Namespace) -> dict[str, Any]:
         "cell_values": {"rope": args.rope, "seed": args.seed},
         "knots0": None,
         "out": Path(args.out),
-        "weights": replace(scenario_weights(), w_crit_vel=args.w_crit_vel),
+        "weights": replace(
+            scenario_weights(),
+            w_crit_vel=SCENARIO_CRIT_VEL_WEIGHT if args.w_crit_vel is None else args.w_crit_vel,
+        ),
     }
 
 
@@ -101,8 +104,6 @@ def _cmd_floor(args: argparse.Namespace) -> int:
         raise ConfigError("RUN_DIR", "give a run directory or --demo, not both or neither")
     if args.run and args.w_crit_vel is not None:
         raise ConfigError("--w-crit-vel", "a run's floor uses the run's own weights; give --demo")
-    if args.w_crit_vel is None:
-        args.w_crit_vel = SCENARIO_CRIT_VEL_WEIGHT
     inputs = _run_inputs(Path(args.run)) if args.run else _demo_inputs(args)
     spec = cell_spec(inputs["cell"], inputs["cell_values"])
     check_oracle(inputs["cell"], dry_run=bool(getattr(spec, "dry_run", False)))
