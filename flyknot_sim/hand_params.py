@@ -15,12 +15,13 @@ from typing import Protocol
 
 import numpy as np
 
-from flyknot.errors import ConfigError, check_nonnegative, check_positive, check_share
+from flyknot.errors import ConfigError, check_nonnegative, check_positive
 from flyknot.judge import with_rope_diameter
 from flyknot.rest import SettleParams
 from flyknot.verdict import JudgeParams
 from flyknot_sim.aero import AeroParams
 from flyknot_sim.bend_friction import BendFrictionParams
+from flyknot_sim.lab_params import VariationParams
 from flyknot_sim.rope_custom import resolve_rope
 from flyknot_sim.rope_table import RopeParams, SimSettings
 
@@ -31,46 +32,30 @@ __all__ = ["HandParams", "HandVariation", "JointTrajectory", "hand_rotation"]
 # parameters
 # ----------------------------------------------------------------------------------------
 @dataclass(frozen=True)
-class HandVariation:
-    """Seeded trial-to-trial variation of a hand trial (the robot lab's, plus tempo; each
-    shared number's source and bracket: :class:`flyknot_sim.lab_params.VariationParams`).
+class HandVariation(VariationParams):
+    """Seeded trial-to-trial variation of a hand trial: the robot lab's
+    (:class:`flyknot_sim.lab_params.VariationParams`: each field's source and bracket; the
+    command's start delay is the motion's here) plus the person's tempo.
 
     Attributes:
-        sway_deg: Std of an extra initial tilt of the rope from vertical [deg] (robustness
-            studies; 0: the settled start alone).
-        servo_gain_rel: Relative std of each servo's stiffness and damping gain [-].
-        start_delay_max_s: The motion starts after a uniform delay in [0, this) [s].
         tempo_rel: Relative std of the motion's duration (a person never repeats a tempo
             exactly) [-]. 0.005 is 4 ms on a 0.8 s throw; bracket 0.0025-0.0125 (2-10 ms):
             recreational ball players time a throw's release to about 10 ms (Hore et al.,
             J. Neurophysiol. 75 (1996) 1013, as New Scientist, 6 April 1996, reports it).
-        rest_start: Draw the rope's start uniformly within the rest criterion (as the robot
-            lab does; :func:`flyknot.rest.settled_start`).
-        rest_scale: The settled start's disc as a share of the rest criterion's, in [0, 1].
     """
 
-    sway_deg: float = 0.0
-    servo_gain_rel: float = 0.03
-    start_delay_max_s: float = 0.004
     tempo_rel: float = 0.005
-    rest_start: bool = True
-    rest_scale: float = 1.0
 
     def __post_init__(self) -> None:
-        for f in ("sway_deg", "servo_gain_rel", "start_delay_max_s", "tempo_rel"):
-            check_nonnegative(f"HandVariation.{f}", getattr(self, f))
+        super().__post_init__()
+        check_nonnegative("tempo_rel", self.tempo_rel)
         if self.tempo_rel >= 0.2:
-            raise ConfigError("HandVariation.tempo_rel", f"must be < 0.2, got {self.tempo_rel!r}")
-        if not isinstance(self.rest_start, bool):
-            raise ConfigError(
-                "HandVariation.rest_start", f"must be true or false, got {self.rest_start!r}"
-            )
-        check_share("HandVariation.rest_scale", self.rest_scale)
+            raise ConfigError("tempo_rel", f"must be < 0.2, got {self.tempo_rel!r}")
 
     @classmethod
     def none(cls) -> HandVariation:
         """No variation: every trial of a motion is the same."""
-        return cls(0.0, 0.0, 0.0, 0.0, False)
+        return cls(0.0, 0.0, 0.0, False, tempo_rel=0.0)
 
 
 @dataclass(frozen=True)

@@ -427,7 +427,7 @@ def test_judged_frames_and_variation(lab):
         ConfigError, match=r"^rope: unknown rope id 9 \(valid choices: 1, 2, 3, 4, 5, 6, 7\)$"
     ):
         HandParams(rope=9)
-    with pytest.raises(ConfigError, match=r"^HandVariation\.tempo_rel: must be < 0\.2, got 0\.3$"):
+    with pytest.raises(ConfigError, match=r"^tempo_rel: must be < 0\.2, got 0\.3$"):
         HandVariation(tempo_rel=0.3)
 
 
@@ -563,7 +563,7 @@ def test_cli_bad_repeats(capsys):
         (
             ["--variation", "gain=1"],
             "--variation.gain: not a field of the variation (valid choices: sway_deg, "
-            "servo_gain_rel, start_delay_max_s, tempo_rel, rest_start, rest_scale)",
+            "servo_gain_rel, start_delay_max_s, rest_start, rest_scale, tempo_rel)",
         ),
         (
             ["--nominal", "--variation", "rest_scale=0.5"],

@@ -82,13 +82,13 @@ def test_variation_rows_turn_off_every_part_but_one_in_both_labs():
     assert arm.variation == VariationParams.none() and hand.variation == HandVariation.none()
     arm, hand = _labs(CANDIDATES["start delay alone"], 1, 2.0)
     assert arm.variation == VariationParams(2.0, 0.0, 0.004, False)
-    assert hand.variation == HandVariation(2.0, 0.0, 0.004, 0.0, False)
+    assert hand.variation == HandVariation(2.0, 0.0, 0.004, False, tempo_rel=0.0)
     arm, hand = _labs(CANDIDATES["servo gains alone"], 1, 0.0)
     assert (arm.variation.servo_gain_rel, hand.variation.servo_gain_rel) == (0.03, 0.03)
     assert not arm.variation.rest_start and hand.variation.tempo_rel == 0.0
     arm, hand = _labs(CANDIDATES["rest start alone"], 1, 0.0)
     assert arm.variation == VariationParams(0.0, 0.0, 0.0, True)
-    assert hand.variation == HandVariation(0.0, 0.0, 0.0, 0.0, True)
+    assert hand.variation == HandVariation(0.0, 0.0, 0.0, True, tempo_rel=0.0)
 
 
 def test_a_missing_robot_demo_is_named(tmp_path):
