@@ -38,7 +38,7 @@ import numpy as np
 
 from flyknot.errors import ConfigError, check_positive
 from flyknot.verdict import JUDGE_NAME, KNOT
-from flyknot_app.scenario import SCENARIO_DEMO, scenario_weights
+from flyknot_app.learner_settings import SCENARIO_DEMO, scenario_weights
 
 BASELINES = ("random", "cma", "ppo")
 RL_HINT = (

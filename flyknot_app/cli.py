@@ -10,8 +10,9 @@ from pathlib import Path
 from flyknot.errors import ConfigError
 from flyknot_app.bench.sim import BENCHMARKS
 from flyknot_app.dispatch import dispatch
+from flyknot_app.learner_settings import SCENARIO_DEMO, SCENARIO_WINDOW
 from flyknot_app.reports.paper import add_paper_parser
-from flyknot_app.scenario import SCENARIO_DEMO, SCENARIO_WINDOW, parse_rope_arg, parse_seeds
+from flyknot_app.scenario import parse_rope_arg, parse_seeds
 from flyknot_app.trial_cli import add_trial_parsers
 
 

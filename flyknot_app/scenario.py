@@ -51,8 +51,8 @@ from flyknot.options import (
     to_mapping,
 )
 from flyknot_app.cells import cell_kind, cell_spec
+from flyknot_app.learner_settings import PAPER_SETTINGS
 from learner.ilc import ILCParams
-from learner.inverse_qp import InverseModelWeights
 
 KINDS = ("learn", "track", "transfer", "sensitivity", "objectives", "demos", "smoke")
 
@@ -214,51 +214,6 @@ class Scenario:
             done |= {r.name for r in wave}
             left = [r for r in left if r.name not in done]
         return waves
-
-
-PAPER_SETTINGS = (
-    "objective=critical",
-    "gain=1",
-    "step=gain",
-    "jacobian=model",
-    "follow_through=true",
-    "weights.w_control=0.5",
-    "weights.w_crit_vel=0.00375",
-    "rope_model.stiffness=1e5",
-    "rope_model.damping=50",
-    "path_frac=0.05",
-    "follow_through_s=0.035",
-)
-"""The paper's learner settings (``flyknot run --paper-settings``, laid over a scenario's
-defaults and under each run's own fields): the critical-point objective, ILC gain 1 with the
-fixed-gain step, the rope model's own Jacobian, the follow-through term, control weight 0.5,
-the critical point's velocity weight 0.00375, rope model bending stiffness 1e5 and damping 50,
-the demonstration window from 5 % of the hand path to t_c + 35 ms (Suresh & Atkeson; the
-scenario files' own values and why they differ: README "Learner settings")."""
-
-SCENARIO_DEMO = "fast-paced"
-"""The demonstration every shipped scenario learns rope 1 from: a person's throw at a person's
-pace (``assets/demos/README.md``). The gym envs, the baselines and ``flyknot model-check``
-start from it unless given another, so that they start where ILC does."""
-
-SCENARIO_WINDOW = (0.25, 0.0)
-"""The shipped scenarios' demonstration window ``(follow_through_s, path_frac)``: t_f - t_c =
-0.25 s, t_0 at the start of the hand motion (README "Learner settings"; the paper's is
-``(FOLLOW_THROUGH_S, PATH_FRAC)``, the defaults of :class:`RunSpec`)."""
-
-SCENARIO_CRIT_VEL_WEIGHT = 0.1
-"""The critical point's marker velocity weight w_crit_vel [s^2/m^2] of every shipped
-scenario (each file's ``[defaults] weights``): a velocity error counts as the position error
-it makes in dt = sqrt(0.1 / 25) = 63 ms, where this lab's knot is decided 65-106 ms after the
-first self-contact (``flyknot diagnose decided``); the paper's 0.00375 is 12 ms."""
-
-
-def scenario_weights() -> InverseModelWeights:
-    """The shipped scenarios' QP weights: the paper's with w_crit_vel =
-    :data:`SCENARIO_CRIT_VEL_WEIGHT`. The gym envs' reward, the baselines' search and
-    ``flyknot diagnose floor --demo`` score the critical point with them, so that every
-    learner and measuring stick is scored on the objective ILC learns on."""
-    return InverseModelWeights(w_crit_vel=SCENARIO_CRIT_VEL_WEIGHT)
 
 
 def option_path(key: str) -> list[str]:

@@ -130,7 +130,7 @@ def test_the_env_starts_from_ilc_s_initial_command_as_it_is():
 def test_the_env_starts_and_scores_as_the_scenarios_do():
     """By default the env starts from the scenarios' demonstration and window and scores a
     trial with their critical weights; ``weights`` scores the same trial with others."""
-    from flyknot_app.scenario import SCENARIO_DEMO, SCENARIO_WINDOW, scenario_weights
+    from flyknot_app.learner_settings import SCENARIO_DEMO, SCENARIO_WINDOW, scenario_weights
     from learner.ilc import critical_cost
     from learner.inverse_qp import InverseModelWeights
 

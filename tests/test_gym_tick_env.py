@@ -178,7 +178,7 @@ def test_options_are_checked():
 
 def test_the_tick_env_scores_with_the_scenarios_weights(env):
     from flyknot.errors import ConfigError
-    from flyknot_app.scenario import scenario_weights
+    from flyknot_app.learner_settings import scenario_weights
     from learner.inverse_qp import InverseModelWeights
 
     assert env._weights == scenario_weights()

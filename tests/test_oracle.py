@@ -182,7 +182,8 @@ def test_an_oracle_run_updates_with_the_lab_s_jacobian(egl, tmp_path):
     proc = subprocess.run(
         [sys.executable, "-m", "flyknot_app", "run", "quick", "--set", "jacobian=oracle",
          "--set", "objective=critical", "--set", "max_trials=1", "--set", "step=gain",
-         "--set", "gain=0.5", "--set", "weights.w_control=5", "--out", str(out)],
+         "--set", "gain=0.5", "--set", "weights.w_control=5", "--set", "follow_through=false",
+         "--out", str(out)],
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr

@@ -175,7 +175,7 @@ def test_an_unknown_variant_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err == (
         "flyknot: error: --variant: unknown variant 'nope' (valid choices: paper-settings, "
-        "robot-demo, oracle, paper-velocity, follow-through)\n"
+        "robot-demo, oracle, paper-velocity, no-follow-through)\n"
     )
 
 
@@ -246,34 +246,36 @@ def test_a_variant_stands_beside_the_sensitivity_table(tmp_path):
 
 @pytest.mark.parametrize("variant", sorted(VARIANTS))
 def test_every_variant_loads_on_every_scenario_it_runs(variant):
-    """Each variant's options lie over every paper scenario it does not skip; the
-    follow-through variant's runs learn with the follow-through term at a tenth of each of its
-    weights and the damped step's noise band and common time, and keep the rest."""
+    """Each variant's options lie over every paper scenario it does not skip: the scenarios'
+    velocity weight stays but where a variant is the paper's; the follow-through term at a
+    tenth of each of its weights with the damped step's noise band and common time stays but
+    in the no-follow-through variant (without them, the follow-through weights back at the
+    paper's) and the paper's settings (the paper's weights, the fixed-gain step)."""
+    from flyknot_app.learner_settings import FOLLOW_WEIGHTS
     from flyknot_app.reports.paper import PAPER_SCENARIOS
-    from flyknot_app.reports.paper_variants import FOLLOW_WEIGHTS
     from flyknot_app.scenario import load_scenario, parse_overrides
     from learner.inverse_qp import InverseModelWeights
 
     v = VARIANTS[variant]
+    paper = InverseModelWeights()
     for name in PAPER_SCENARIOS:
         if name in v.skips:
             continue
         scen = load_scenario(name, parse_overrides([], defaults=v.overrides))
         paper_vel = variant in ("paper-velocity", "paper-settings")
-        for run in scen.runs:  # the scenarios' velocity weight, or the paper's where it says
-            w = run.learner.update.weights
-            want = InverseModelWeights().w_crit_vel if paper_vel else 0.1
-            assert (w.w_crit_vel, w.w_crit_pos) == (want, InverseModelWeights().w_crit_pos)
-        if variant != "follow-through":
-            continue
-        paper = InverseModelWeights()
+        follow = variant not in ("no-follow-through", "paper-settings")
         for run in scen.runs:
-            u = run.learner.update
-            assert u.follow_through and run.learner.damping.common_time
-            assert run.learner.damping.noise == 0.3
+            u, damping = run.learner.update, run.learner.damping
+            want = paper.w_crit_vel if paper_vel else 0.1
+            assert (u.weights.w_crit_vel, u.weights.w_crit_pos) == (want, paper.w_crit_pos)
+            share = 0.1 if follow else 1.0
             for w in FOLLOW_WEIGHTS:
-                assert getattr(u.weights, w) == pytest.approx(0.1 * getattr(paper, w))
-            assert u.weights.w_crit_pos == paper.w_crit_pos  # the rest kept
+                assert getattr(u.weights, w) == pytest.approx(share * getattr(paper, w))
+            if variant == "paper-settings":
+                assert u.follow_through and run.learner.step == "gain"
+                continue
+            assert u.follow_through is follow and damping.common_time is follow
+            assert damping.noise == (0.3 if follow else 0.0)
 
 
 def test_all_runs_every_experiment_each_variants_parts_then_the_baselines(tmp_path, monkeypatch):
@@ -316,8 +318,9 @@ def test_all_runs_every_experiment_each_variants_parts_then_the_baselines(tmp_pa
     assert runs[4][:2] == ("paper-velocity", velocity)
     assert runs[4][2]["defaults"] == {"weights": {"w_crit_vel": 0.00375}}
     name, scenarios, overrides, _ = runs[5]
-    assert (name, scenarios[0]) == ("follow-through", "02-objectives")
-    assert overrides["defaults"]["weights"]["w_pc"] == pytest.approx(10.0)
+    assert (name, scenarios[0]) == ("no-follow-through", "02-objectives")
+    assert overrides["defaults"]["follow_through"] is False
+    assert overrides["defaults"]["weights"]["w_pc"] == pytest.approx(100.0)
     assert len(runs) == 6  # paper-settings is run by hand only
     assert searches == [("cma", [0, 1], 10, "fast-paced"), ("random", [0, 1], 10, "fast-paced")]
     text = (tmp_path / "results.md").read_text()

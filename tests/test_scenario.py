@@ -10,16 +10,14 @@ import pytest
 
 from flyknot.constants import SCENARIOS_DIR
 from flyknot.errors import ConfigError
+from flyknot_app.learner_settings import SCENARIO_DEMO, SCENARIO_WINDOW, scenario_weights
 from flyknot_app.reports.run_summary import RunSummary, ScenarioSummary
 from flyknot_app.scenario import (
     RUN_KEYS,
-    SCENARIO_DEMO,
-    SCENARIO_WINDOW,
     limit_runs,
     load_scenario,
     parse_overrides,
     parse_scenario,
-    scenario_weights,
 )
 
 FILES = sorted(SCENARIOS_DIR.glob("*.toml"))
@@ -324,7 +322,7 @@ def test_confirm_field_from_toml_and_command_line():
 
 def test_paper_settings_set_the_papers_learner(tmp_path, monkeypatch):
     from flyknot_app import cli, runner
-    from flyknot_app.scenario import PAPER_SETTINGS
+    from flyknot_app.learner_settings import PAPER_SETTINGS
 
     scen = load_scenario("learn-rope1", parse_overrides(list(PAPER_SETTINGS)))
     run = scen.runs[0]

@@ -35,12 +35,8 @@ from flyknot.errors import ConfigError
 from flyknot.options import from_mapping
 from flyknot.progress import bar_disable
 from flyknot_app.diagnose.floor import FloorParams
-from flyknot_app.scenario import (
-    SCENARIO_CRIT_VEL_WEIGHT,
-    SCENARIO_WINDOW,
-    parse_rope_arg,
-    scenario_weights,
-)
+from flyknot_app.learner_settings import SCENARIO_CRIT_VEL_WEIGHT, SCENARIO_WINDOW, scenario_weights
+from flyknot_app.scenario import parse_rope_arg
 from learner.inverse_qp import InverseModelWeights
 
 

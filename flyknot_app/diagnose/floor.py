@@ -187,7 +187,7 @@ def reachable_floor(
     Returns:
         The :class:`FloorResult`.
     """
-    from flyknot_app.scenario import scenario_weights
+    from flyknot_app.learner_settings import scenario_weights
 
     weights = scenario_weights() if weights is None else weights
     oracle = LabJacobian(lab_params, target.t_c, params.oracle)

@@ -29,7 +29,7 @@ state error at the critical time, from the motion-capture markers) plus the knot
 * The episode terminates at the first knot and is truncated after ``max_trials`` trials.
 
 The initial command is the paper's initial guess for the demonstration (cached per env).
-Defaults as the scenario files (:mod:`flyknot_app.scenario`): the person's demonstration
+Defaults as the scenario files (:mod:`flyknot_app.learner_settings`): the person's demonstration
 ``fast-paced`` with the window (follow-through t_f - t_c = 0.25 s, t_0 at the start of the
 hand motion; ``window=(0.035, 0.05)`` is the paper's) and the scenarios' critical weights
 (w_crit_vel 0.1; ``weights=InverseModelWeights()`` scores with the paper's), so that a learner
@@ -46,7 +46,7 @@ import numpy as np
 from flyknot.constants import N_JOINTS, N_KNOTS, N_ROWS
 from flyknot.errors import ConfigError, check_positive
 from flyknot.limits import JointLimits
-from flyknot_app.scenario import SCENARIO_DEMO, SCENARIO_WINDOW, scenario_weights
+from flyknot_app.learner_settings import SCENARIO_DEMO, SCENARIO_WINDOW, scenario_weights
 from learner.inverse_qp import InverseModelWeights
 
 POS_BOUND = 5.0

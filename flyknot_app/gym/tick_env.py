@@ -66,7 +66,7 @@ from flyknot.errors import CommandError, ConfigError, check_nonnegative, check_p
 from flyknot.limits import JointLimits
 from flyknot.record import JointCommand
 from flyknot_app.gym.env import POS_BOUND, checked_action, paper_initial_knots, score_trial
-from flyknot_app.scenario import SCENARIO_DEMO, SCENARIO_WINDOW, scenario_weights
+from flyknot_app.learner_settings import SCENARIO_DEMO, SCENARIO_WINDOW, scenario_weights
 from learner.inverse_qp import InverseModelWeights
 
 JOINT_VEL_BOUND = 10.0

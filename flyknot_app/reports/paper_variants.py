@@ -7,21 +7,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from flyknot.errors import ConfigError
-from flyknot_app.scenario import PAPER_SETTINGS
+from flyknot_app.learner_settings import FOLLOW_WEIGHTS, PAPER_SETTINGS
 from learner.inverse_qp import InverseModelWeights
 
-FOLLOW_WEIGHTS = ("w_pc", "w_vc", "w_rc", "w_pft", "w_vft", "w_rft")
-"""The follow-through term's weights of ``learner.inverse_qp.InverseModelWeights``."""
-
-FOLLOW_TENTH = (
-    "follow_through=true",
-    "damping.noise=0.3",
-    "damping.common_time=true",
-    *(f"weights.{w}={0.1 * getattr(InverseModelWeights(), w):g}" for w in FOLLOW_WEIGHTS),
+NO_FOLLOW_THROUGH = (
+    "follow_through=false",
+    "damping.noise=0",
+    "damping.common_time=false",
+    *(f"weights.{w}={getattr(InverseModelWeights(), w):g}" for w in FOLLOW_WEIGHTS),
 )
-"""The learner options of the ``follow-through`` variant: the follow-through term with each of
-its weights (the paper's, ``learner.inverse_qp.InverseModelWeights``) at a tenth, the damped
-step's noise band and common time (``docs/measuring-sticks.md``)."""
+"""The learner options of the ``no-follow-through`` variant: the scenarios' learner without
+the follow-through term, the damped step's noise band and its common time (the follow-through
+weights back at the paper's, which the term's absence leaves unused)."""
 
 
 PAPER_VELOCITY_WEIGHT = 0.00375
@@ -94,10 +91,9 @@ VARIANTS: dict[str, Variant] = {
             results=(Part(("02-objectives", "03-ropes", "04-success-rate", "05-demos")),),
         ),
         Variant(
-            "follow-through",
-            FOLLOW_TENTH,
-            "with the follow-through term at a tenth of the paper's weights, the noise band "
-            "and the common time (learner options)",
+            "no-follow-through",
+            NO_FOLLOW_THROUGH,
+            "without the follow-through term, the noise band and the common time (learner options)",
             skips=("01-tracking",),  # no update
             results=(
                 Part(("02-objectives", "03-ropes", "04-success-rate", "05-demos", "08-certainty")),
