@@ -252,7 +252,7 @@ def test_the_floor_scores_with_the_objective_s_weights(tmp_path, capsys):
 def test_a_run_s_floor_takes_the_run_s_weights(tmp_path):
     import json
 
-    from flyknot_app.diagnose.cli import _run_inputs
+    from flyknot_app.diagnose.cli import _objective_weights, _run_inputs
 
     (tmp_path / "learning").mkdir()
     np.save(tmp_path / "learning" / "knots_0000.npy", np.zeros((10, 8)))
@@ -260,5 +260,10 @@ def test_a_run_s_floor_takes_the_run_s_weights(tmp_path):
     opts = {"demo": "fast-paced", "follow_through_s": 0.25, "path_frac": 0.0, "rope": 1,
             "seed": 0, "weights": weights}  # fmt: skip
     (tmp_path / "result.json").write_text(json.dumps(opts))
-    w = _run_inputs(tmp_path)["weights"]
+    w = _objective_weights(_run_inputs(tmp_path))
     assert (w.w_crit_pos, w.w_crit_vel, w.w_control) == (20.0, 0.3, 0.5)
+    del opts["weights"]
+    (tmp_path / "result.json").write_text(json.dumps(opts))
+    with pytest.raises(ConfigError) as e:
+        _objective_weights(_run_inputs(tmp_path))
+    assert str(e.value) == "RUN_DIR: the run's result.json names no QP weights ('weights')"
