@@ -243,6 +243,12 @@ def test_the_floor_scores_with_the_objective_s_weights(tmp_path, capsys):
     assert A["velocity_part"] == pytest.approx(B["velocity_part"] * 0.1 / 0.00375)
     assert A["cost"] == pytest.approx(A["position_part"] + A["velocity_part"])
     capsys.readouterr()
+    bad = tmp_path / "bad" / "f.json"
+    assert main([*base, "--out", str(bad), "--w-crit-vel", "-1"]) == 2
+    assert capsys.readouterr().err == (
+        "flyknot: error: w_crit_vel: must be a finite number >= 0, got -1.0\n"
+    )
+    assert not bad.parent.exists()  # refused before any work
     assert main(["diagnose", "floor", str(tmp_path), "--w-crit-vel", "0.1"]) == 2
     assert capsys.readouterr().err == (
         "flyknot: error: --w-crit-vel: a run's floor uses the run's own weights; give --demo\n"

@@ -114,6 +114,7 @@ def _cmd_floor(args: argparse.Namespace) -> int:
     if args.run and args.w_crit_vel is not None:
         raise ConfigError("--w-crit-vel", "a run's floor uses the run's own weights; give --demo")
     inputs = _run_inputs(Path(args.run)) if args.run else _demo_inputs(args)
+    weights = _objective_weights(inputs)  # validated before any work
     spec = cell_spec(inputs["cell"], inputs["cell_values"])
     check_oracle(inputs["cell"], dry_run=bool(getattr(spec, "dry_run", False)))
     params = FloorParams(budget=args.budget)  # validated before any work
@@ -140,7 +141,7 @@ def _cmd_floor(args: argparse.Namespace) -> int:
             robot,
             RopeModelParams(),
             params,
-            weights=_objective_weights(inputs),
+            weights=weights,
             on_iteration=on_iteration,
         )
     finally:
