@@ -244,6 +244,12 @@ def test_the_floor_scores_with_the_objective_s_weights(tmp_path, capsys):
     assert A["velocity_part"] == pytest.approx(B["velocity_part"] * 0.1 / 0.00375)
     assert A["cost"] == pytest.approx(A["position_part"] + A["velocity_part"])
     capsys.readouterr()
+    bad = tmp_path / "bad" / "f.json"
+    assert main([*base, "--out", str(bad), "--w-crit-vel", "-1"]) == 2
+    assert capsys.readouterr().err == (
+        "flyknot: error: w_crit_vel: must be a finite number >= 0, got -1.0\n"
+    )
+    assert not bad.parent.exists()  # refused before any work
     assert main(["diagnose", "floor", str(tmp_path), "--w-crit-vel", "0.1"]) == 2
     assert capsys.readouterr().err == (
         "flyknot: error: --w-crit-vel: a run's floor uses the run's own weights; give --demo\n"
@@ -253,7 +259,7 @@ def test_the_floor_scores_with_the_objective_s_weights(tmp_path, capsys):
 def test_a_run_s_floor_takes_the_run_s_weights(tmp_path):
     import json
 
-    from flyknot_app.diagnose.cli import _run_inputs
+    from flyknot_app.diagnose.cli import _objective_weights, _run_inputs
 
     (tmp_path / "learning").mkdir()
     np.save(tmp_path / "learning" / "knots_0000.npy", np.zeros((10, 8)))
@@ -261,5 +267,10 @@ def test_a_run_s_floor_takes_the_run_s_weights(tmp_path):
     opts = {"demo": "fast-paced", "follow_through_s": 0.25, "path_frac": 0.0, "rope": 1,
             "seed": 0, "weights": weights}  # fmt: skip
     (tmp_path / "result.json").write_text(json.dumps(opts))
-    w = _run_inputs(tmp_path)["weights"]
+    w = _objective_weights(_run_inputs(tmp_path))
     assert (w.w_crit_pos, w.w_crit_vel, w.w_control) == (20.0, 0.3, 0.5)
+    del opts["weights"]
+    (tmp_path / "result.json").write_text(json.dumps(opts))
+    with pytest.raises(ConfigError) as e:
+        _objective_weights(_run_inputs(tmp_path))
+    assert str(e.value) == "RUN_DIR: the run's result.json names no QP weights ('weights')"

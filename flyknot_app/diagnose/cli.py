@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -64,7 +64,7 @@ def _run_inputs(run_dir: Path) -> dict[str, Any]:
         },
         "knots0": np.load(knots0),
         "out": run_dir / "floor.json",
-        "weights": from_mapping(InverseModelWeights, opts["weights"]),
+        "weights": opts.get("weights"),  # read by the floor alone (_objective_weights)
     }
 
 
@@ -79,11 +79,20 @@ def _demo_inputs(args: argparse.Namespace) -> dict[str, Any]:
         "cell_values": {"rope": args.rope, "seed": args.seed},
         "knots0": None,
         "out": Path(args.out),
-        "weights": replace(
-            scenario_weights(),
-            w_crit_vel=SCENARIO_CRIT_VEL_WEIGHT if args.w_crit_vel is None else args.w_crit_vel,
+        "weights": asdict(
+            replace(
+                scenario_weights(),
+                w_crit_vel=SCENARIO_CRIT_VEL_WEIGHT if args.w_crit_vel is None else args.w_crit_vel,
+            )
         ),
     }
+
+
+def _objective_weights(inputs: dict[str, Any]) -> InverseModelWeights:
+    """The floor's QP weights: the run's own (its ``result.json``) or the demonstration's."""
+    if not isinstance(inputs["weights"], dict):
+        raise ConfigError("RUN_DIR", "the run's result.json names no QP weights ('weights')")
+    return from_mapping(InverseModelWeights, inputs["weights"])
 
 
 def _cmd_floor(args: argparse.Namespace) -> int:
@@ -101,6 +110,7 @@ def _cmd_floor(args: argparse.Namespace) -> int:
     if args.run and args.w_crit_vel is not None:
         raise ConfigError("--w-crit-vel", "a run's floor uses the run's own weights; give --demo")
     inputs = _run_inputs(Path(args.run)) if args.run else _demo_inputs(args)
+    weights = _objective_weights(inputs)  # validated before any work
     spec = cell_spec(inputs["cell"], inputs["cell_values"])
     check_oracle(inputs["cell"], dry_run=bool(getattr(spec, "dry_run", False)))
     params = FloorParams(budget=args.budget)  # validated before any work
@@ -127,7 +137,7 @@ def _cmd_floor(args: argparse.Namespace) -> int:
             robot,
             RopeModelParams(),
             params,
-            weights=inputs["weights"],
+            weights=weights,
             on_iteration=on_iteration,
         )
     finally:

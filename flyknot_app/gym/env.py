@@ -174,6 +174,9 @@ class FlyknotEnv(gym.Env):
         from learner.kinematics import RobotModel
         from learner.rope_model import RopeModelParams
 
+        self._weights = scenario_weights() if weights is None else weights
+        if not isinstance(self._weights, InverseModelWeights):
+            raise ConfigError("weights", f"must be an InverseModelWeights, got {weights!r}")
         check_positive("action_scale", action_scale)
         if not isinstance(max_trials, int) or isinstance(max_trials, bool) or max_trials < 1:
             raise ConfigError("max_trials", f"must be an integer >= 1, got {max_trials!r}")
@@ -183,9 +186,6 @@ class FlyknotEnv(gym.Env):
         self.fault_penalty = float(fault_penalty)
         self._lab = SimLab(LabParams(rope=rope, seed=seed, settle_s=settle_s, ropes=ropes))
         self._robot = RobotModel.from_mjcf()
-        self._weights = scenario_weights() if weights is None else weights
-        if not isinstance(self._weights, InverseModelWeights):
-            raise ConfigError("weights", f"must be an InverseModelWeights, got {weights!r}")
         self._window = (float(window[0]), float(window[1]))
         _, self.target = prepare_target(demo, RopeModelParams().dt, self._window)
         self._demo = demo

@@ -114,6 +114,9 @@ class FlyknotTickEnv(gym.Env):
         from learner.bezier import BezierCommand
         from learner.rope_model import RopeModelParams
 
+        self._weights = scenario_weights() if weights is None else weights
+        if not isinstance(self._weights, InverseModelWeights):
+            raise ConfigError("weights", f"must be an InverseModelWeights, got {weights!r}")
         check_positive("action_scale", action_scale)
         check_nonnegative("smoothing_s", smoothing_s)
         check_nonnegative("fault_penalty", fault_penalty)
@@ -122,9 +125,6 @@ class FlyknotTickEnv(gym.Env):
         self.knot_bonus = float(knot_bonus)
         self.fault_penalty = float(fault_penalty)
         self._lab = SimLab(LabParams(rope=rope, seed=seed, settle_s=settle_s, ropes=ropes))
-        self._weights = scenario_weights() if weights is None else weights
-        if not isinstance(self._weights, InverseModelWeights):
-            raise ConfigError("weights", f"must be an InverseModelWeights, got {weights!r}")
         window = (float(window[0]), float(window[1]))
         _, self.target = prepare_target(demo, RopeModelParams().dt, window)
         knots0 = None
