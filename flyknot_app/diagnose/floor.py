@@ -181,7 +181,7 @@ def reachable_floor(
         limits: Joint limits every command keeps.
         weights: The objective's QP weights (:class:`learner.inverse_qp.InverseModelWeights`;
             its critical part is the cost, its control weight is replaced by the damping).
-            None: the scenarios' (:func:`flyknot_app.scenario.scenario_weights`).
+            None: the scenarios' (:func:`flyknot_app.learner_settings.scenario_weights`).
         on_iteration: Called with (plays, cost) after each Jacobian.
 
     Returns:
