@@ -314,14 +314,11 @@ def test_all_runs_every_experiment_each_variants_parts_then_the_baselines(tmp_pa
         ("robot-demo", ["01-tracking", "04-success-rate"], {"repeats": 8, **mine, **robot}, False),
     ]
     assert runs[3][:2] == ("oracle", ["03-ropes", "05-demos"])
-    velocity = ["02-objectives", "03-ropes", "04-success-rate", "05-demos"]
-    assert runs[4][:2] == ("paper-velocity", velocity)
-    assert runs[4][2]["defaults"] == {"weights": {"w_crit_vel": 0.00375}}
-    name, scenarios, overrides, _ = runs[5]
+    name, scenarios, overrides, _ = runs[4]
     assert (name, scenarios[0]) == ("no-follow-through", "02-objectives")
     assert overrides["defaults"]["follow_through"] is False
     assert overrides["defaults"]["weights"]["w_pc"] == pytest.approx(100.0)
-    assert len(runs) == 6  # paper-settings is run by hand only
+    assert len(runs) == 5  # paper-settings and paper-velocity are run by hand only
     assert searches == [("cma", [0, 1], 10, "fast-paced"), ("random", [0, 1], 10, "fast-paced")]
     text = (tmp_path / "results.md").read_text()
     assert "by `flyknot paper --all --seeds 0,1 --out" in text
@@ -330,7 +327,7 @@ def test_all_runs_every_experiment_each_variants_parts_then_the_baselines(tmp_pa
     runs.clear()
     searches.clear()
     assert main([*argv, "--resume"]) == 0
-    assert [r[3] for r in runs] == [True] * 6 and searches == []
+    assert [r[3] for r in runs] == [True] * 5 and searches == []
 
 
 def test_all_on_runs_without_resume_runs_nothing(tmp_path, capsys, monkeypatch):
