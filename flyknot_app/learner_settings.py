@@ -47,7 +47,8 @@ start from it unless given another, so that they start where ILC does."""
 SCENARIO_WINDOW = (0.25, 0.0)
 """The shipped scenarios' demonstration window ``(follow_through_s, path_frac)``: t_f - t_c =
 0.25 s, t_0 at the start of the hand motion (README "Learner settings"; the paper's is
-``(FOLLOW_THROUGH_S, PATH_FRAC)``, the defaults of :class:`RunSpec`)."""
+``(FOLLOW_THROUGH_S, PATH_FRAC)``, the defaults of
+:class:`flyknot_app.scenario.RunSpec`)."""
 
 SCENARIO_CRIT_VEL_WEIGHT = 0.1
 """The critical point's marker velocity weight w_crit_vel [s^2/m^2] of every shipped
