@@ -10,7 +10,7 @@ from pathlib import Path
 from flyknot.errors import ConfigError
 from flyknot_app.bench.sim import BENCHMARKS
 from flyknot_app.dispatch import dispatch
-from flyknot_app.learner_settings import SCENARIO_DEMO, SCENARIO_WINDOW
+from flyknot_app.learner_settings import SCENARIO_DEMO
 from flyknot_app.reports.paper import add_paper_parser
 from flyknot_app.scenario import parse_rope_arg, parse_seeds
 from flyknot_app.trial_cli import add_trial_parsers
@@ -399,6 +399,8 @@ def _add_render_parser(sub: argparse._SubParsersAction) -> None:
 
 def _add_model_check_parser(sub: argparse._SubParsersAction) -> None:
     """``flyknot model-check``: the learner's rope model against the lab."""
+    from flyknot_app.diagnose.cli import add_window_arguments
+
     m = sub.add_parser(
         "model-check",
         help="compare the learner's rope-model Jacobian with the lab's measured response",
@@ -415,18 +417,7 @@ def _add_model_check_parser(sub: argparse._SubParsersAction) -> None:
         "--knots", default=None, help="command knots (.npy/.npz; default: initial guess)"
     )
     m.add_argument("--directions", type=int, default=8, help="random directions (default 8)")
-    m.add_argument(
-        "--follow-through",
-        type=float,
-        default=SCENARIO_WINDOW[0],
-        help=f"window t_f - t_c [s] (default {SCENARIO_WINDOW[0]:g})",
-    )
-    m.add_argument(
-        "--path-frac",
-        type=float,
-        default=SCENARIO_WINDOW[1],
-        help=f"window start path fraction (default {SCENARIO_WINDOW[1]:g})",
-    )
+    add_window_arguments(m)
     m.add_argument("--step", type=float, default=0.01, help="direction size [rad] (default 0.01)")
     m.add_argument("--seed", type=int, default=1, help="seed of the directions (default 1)")
     m.add_argument(

@@ -311,6 +311,23 @@ def _cmd_variation(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_window_arguments(parser: argparse.ArgumentParser, when: str = "") -> None:
+    """``--follow-through`` and ``--path-frac``: the demonstration window, by default the
+    scenarios' (``when`` says when they apply, e.g. ``", with --demo"``)."""
+    parser.add_argument(
+        "--follow-through",
+        type=float,
+        default=SCENARIO_WINDOW[0],
+        help=f"window t_f - t_c [s]{when} (default {SCENARIO_WINDOW[0]:g})",
+    )
+    parser.add_argument(
+        "--path-frac",
+        type=float,
+        default=SCENARIO_WINDOW[1],
+        help=f"window start path fraction{when} (default {SCENARIO_WINDOW[1]:g})",
+    )
+
+
 def add_diagnose_parser(sub: argparse._SubParsersAction) -> None:
     """``flyknot diagnose floor``, ``decided`` and ``variation``."""
     d = sub.add_parser("diagnose", help="the learner's measuring sticks (simulated lab)")
@@ -325,18 +342,7 @@ def add_diagnose_parser(sub: argparse._SubParsersAction) -> None:
         "--rope", type=parse_rope_arg, default=1, help="rope id 1..7 or a rope's name (--demo)"
     )
     f.add_argument("--seed", type=int, default=0, help="the lab's seed, with --demo")
-    f.add_argument(
-        "--follow-through",
-        type=float,
-        default=SCENARIO_WINDOW[0],
-        help=f"window t_f - t_c [s], with --demo (default {SCENARIO_WINDOW[0]:g})",
-    )
-    f.add_argument(
-        "--path-frac",
-        type=float,
-        default=SCENARIO_WINDOW[1],
-        help=f"window start path fraction, with --demo (default {SCENARIO_WINDOW[1]:g})",
-    )
+    add_window_arguments(f, ", with --demo")
     f.add_argument(
         "--w-crit-vel",
         type=float,
