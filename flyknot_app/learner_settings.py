@@ -23,6 +23,7 @@ PAPER_SETTINGS = (
     "step=gain",
     "jacobian=model",
     "follow_through=true",
+    "converged_knot=false",
     "weights.w_control=0.5",
     "weights.w_crit_vel=0.00375",
     *(f"weights.{w}={getattr(InverseModelWeights(), w):g}" for w in FOLLOW_WEIGHTS),
@@ -33,7 +34,8 @@ PAPER_SETTINGS = (
 )
 """The paper's learner settings (``flyknot run --paper-settings``, laid over a scenario's
 defaults and under each run's own fields): the critical-point objective, ILC gain 1 with the
-fixed-gain step, the rope model's own Jacobian, the follow-through term, control weight 0.5,
+fixed-gain step, the rope model's own Jacobian, the follow-through term, the stop at the first
+knot, control weight 0.5,
 the critical point's velocity weight 0.00375, the follow-through weights of the paper's
 appendix (``InverseModelWeights``' defaults), rope model bending stiffness 1e5 and damping
 50, the demonstration window from 5 % of the hand path to t_c + 35 ms (Suresh & Atkeson; the

@@ -55,6 +55,7 @@ from learner.ilc_step import (
 )
 from learner.jacobians import JacobianProvider
 from learner.kinematics import RobotModel
+from learner.knot_stops import StopAtSuccess
 from learner.run_directory import RunDirectory, TrialSummary, written_record
 from learner.stops import RETRY
 from learner.target import DemoTarget
@@ -303,9 +304,13 @@ def _commit(
 
 def _finish(state: LoopState, params: ILCParams, knots0: np.ndarray) -> LearnResult:
     """The run's result; tracking alone (``max_trials`` 0) keeps the initial command (its
-    one trial's update is never played)."""
+    one trial's update is never played); a ``converged_knot`` run that tied but ran out of
+    trials before it converged keeps the command of its last tie."""
     t = tuple(state.trials)
     first = next((s.trial for s in _counted(t) if s.success), None)
     why = state.stop or ("max_trials" if first is None else "max_trials (knot tied)")
     final = knots0 if params.max_trials == 0 else state.knots
+    tied = next((r.tied for r in state.rules.rules if isinstance(r, StopAtSuccess)), None)
+    if state.stop is None and tied is not None:
+        final = tied.knots
     return LearnResult(t, first, np.asarray(final), why)

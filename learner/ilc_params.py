@@ -101,6 +101,14 @@ class ILCParams:
         max_trials: Trials at most (tracking-failure repeats not counted); 0 plays the
             initial command once and keeps it (tracking alone).
         stop_at_success: Stop at the first tied knot (the paper does).
+        converged_knot: Stop at a knot only once the learner has converged on it: its trial's
+            critical cost is not below (1 - ``damping.noise``) times the lowest measured before
+            it (the step that tied no longer lowered the cost beyond the trial-to-trial
+            noise), or it is the last trial. A knot reached while the cost still falls beyond
+            the noise is counted (the run's first knot) and learning goes on from it; a run
+            that then runs out of trials keeps the command of its last knot. It changes the
+            stop at a knot, so it does nothing without ``stop_at_success`` or with
+            ``confirm``.
         tracking_retries: Repeats of a trial whose markers were lost before t_c.
         gain: ILC learning gain alpha in (0, 1]: the command moves by alpha dkappa (the
             paper: 1).
@@ -140,6 +148,7 @@ class ILCParams:
 
     max_trials: int = 10
     stop_at_success: bool = True
+    converged_knot: bool = False
     tracking_retries: int = 2
     gain: float = 1.0
     rope_model: RopeModelParams = field(default_factory=RopeModelParams)
@@ -174,6 +183,10 @@ class ILCParams:
         if not isinstance(self.stop_at_success, bool):
             raise ConfigError(
                 "stop_at_success", f"must be true or false, got {self.stop_at_success!r}"
+            )
+        if not isinstance(self.converged_knot, bool):
+            raise ConfigError(
+                "converged_knot", f"must be true or false, got {self.converged_knot!r}"
             )
         step_kind(self.step)
         if self.step == "damped" and (self.safeguard or self.average > 1):

@@ -5,7 +5,8 @@ After each attempt the loop (:func:`learner.ilc_step.decide`) asks its rules, in
 
 * ``"retry"`` (:class:`Retry`): tracking lost before t_c with retries left: the trial again
   (the attempt does not count).
-* ``"success"`` (:class:`StopAtSuccess`, the paper's): stop at the first knot.
+* ``"success"`` (:class:`StopAtSuccess`, the paper's): stop at the first knot (option
+  ``converged_knot``: at the first knot whose cost no longer fell beyond the noise floor).
 * ``"confirm"`` (:class:`Confirmation`): a command that ties is played again until k of n of
   its trials tie (option ``confirm``).
 * ``"plateau"`` (:class:`Plateau`): stop when the best measured cost has not fallen by more
@@ -51,6 +52,7 @@ import numpy as np
 
 from flyknot.constants import N_JOINTS, N_KNOTS, N_ROWS
 from flyknot.errors import ConfigError
+from learner.knot_stops import Confirmation, StopAtSuccess
 from learner.rule_base import REPLAY, RETRY, STEP, STOP, Moves, Ruling, StopRule
 from learner.steps import Damping
 from learner.trial_view import Trial
@@ -76,80 +78,6 @@ class Retry(StopRule):
         if s.tracking_lost and s.fault is None and not s.success and s.attempt < self.retries:
             return Ruling(RETRY, self.name)
         return None
-
-
-class StopAtSuccess(StopRule):
-    """The paper's: stop at the first knot (``stop_at_success``, no ``confirm`` rule)."""
-
-    name = "success"
-    description = "stop at the first knot (the paper's)"
-
-    def __init__(self, params: ILCParams) -> None:
-        self.on = params.stop_at_success and params.confirm is None
-
-    def verdict(self, trial: Trial) -> Ruling | None:
-        """Stop when the trial tied the knot."""
-        return Ruling(STOP, self.name, "success") if self.on and trial.summary.success else None
-
-
-class Confirmation(StopRule):
-    """The confirmed-success rule ``confirm = (k, n)``: a tie is played again until n trials
-    of its command have run; stop when k tie, learn on once k can no longer be reached."""
-
-    name = "confirm"
-    description = "a tie played again until k of n tie (confirm = k/n)"
-
-    def __init__(self, params: ILCParams) -> None:
-        self.k_of_n = params.confirm
-        self.streak: list[bool] = []
-        """The outcomes of the current command's trials since its first tie."""
-
-    @property
-    def active(self) -> bool:
-        """A confirmation is under way (started, not yet decided)."""
-        return bool(self.streak) and self.outcome is None
-
-    @property
-    def outcome(self) -> str | None:
-        """``"confirmed"``, ``"failed"`` (k can no longer be reached, or n ran short) or None."""
-        if not self.streak or self.k_of_n is None:
-            return None
-        k, n = self.k_of_n
-        ties = sum(self.streak)
-        if ties >= k:
-            return "confirmed"
-        if ties + (n - len(self.streak)) < k:
-            return "failed"
-        return None
-
-    def observe(self, trial: Trial) -> None:
-        """A tie starts a confirmation; a trial inside one adds its outcome and its position
-        to the line (``confirm``, the action's prefix)."""
-        if self.k_of_n is None:
-            return
-        s = trial.summary
-        if self.active:
-            self.streak.append(bool(s.success))
-        elif s.success:
-            self.streak = [True]
-        else:
-            return
-        position = len(self.streak)
-        action = f"confirm {position}/{self.k_of_n[1]}: " + s.action
-        trial.summary = replace(s, confirm=position, action=action)
-
-    def verdict(self, trial: Trial) -> Ruling | None:
-        """Stop when confirmed; play the command again while the confirmation runs."""
-        if self.outcome == "confirmed":
-            return Ruling(STOP, self.name, "confirmed")
-        if self.active:
-            return Ruling(REPLAY, self.name)
-        return None
-
-    def settle(self, trial: Trial, ruling: Ruling) -> None:
-        """Forget a confirmation that can no longer succeed."""
-        if self.outcome == "failed":
-            self.streak = []
 
 
 class Plateau(StopRule):

@@ -50,6 +50,9 @@ def test_every_scenario_file_validates(path: Path):
         assert run.learner.update.weights == scenario_weights(), run.name
         assert run.window == SCENARIO_WINDOW, run.name
         assert run.demo == SCENARIO_DEMO or scen.kind == "demos", run.name
+        # a knot the learner converged on, but where a confirmation is the stop or none is
+        stops_at_knot = run.learner.stop_at_success and run.learner.confirm is None
+        assert run.learner.converged_knot is stops_at_knot, run.name
 
 
 def test_transfer_covers_all_49_pairs_after_the_learning_runs():

@@ -4,6 +4,7 @@ run share, so a run resumed after any line of its ledger holds the state the loo
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 
 import numpy as np
@@ -172,6 +173,11 @@ SCENARIOS = {
         {"shifted": {2, 3}},
         ["update (damped", "cost rose: from the best command", "explore: from the best command"],
     ),
+    "converged knot": (
+        {"max_trials": 6, "step": "damped", "converged_knot": True},
+        {"ties": {1, 2, 3, 4, 5}},
+        ["update (damped"],
+    ),
     "plateau": (
         {"max_trials": 8, "plateau": PlateauParams(patience=2, noise=0.5)},
         {"shifted": {2}},
@@ -230,6 +236,7 @@ def _ledger(run_dir):
         ("safeguard and average", 2),  # after a group whose last play is the best trial
         ("safeguard and average", 4),  # then back to the best command
         ("explore", 5),  # after an exploring step
+        ("converged knot", 3),  # after two knots the learner has not converged on
         ("damped, secant and the first command averaged", 2),  # inside the first group
         ("damped, secant and the first command averaged", 5),  # after a rise, from the group
     ],
@@ -372,6 +379,82 @@ def test_the_plateau_stops_after_patience_trials_without_progress(
     assert rule.best == 0.85
 
 
+def _seen(k, cost, knot):
+    """A counted trial as the stop at a knot sees it: its index, cost and verdict."""
+    summary = TrialSummary(
+        trial=k, attempt=0, fault=None, knot="trefoil" if knot else "unknot",
+        tracking_lost=cost is None, cost=cost, update_solved=True, update_status="solved",
+        predicted_cost_after=None, action="update", wall_s=0.0,
+        verdict={"klass": "knot" if knot else "unknot"},
+    )  # fmt: skip
+    hooks = dict.fromkeys(("record", "cost_at", "own_update", "average_over"))
+    return type("Seen", (Trial,), hooks)(summary, np.zeros((10, 8)), None)
+
+
+@pytest.mark.parametrize(
+    ("costs_knots", "rulings"),
+    [
+        # the paper's rope-1 seed 1: a knot while the cost falls 8.5 -> 2.52, another at 2.37
+        ([(8.5, False), (2.52, True), (2.37, True)], [None, None, "success (converged)"]),
+        # a rise is converged too; a fall of exactly the band is (c_k >= 0.7 c*)
+        ([(3.0, False), (3.2, True)], [None, "success (converged)"]),
+        ([(3.0, False), (2.1, True)], [None, "success (converged)"]),
+        (
+            [(3.0, False), (2.09, True), (2.0, False), (2.5, True)],
+            [None, None, None, "success (converged)"],
+        ),
+        # a knot with nothing measured before it, or without a cost, learns on
+        ([(3.0, True), (None, True), (2.9, True)], [None, None, "success (converged)"]),
+        # the last trial stops at its knot whatever its cost
+        ([(9.0, False), (8.0, False), (7.0, False), (1.0, True)], [None, None, None, "success"]),
+    ],
+)
+def test_a_knot_stops_the_converged_rule_once_the_cost_stops_falling(costs_knots, rulings):
+    """c_k >= (1 - nu) min_{j<k} c_j with nu = damping.noise 0.3 (``converged_knot``)."""
+    params = ILCParams(
+        max_trials=4, step="damped", converged_knot=True, damping=DampingParams(noise=0.3)
+    )
+    rule = stops.StopAtSuccess(params)
+    got = []
+    for k, (cost, knot) in enumerate(costs_knots):
+        trial = _seen(k, cost, knot)
+        rule.observe(trial)
+        ruling = rule.verdict(trial)
+        got.append(None if ruling is None else ruling.why)
+    assert got == rulings
+    paper = stops.StopAtSuccess(ILCParams(max_trials=4))
+    trial = _seen(0, 8.5, True)
+    paper.observe(trial)
+    assert paper.verdict(trial).why == "success"  # the paper's: the first knot
+    for off in ({"stop_at_success": False}, {"confirm": (2, 3)}):  # no stop at a knot here
+        rule = stops.StopAtSuccess(ILCParams(max_trials=4, converged_knot=True, **off))
+        for k, (cost, knot) in enumerate([(8.5, False), (8.4, True)]):
+            trial = _seen(k, cost, knot)
+            rule.observe(trial)
+            assert rule.verdict(trial) is None
+
+
+def test_the_converged_knot_learns_on_past_a_falling_knot(arm, setup, monkeypatch, tmp_path):
+    """On the model-as-lab every update lowers the cost far beyond the noise band, so a knot
+    on trials 2-6 learns on to the last trial, which stops at its knot; the paper's rule
+    stops at the first."""
+    options, script, _ = SCENARIOS["converged knot"]
+    cell, _, res = _run(arm, setup, monkeypatch, tmp_path / "a", options, script)
+    costs = [s.cost for s in res.trials]
+    assert all(b < 0.7 * a for a, b in itertools.pairwise(costs)), costs
+    assert res.first_success_trial == 1
+    assert len(res.trials) == 6 and res.stopped_because == "success"
+    np.testing.assert_array_equal(res.final_knots, cell.played[-1])
+    paper = {k: v for k, v in options.items() if k != "converged_knot"}
+    _, _, first = _run(arm, setup, monkeypatch, tmp_path / "b", paper, script)
+    assert len(first.trials) == 2 and first.stopped_because == "success"
+    # a knot that never converged before the budget ran out: the command of the last tie
+    cell, _, res = _run(arm, setup, monkeypatch, tmp_path / "c", options, {"ties": {1, 3}})
+    assert res.stopped_because == "max_trials (knot tied)" and len(res.trials) == 6
+    np.testing.assert_array_equal(res.final_knots, cell.played[3])
+    assert not np.array_equal(res.final_knots, cell.played[5])
+
+
 class _Line:
     """A counted trial as the plateau sees it: its cost."""
 
@@ -473,3 +556,15 @@ def test_a_step_from_an_averaged_best_is_on_its_groups_mean_error(
     assert [s.average for s in res.trials[:3]] == [1, 2, 3]
     assert (2, 2, 0.25, True) in calls  # the group's update, at the loop's own lambda
     assert (2, 2, 0.5, False) in calls  # from the best again after the fault
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"converged_knot": "yes"}, "converged_knot: must be true or false, got 'yes'"),
+    ],
+)
+def test_bad_converged_knot_settings_raise_exact_messages(kwargs, message):
+    with pytest.raises(ConfigError) as e:
+        ILCParams(**kwargs)
+    assert str(e.value) == message

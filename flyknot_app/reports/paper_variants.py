@@ -14,11 +14,13 @@ NO_FOLLOW_THROUGH = (
     "follow_through=false",
     "damping.noise=0",
     "damping.common_time=false",
+    "converged_knot=false",
     *(f"weights.{w}={getattr(InverseModelWeights(), w):g}" for w in FOLLOW_WEIGHTS),
 )
 """The learner options of the ``no-follow-through`` variant: the scenarios' learner without
-the follow-through term, the damped step's noise band and its common time (the follow-through
-weights back at the paper's, which the term's absence leaves unused)."""
+the follow-through term, the damped step's noise band and its common time, stopping at the
+first knot (the follow-through weights back at the paper's, which the term's absence leaves
+unused)."""
 
 
 PAPER_VELOCITY_WEIGHT = 0.00375
@@ -92,7 +94,8 @@ VARIANTS: dict[str, Variant] = {
         Variant(
             "no-follow-through",
             NO_FOLLOW_THROUGH,
-            "without the follow-through term, the noise band and the common time (learner options)",
+            "without the follow-through term, the noise band, the common time and the converged "
+            "knot (learner options)",
             skips=("01-tracking",),  # no update
             results=(
                 Part(("02-objectives", "03-ropes", "04-success-rate", "05-demos", "08-certainty")),
