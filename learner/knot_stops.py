@@ -39,7 +39,7 @@ class StopAtSuccess(StopRule):
         """Keep the lowest cost measured so far, the one before this trial, and the last
         tie."""
         self.before = self.lowest
-        if self.converged and trial.summary.success:
+        if self.on and self.converged and trial.summary.success:
             self.tied = trial
         cost = trial.summary.cost if trial.measured else None
         if cost is not None and (self.lowest is None or cost < self.lowest):

@@ -432,6 +432,7 @@ def test_a_knot_stops_the_converged_rule_once_the_cost_stops_falling(costs_knots
             trial = _seen(k, cost, knot)
             rule.observe(trial)
             assert rule.verdict(trial) is None
+        assert rule.tied is None  # nor does it keep a command
 
 
 def test_the_converged_knot_learns_on_past_a_falling_knot(arm, setup, monkeypatch, tmp_path):
