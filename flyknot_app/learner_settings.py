@@ -32,14 +32,13 @@ PAPER_SETTINGS = (
     "path_frac=0.05",
     "follow_through_s=0.035",
 )
-"""The paper's learner settings (``flyknot run --paper-settings``, laid over a scenario's
-defaults and under each run's own fields): the critical-point objective, ILC gain 1 with the
-fixed-gain step, the rope model's own Jacobian, the follow-through term, the stop at the first
-knot, control weight 0.5,
-the critical point's velocity weight 0.00375, the follow-through weights of the paper's
-appendix (``InverseModelWeights``' defaults), rope model bending stiffness 1e5 and damping
-50, the demonstration window from 5 % of the hand path to t_c + 35 ms (Suresh & Atkeson; the
-scenario files' own values and why they differ: README "Learner settings")."""
+"""The paper's learner settings (``flyknot run --paper-settings``, laid over a scenario's defaults
+and under each run's own fields): the critical-point objective, ILC gain 1 with the fixed-gain
+step, the rope model's own Jacobian, the follow-through term, the stop at the first knot,
+control weight 0.5, the critical point's velocity weight 0.00375, the follow-through weights of
+the paper's appendix (``InverseModelWeights``' defaults), rope model bending stiffness 1e5 and
+damping 50, the demonstration window from 5 % of the hand path to t_c + 35 ms (Suresh &
+Atkeson; the scenario files' own values and why they differ: README "Learner settings")."""
 
 SCENARIO_DEMO = "fast-paced"
 """The demonstration every shipped scenario learns rope 1 from: a person's throw at a person's

@@ -380,7 +380,8 @@ def test_the_plateau_stops_after_patience_trials_without_progress(
 
 
 def _seen(k, cost, knot):
-    """A counted trial as the stop at a knot sees it: its index, cost and verdict."""
+    """A counted trial as a rule sees it: its index, cost and verdict (its command: k
+    everywhere; a rule that asks for its record or update is not tested with it)."""
     summary = TrialSummary(
         trial=k, attempt=0, fault=None, knot="trefoil" if knot else "unknot",
         tracking_lost=cost is None, cost=cost, update_solved=True, update_status="solved",
@@ -388,7 +389,7 @@ def _seen(k, cost, knot):
         verdict={"klass": "knot" if knot else "unknot"},
     )  # fmt: skip
     hooks = dict.fromkeys(("record", "cost_at", "own_update", "average_over"))
-    return type("Seen", (Trial,), hooks)(summary, np.zeros((10, 8)), None)
+    return type("Seen", (Trial,), hooks)(summary, np.full((10, 8), float(k)), None)
 
 
 @pytest.mark.parametrize(
@@ -494,20 +495,9 @@ def test_exploring_waits_for_patience_near_the_floor_and_a_new_best_hands_back()
     explore = ExploreParams(size=0.1, patience=2, band=0.5)
     rule = stops.Explore(ILCParams(step="damped", explore=explore))
 
-    class Seen(Trial):
-        def __init__(self, k, cost):
-            summary = TrialSummary(
-                trial=k, attempt=0, fault=None, knot=None, tracking_lost=False, cost=cost,
-                update_solved=True, update_status="solved", predicted_cost_after=None,
-                action="update", wall_s=0.0,
-            )  # fmt: skip
-            super().__init__(summary, np.full((10, 8), float(k)), None)
-
-        record = cost_at = own_update = average_over = None  # not asked by the rule
-
     rulings = []
     for k, cost in enumerate([5.0, 1.0, 3.0, 1.2, 1.4, 0.5]):
-        trial = Seen(k, cost)
+        trial = _seen(k, cost, knot=False)
         rule.observe(trial)
         rulings.append(rule.verdict(trial))
     assert [r is not None for r in rulings] == [False, False, False, False, True, False]
@@ -515,7 +505,7 @@ def test_exploring_waits_for_patience_near_the_floor_and_a_new_best_hands_back()
     assert rule.best.summary.trial == 5 and rule.since == 0
     off = stops.Explore(ILCParams(step="damped"))  # size 0: never
     for k, cost in enumerate([5.0, 6.0, 7.0, 8.0]):
-        trial = Seen(k, cost)
+        trial = _seen(k, cost, knot=False)
         off.observe(trial)
         assert off.verdict(trial) is None
 
