@@ -43,7 +43,9 @@ def load_command(path: str | Path) -> JointCommand:
     """A command file (README, "Command files"): ``.csv``/``.npy`` joint targets
     (:meth:`JointCommand.load`); ``.npz`` Bezier knots (``knots`` (10, 8) and ``T`` [s], as
     the robot demonstration's seed ``assets/demos/seeds/robot_command.npz`` holds); or a run's
-    ``final_knots.npy`` (10, 8), whose duration ``T`` is read from ``result.json`` beside it.
+    ``final_knots.npy`` (10, 8), whose duration ``T`` is read from ``result.json`` beside it,
+    or a learning trial's ``RUN/learning/knots_NNNN.npy`` (trial NNNN + 1's command), ``T``
+    from the run's ``RUN/result.json``.
 
     Raises:
         CommandError: A missing file, or one whose content is no command: one line naming
@@ -96,13 +98,16 @@ def _bezier_command(path: Path, knots: np.ndarray, T: float) -> JointCommand:
 
 
 def duration_beside(path: Path) -> float:
-    """T [s] from the ``result.json`` beside a run's ``final_knots.npy``."""
-    result = path.with_name("result.json")
+    """T [s] of a run's knots: from the ``result.json`` beside ``RUN/final_knots.npy``, or
+    from the run's ``RUN/result.json`` for a learning trial's ``RUN/learning/knots_NNNN.npy``
+    (a run plays every trial over the same T)."""
+    in_learning = path.parent.name == "learning"
+    result = path.parent.parent / "result.json" if in_learning else path.with_name("result.json")
     if not result.is_file():
+        where = f"the run's {str(result)!r}" if in_learning else "result.json beside it"
         raise CommandError(
             f"command file {str(path)!r} holds Bezier knots (10, 8): their duration T is "
-            "read from result.json beside it, which is missing (or give an .npz with "
-            "knots and T)"
+            f"read from {where}, which is missing (or give an .npz with knots and T)"
         )
     try:
         return float(json.loads(result.read_text())["T"])
@@ -281,7 +286,8 @@ def add_trial_parsers(sub) -> None:
         "--command",
         required=True,
         help="command file (.csv or .npy joint targets; .npz Bezier knots with knots and T; "
-        "a run's final_knots.npy, T from result.json beside it)",
+        "a run's final_knots.npy, T from result.json beside it; a learning trial's "
+        "RUN/learning/knots_NNNN.npy, T from RUN/result.json)",
     )
     t.add_argument(
         "--repeats",

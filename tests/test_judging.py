@@ -195,6 +195,29 @@ def test_a_learned_command_replays_from_its_run(tmp_path):
     np.testing.assert_array_equal(load_command(tmp_path / "k.npz").q, got.q)
 
 
+def test_a_learning_trial_s_command_replays_with_its_run_s_duration(tmp_path):
+    """``RUN/learning/knots_NNNN.npy`` takes T from ``RUN/result.json``, not from beside it."""
+    from flyknot.errors import CommandError
+    from flyknot_app.trial_cli import load_command
+    from learner.bezier import BezierCommand
+
+    knots = np.load(Path(__file__).parent.parent / "assets/demos/seeds/robot_command.npz")["knots"]
+    learning = tmp_path / "rope4" / "learning"
+    learning.mkdir(parents=True)
+    np.save(learning / "knots_0002.npy", knots)
+    with pytest.raises(CommandError) as e:
+        load_command(learning / "knots_0002.npy")
+    assert str(e.value).startswith(
+        f"command file {str(learning / 'knots_0002.npy')!r} holds Bezier knots (10, 8): their "
+        f"duration T is read from the run's {str(tmp_path / 'rope4' / 'result.json')!r}, "
+        "which is missing (or give an .npz with knots and T)"
+    )
+    (learning / "result.json").write_text(json.dumps({"T": 0.5}))
+    (tmp_path / "rope4" / "result.json").write_text(json.dumps({"T": 1.044}))
+    got = load_command(learning / "knots_0002.npy")
+    np.testing.assert_array_equal(got.q, BezierCommand(knots, 1.044).joint_command().q)
+
+
 def test_pictures_draw_the_rope_at_its_true_size():
     from flyknot_app.viewer.render import rope_radius_of
 
