@@ -114,7 +114,7 @@ def duration_beside(path: Path) -> float:
     except (ValueError, KeyError, TypeError) as e:
         raise CommandError(
             f"command file {str(path)!r} holds Bezier knots (10, 8), but {str(result)!r} "
-            f"beside it holds no duration T ({type(e).__name__}: {e})"
+            f"holds no duration T ({type(e).__name__}: {e})"
         ) from None
 
 

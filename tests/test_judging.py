@@ -213,6 +213,13 @@ def test_a_learning_trial_s_command_replays_with_its_run_s_duration(tmp_path):
         "which is missing (or give an .npz with knots and T)"
     )
     (learning / "result.json").write_text(json.dumps({"T": 0.5}))
+    (tmp_path / "rope4" / "result.json").write_text(json.dumps({"t_c": 0.8}))
+    with pytest.raises(CommandError) as e:
+        load_command(learning / "knots_0002.npy")
+    assert str(e.value).startswith(
+        f"command file {str(learning / 'knots_0002.npy')!r} holds Bezier knots (10, 8), but "
+        f"{str(tmp_path / 'rope4' / 'result.json')!r} holds no duration T (KeyError: 'T')"
+    )
     (tmp_path / "rope4" / "result.json").write_text(json.dumps({"T": 1.044}))
     got = load_command(learning / "knots_0002.npy")
     np.testing.assert_array_equal(got.q, BezierCommand(knots, 1.044).joint_command().q)
